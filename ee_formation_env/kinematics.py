@@ -1,0 +1,437 @@
+"""Kinematic model of a serial robot arm, parsed from its URDF.
+
+This is the project's single source of forward kinematics, translational Jacobians and the
+kinematic regressor of the paper (J^T(q, a) zeta = Z(q, zeta) a). It reads the URDF with
+``xml.etree`` and does not use PyBullet, so it is the same model for every simulator.
+
+Model. Along the path of joints k = 0 .. m-1 from the URDF root link to the end-effector link,
+each joint transform is T_k = Trans(d_k) Rot(rpy_k) Rot(axis_k, q_k) (URDF convention; the rpy
+rotation is Rz(yaw) Ry(pitch) Rx(roll), and fixed joints have no axis rotation). The position of
+the end-effector link frame in the root link frame is
+
+    p(q, a) = sum_k R_parent(k)(q) d_k,
+
+where R_parent(k) is the orientation of joint k's parent link (the product of every rotation
+before joint k). Rotations do not depend on translations, so p and the Jacobian are linear in
+the translations d_k. The kinematic parameter vector ``a`` stacks the components of the d_k that
+are non-zero in the URDF (|component| > 1e-12), in chain order, x before y before z; the other
+components are the constant zero. For a movable joint j with world axis omega_j the regressor is
+
+    Z[j, (k, c)] = zeta . (omega_j x R_parent(k) e_c)   if j comes strictly before k, else 0,
+
+so that J(q, a)^T zeta = Z(q, zeta) a for every a.
+
+Units: lengths in m, angles in rad, torques in N m, velocities in rad/s.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["JointSpec", "SerialChain"]
+
+#: Joint types the model supports on the root -> end-effector path.
+SUPPORTED_JOINT_TYPES = ("revolute", "continuous", "fixed")
+#: Joint types with one rotational degree of freedom.
+MOVABLE_JOINT_TYPES = ("revolute", "continuous")
+#: Translation components with a magnitude at or below this are constants (zero), not parameters.
+PARAM_ZERO_TOL = 1e-12
+
+_AXIS_NAMES = ("x", "y", "z")
+
+
+@dataclass(frozen=True, eq=False)
+class JointSpec:
+    """One URDF joint, as written in the file (arrays are read-only).
+
+    Equality is identity (the fields hold numpy arrays, which have no single truth value).
+    """
+
+    name: str
+    joint_type: str  # "revolute" | "continuous" | "fixed"
+    parent: str
+    child: str
+    origin_xyz: np.ndarray  # (3,) m, joint frame origin in the parent link frame
+    origin_rpy: np.ndarray  # (3,) rad, URDF fixed-axis roll-pitch-yaw
+    axis: np.ndarray  # (3,) unit vector in the joint frame; zeros for fixed joints
+    lower: float  # rad; -inf for continuous joints
+    upper: float  # rad; +inf for continuous joints
+    effort: float  # N m; inf if absent
+    velocity: float  # rad/s; inf if absent
+    damping: float  # N m s/rad; 0 if absent
+
+    @property
+    def movable(self) -> bool:
+        """True for revolute and continuous joints."""
+        return self.joint_type in MOVABLE_JOINT_TYPES
+
+
+def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """Rotation matrix of URDF roll-pitch-yaw angles (rad): Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
+    roll, pitch, yaw = (float(v) for v in rpy)
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix S(v), with S(v) @ w = v x w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+def _parse_vector(text: str | None, default: tuple[float, float, float], field: str) -> np.ndarray:
+    if text is None:
+        return np.array(default, dtype=float)
+    parts = text.split()
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise ValueError(f"{field}: expected 3 numbers, got {text!r}") from None
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{field}: expected 3 finite numbers, got {text!r}")
+    return np.array(values, dtype=float)
+
+
+def _parse_float(element: ET.Element | None, attribute: str, default: float, field: str) -> float:
+    if element is None or element.get(attribute) is None:
+        return default
+    text = element.get(attribute, "")
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{field}: expected a number, got {text!r}") from None
+
+
+def _parse_joint(element: ET.Element) -> JointSpec:
+    """Parse one <joint> element (any type; type checks are left to the caller)."""
+    name = element.get("name")
+    if not name:
+        raise ValueError("joint.name: a <joint> element has no name")
+    joint_type = element.get("type", "")
+    parent_el, child_el = element.find("parent"), element.find("child")
+    parent = parent_el.get("link") if parent_el is not None else None
+    child = child_el.get("link") if child_el is not None else None
+    if not parent or not child:
+        raise ValueError(f"joint {name!r}: <parent link> and <child link> are required")
+
+    origin = element.find("origin")
+    xyz = _parse_vector(origin.get("xyz") if origin is not None else None, (0, 0, 0),
+                        f"joint {name!r} origin.xyz")
+    rpy = _parse_vector(origin.get("rpy") if origin is not None else None, (0, 0, 0),
+                        f"joint {name!r} origin.rpy")
+
+    limit = element.find("limit")
+    effort = _parse_float(limit, "effort", math.inf, f"joint {name!r} limit.effort")
+    velocity = _parse_float(limit, "velocity", math.inf, f"joint {name!r} limit.velocity")
+    damping = _parse_float(element.find("dynamics"), "damping", 0.0,
+                           f"joint {name!r} dynamics.damping")
+
+    if joint_type in MOVABLE_JOINT_TYPES:
+        axis_el = element.find("axis")
+        axis = _parse_vector(axis_el.get("xyz") if axis_el is not None else None, (1, 0, 0),
+                             f"joint {name!r} axis.xyz")
+        norm = float(np.linalg.norm(axis))
+        if norm < 1e-9:
+            raise ValueError(f"joint {name!r} axis.xyz: zero axis")
+        axis = axis / norm
+    else:
+        axis = np.zeros(3)
+
+    if joint_type == "continuous":
+        lower, upper = -math.inf, math.inf
+    elif joint_type == "revolute":
+        if limit is None:
+            raise ValueError(f"joint {name!r} limit: a revolute joint needs <limit lower upper>")
+        lower = _parse_float(limit, "lower", 0.0, f"joint {name!r} limit.lower")
+        upper = _parse_float(limit, "upper", 0.0, f"joint {name!r} limit.upper")
+        if not lower <= upper:
+            raise ValueError(f"joint {name!r} limit: lower {lower} > upper {upper}")
+    else:
+        lower = _parse_float(limit, "lower", 0.0, f"joint {name!r} limit.lower")
+        upper = _parse_float(limit, "upper", 0.0, f"joint {name!r} limit.upper")
+
+    return JointSpec(
+        name=name,
+        joint_type=joint_type,
+        parent=parent,
+        child=child,
+        origin_xyz=_read_only(xyz),
+        origin_rpy=_read_only(rpy),
+        axis=_read_only(axis),
+        lower=lower,
+        upper=upper,
+        effort=effort,
+        velocity=velocity,
+        damping=damping,
+    )
+
+
+def _chain_from_root(root: ET.Element, ee_link: str) -> tuple[str, list[JointSpec]]:
+    """Root link name and the joints on the path root -> ee_link, in order."""
+    links = [el.get("name", "") for el in root.findall("link")]
+    if ee_link not in links:
+        raise ValueError(f"ee_link {ee_link!r} is not a link of the URDF; links: {links}")
+
+    joint_by_child: dict[str, ET.Element] = {}
+    for joint_el in root.findall("joint"):
+        child_el = joint_el.find("child")
+        child = child_el.get("link") if child_el is not None else None
+        if child in joint_by_child:
+            raise ValueError(f"URDF: link {child!r} is the child of more than one joint")
+        if child is not None:
+            joint_by_child[child] = joint_el
+    roots = [name for name in links if name not in joint_by_child]
+    if len(roots) != 1:
+        raise ValueError(f"URDF: expected exactly one root link, found {roots}")
+    base_link = roots[0]
+
+    path: list[ET.Element] = []
+    link = ee_link
+    while link in joint_by_child:
+        joint_el = joint_by_child[link]
+        path.append(joint_el)
+        if len(path) > len(joint_by_child):
+            raise ValueError(f"URDF: the joints above link {ee_link!r} form a cycle")
+        parent_el = joint_el.find("parent")
+        link = parent_el.get("link", "") if parent_el is not None else ""
+    if link != base_link:
+        raise ValueError(f"no path from root link {base_link!r} to ee_link {ee_link!r}")
+    path.reverse()
+
+    joints = [_parse_joint(el) for el in path]
+    for joint in joints:
+        if joint.joint_type not in SUPPORTED_JOINT_TYPES:
+            raise ValueError(
+                f"joint {joint.name!r} on the path to {ee_link!r} has type {joint.joint_type!r}; "
+                f"supported: {SUPPORTED_JOINT_TYPES}"
+            )
+    for joint_el in path:
+        if joint_el.find("mimic") is not None:
+            raise ValueError(f"joint {joint_el.get('name')!r}: mimic joints are not supported")
+    if not any(joint.movable for joint in joints):
+        raise ValueError(f"no path: no movable joint between {base_link!r} and {ee_link!r}")
+    return base_link, joints
+
+
+class SerialChain:
+    """Kinematic model of one serial arm from its URDF root link to an end-effector link.
+
+    Every pose-dependent quantity is in the root (base) link frame. ``q`` is a (n,) vector of
+    the movable joint angles in rad, base to tip; ``params`` is an optional (p,) kinematic
+    parameter vector ``a`` in m replacing :attr:`nominal_params`.
+
+    Internally the chain is split into n + 1 segments: segment 0 is expressed in the root frame,
+    segment i + 1 in the child frame F_{i+1} of movable joint i. Fixed-joint rotations are folded
+    into constants, so one evaluation does n - 1 small matrix products whatever the fixed joints.
+    """
+
+    def __init__(self, urdf_path: Path, robot_name: str, base_link: str, ee_link: str,
+                 joints: tuple[JointSpec, ...]) -> None:
+        """Build the model from parsed joints (root to ee); use :meth:`from_urdf` to read a file."""
+        self.urdf_path = urdf_path
+        self.robot_name = robot_name
+        self.base_link = base_link
+        self.ee_link = ee_link
+        self.joints = joints
+        movable = [j for j in joints if j.movable]
+        self.joint_names: tuple[str, ...] = tuple(j.name for j in movable)
+        self.n_joints: int = len(movable)
+        self.lower = _read_only(np.array([j.lower for j in movable]))
+        self.upper = _read_only(np.array([j.upper for j in movable]))
+        self.effort_limits = _read_only(np.array([j.effort for j in movable]))
+        self.velocity_limits = _read_only(np.array([j.velocity for j in movable]))
+        self.joint_damping = _read_only(np.array([j.damping for j in movable]))
+        self.continuous = _read_only(np.array([j.joint_type == "continuous" for j in movable]))
+
+        n = self.n_joints
+        # Rotation across movable joint i at angle q: P_i + sin(q) B_i + (1 - cos(q)) C_i
+        # (Rodrigues, pre-multiplied by the constant rotations of the fixed joints since the
+        # previous movable joint and of joint i's rpy).
+        self._rot_p = np.empty((n, 3, 3))
+        self._rot_b = np.empty((n, 3, 3))
+        self._rot_c = np.empty((n, 3, 3))
+        self._axes = np.array([j.axis for j in movable]).reshape(n, 3, 1)  # in frame F_{i+1}
+
+        names: list[str] = []
+        segments: list[int] = []
+        directions: list[np.ndarray] = []  # unit vector of each parameter in its segment frame
+        values: list[float] = []
+        segment = 0
+        constant = np.eye(3)  # rotation from the segment frame to the current joint's parent
+        for joint in joints:
+            for c in range(3):
+                value = float(joint.origin_xyz[c])
+                if abs(value) > PARAM_ZERO_TOL:
+                    names.append(f"{joint.name}.{_AXIS_NAMES[c]}")
+                    segments.append(segment)
+                    directions.append(constant[:, c].copy())
+                    values.append(value)
+            rotation = constant @ rpy_to_matrix(joint.origin_rpy)
+            if joint.movable:
+                skew = _skew(joint.axis)
+                self._rot_p[segment] = rotation
+                self._rot_b[segment] = rotation @ skew
+                self._rot_c[segment] = rotation @ skew @ skew
+                segment += 1
+                constant = np.eye(3)
+            else:
+                constant = rotation
+
+        self.param_names: tuple[str, ...] = tuple(names)
+        self.nominal_params = _read_only(np.array(values, dtype=float))
+        p = len(names)
+        self._param_segment = np.array(segments, dtype=np.intp)
+        self._param_directions = np.array(directions, dtype=float).reshape(p, 3, 1)
+        # Segment translations t (n + 1, 3) = reshape(_param_map @ a).
+        self._param_map = np.zeros((n + 1, 3, p))
+        for index, (seg, direction) in enumerate(zip(segments, directions)):
+            self._param_map[seg, :, index] = direction
+        self._param_map = self._param_map.reshape(3 * (n + 1), p)
+        self._nominal_translations = (self._param_map @ self.nominal_params).reshape(n + 1, 3, 1)
+        # Movable joint j (row) moves parameter i (column) iff parameter i's segment is after j.
+        self._regressor_mask = np.arange(n)[:, None] < self._param_segment[None, :]
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_urdf(cls, urdf_path: str | os.PathLike, ee_link: str) -> "SerialChain":
+        """Parse ``urdf_path`` and model the chain from its root link to ``ee_link``.
+
+        Raises ValueError if the file is missing or not parseable, ``ee_link`` is not a link,
+        there is no path, or a joint on the path is not revolute, continuous or fixed.
+        """
+        path = Path(urdf_path)
+        if not path.is_file():
+            raise ValueError(f"urdf file not found: {path}")
+        try:
+            root = ET.parse(path).getroot()
+        except ET.ParseError as exc:
+            raise ValueError(f"urdf file not parseable: {path}: {exc}") from None
+        if root.tag != "robot":
+            raise ValueError(f"urdf file not parseable: {path}: root element is <{root.tag}>, "
+                             "expected <robot>")
+        base_link, joints = _chain_from_root(root, ee_link)
+        return cls(path.resolve(), root.get("name", ""), base_link, ee_link, tuple(joints))
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def n_params(self) -> int:
+        """Length p of the kinematic parameter vector."""
+        return len(self.param_names)
+
+    def __repr__(self) -> str:
+        return (f"SerialChain({self.robot_name!r}, {self.base_link!r} -> {self.ee_link!r}, "
+                f"n_joints={self.n_joints}, n_params={self.n_params})")
+
+    def _translations(self, params: np.ndarray | list[float] | None) -> np.ndarray:
+        """Segment translations (n + 1, 3, 1), m, for a parameter vector (None: nominal)."""
+        if params is None:
+            return self._nominal_translations
+        a = np.asarray(params, dtype=float)
+        if a.shape != (self.n_params,):
+            raise ValueError(f"params: expected shape ({self.n_params},), got {a.shape}")
+        return (self._param_map @ a).reshape(self.n_joints + 1, 3, 1)
+
+    def _frames(self, q: np.ndarray | list[float]) -> np.ndarray:
+        """Segment frame orientations (n + 1, 3, 3) in the base frame; frames[0] = identity."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.n_joints,):
+            raise ValueError(f"q: expected shape ({self.n_joints},), got {q.shape}")
+        frames = np.empty((self.n_joints + 1, 3, 3))
+        frames[0] = _IDENTITY
+        local = frames[1:]
+        np.multiply(np.sin(q)[:, None, None], self._rot_b, out=local)
+        local += self._rot_p
+        local += (1.0 - np.cos(q))[:, None, None] * self._rot_c
+        for i in range(2, self.n_joints + 1):
+            np.matmul(frames[i - 1], frames[i], out=frames[i])
+        return frames
+
+    # ------------------------------------------------------------------ kinematics
+    def forward(self, q: np.ndarray | list[float],
+                params: np.ndarray | list[float] | None = None) -> np.ndarray:
+        """End-effector link frame position (3,) in the base link frame, m."""
+        frames = self._frames(q)
+        return (frames @ self._translations(params)).sum(axis=0)[:, 0]
+
+    def jacobian(self, q: np.ndarray | list[float],
+                 params: np.ndarray | list[float] | None = None) -> np.ndarray:
+        """Translational Jacobian (3, n) of the end-effector position in the base frame, m/rad."""
+        return self.forward_and_jacobian(q, params)[1]
+
+    def forward_and_jacobian(self, q: np.ndarray | list[float],
+                             params: np.ndarray | list[float] | None = None
+                             ) -> tuple[np.ndarray, np.ndarray]:
+        """End-effector position (3,), m, and translational Jacobian (3, n), m/rad, one pass."""
+        frames = self._frames(q)
+        steps = (frames @ self._translations(params))[:, :, 0]  # (n + 1, 3) in the base frame
+        origins = np.cumsum(steps, axis=0)  # origins[i]: origin of movable joint i; [n]: ee
+        position = origins[-1]
+        axes = (frames[1:] @ self._axes)[:, :, 0]  # (n, 3) joint axes in the base frame
+        lever = position - origins[:-1]  # (n, 3)
+        jac = axes[:, _CROSS_A] * lever[:, _CROSS_B]
+        jac -= axes[:, _CROSS_B] * lever[:, _CROSS_A]
+        return position, jac.T
+
+    def forward_batch(self, q_batch: np.ndarray,
+                      params: np.ndarray | list[float] | None = None) -> np.ndarray:
+        """End-effector positions (k, 3), m, for joint angles q_batch (k, n), vectorized over k."""
+        q_batch = np.asarray(q_batch, dtype=float)
+        if q_batch.ndim != 2 or q_batch.shape[1] != self.n_joints:
+            raise ValueError(f"q_batch: expected shape (k, {self.n_joints}), got {q_batch.shape}")
+        translations = self._translations(params)[:, :, 0]
+        sin_q, vers_q = np.sin(q_batch), 1.0 - np.cos(q_batch)
+        position = np.broadcast_to(translations[0], (q_batch.shape[0], 3)).copy()
+        frame: np.ndarray | None = None
+        for i in range(self.n_joints):
+            local = (self._rot_p[i] + sin_q[:, i, None, None] * self._rot_b[i]
+                     + vers_q[:, i, None, None] * self._rot_c[i])
+            frame = local if frame is None else frame @ local
+            position += frame @ translations[i + 1]
+        return position
+
+    def regressor(self, q: np.ndarray | list[float], zeta: np.ndarray | list[float]) -> np.ndarray:
+        """Kinematic regressor Z(q, zeta) (n, p) with J(q, a)^T zeta = Z(q, zeta) @ a for all a.
+
+        ``zeta`` is a (3,) vector in the base frame, or (2,) for planar formations (z = 0).
+        """
+        zeta = np.asarray(zeta, dtype=float)
+        if zeta.shape == (2,):
+            zeta = np.array([zeta[0], zeta[1], 0.0])
+        elif zeta.shape != (3,):
+            raise ValueError(f"zeta: expected shape (3,) or (2,), got {zeta.shape}")
+        frames = self._frames(q)
+        axes = (frames[1:] @ self._axes)[:, :, 0]  # (n, 3)
+        # zeta . (omega_j x v) = (zeta x omega_j) . v
+        zeta_x_axes = zeta[_CROSS_A] * axes[:, _CROSS_B] - zeta[_CROSS_B] * axes[:, _CROSS_A]
+        columns = (frames[self._param_segment] @ self._param_directions)[:, :, 0]  # (p, 3)
+        return (zeta_x_axes @ columns.T) * self._regressor_mask
+
+    def sample_configurations(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """Joint angles (count, n), rad, uniform within the limits; continuous in [-pi, pi)."""
+        low = np.where(self.continuous, -math.pi, self.lower)
+        high = np.where(self.continuous, math.pi, self.upper)
+        return rng.uniform(low, high, size=(count, self.n_joints))
+
+
+_IDENTITY = np.eye(3)
+# a x b = a[_CROSS_A] * b[_CROSS_B] - a[_CROSS_B] * b[_CROSS_A], component-wise.
+_CROSS_A = np.array([1, 2, 0])
+_CROSS_B = np.array([2, 0, 1])

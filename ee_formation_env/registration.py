@@ -1,0 +1,32 @@
+"""Registration of the built-in scenarios in PettingZoo's and Gymnasium's registries."""
+
+from __future__ import annotations
+
+import gymnasium
+import pettingzoo
+
+from ee_formation_env.scenario import BUILTIN_SCENARIOS
+
+PETTINGZOO_NAMESPACE = "ee_formation"
+GYMNASIUM_NAMESPACE = "EEFormation"
+
+
+def gymnasium_id(scenario: str) -> str:
+    """``planar_square`` -> ``EEFormation/PlanarSquare-v0``."""
+    return f"{GYMNASIUM_NAMESPACE}/{''.join(part.capitalize() for part in scenario.split('_'))}-v0"
+
+
+def pettingzoo_id(scenario: str) -> str:
+    """``planar_square`` -> ``ee_formation/planar_square-v0``."""
+    return f"{PETTINGZOO_NAMESPACE}/{scenario}-v0"
+
+
+def register_all() -> None:
+    """Register every built-in scenario (idempotent)."""
+    for name in BUILTIN_SCENARIOS:
+        if pettingzoo_id(name) not in pettingzoo.parallel_registry:
+            pettingzoo.register("parallel", pettingzoo_id(name), entry_point="ee_formation_env:parallel_env",
+                                kwargs={"scenario": name})
+        if gymnasium_id(name) not in gymnasium.registry:
+            gymnasium.register(gymnasium_id(name), entry_point="ee_formation_env.centralized:CentralizedFormationEnv",
+                               kwargs={"scenario": name})
