@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from typing import Any, Mapping
 
 import gymnasium
@@ -12,6 +13,9 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from ee_formation_env.formation import Formation, FormationGraph
+from ee_formation_env.kinematics import SerialChain
+from ee_formation_env.mismatch import write_perturbed_urdf
+from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.robot import Arm
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.validation import initial_configuration, validate_scenario, workspace
@@ -57,7 +61,8 @@ class FormationEnv(ParallelEnv):
     **Info** of agent ``i``: ``formation_error`` (RMS over all edges of |e_k|, m^2 or m),
     ``edge_errors`` (its slots' errors, own frame), ``singularity_margin`` (smallest singular value of its
     Jacobian's first m rows, m), ``torque_saturation`` (fraction of its joints clipped this step),
-    ``clipped_actions`` (count of its action entries outside [-1, 1] so far this episode), ``contacts``
+    ``clipped_actions`` (count of its action entries outside [-1, 1] so far this episode),
+    ``applied_torque`` (the joint torques applied during the step, N m), ``contacts``
     (contact points with other arms), ``physics_fault`` ("" or the reason the episode was terminated),
     ``sim_time`` (s).
 
@@ -81,7 +86,8 @@ class FormationEnv(ParallelEnv):
             raise ValueError(f"render_mode: expected None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.scenario = scenario if isinstance(scenario, Scenario) and not overrides else load_scenario(
             scenario.to_dict() | {"name": scenario.name} if isinstance(scenario, Scenario) else scenario, **overrides)
-        self.models = validate_scenario(self.scenario)  # raises before any physics starts
+        # The nominal kinematic models (what controllers may know); raises before any physics starts.
+        self.nominal_models = validate_scenario(self.scenario)
         self.render_mode = render_mode
         sc = self.scenario
         self.formation = Formation(FormationGraph(sc.n_agents, sc.edges), sc.formation, np.asarray(sc.shape))
@@ -90,13 +96,12 @@ class FormationEnv(ParallelEnv):
         self.possible_agents = [f"arm_{i}" for i in range(sc.n_agents)]
         self.agents: list[str] = []
         self.torque_limits = [self._torque_limits(i) for i in range(sc.n_agents)]
-        self._nominal_q = [initial_configuration(arm, model) for arm, model in zip(sc.arms, self.models)]
+        self._nominal_q = [initial_configuration(arm, model) for arm, model in zip(sc.arms, self.nominal_models)]
         self._reaches = [workspace(arm.urdf, arm.ee_link, sc.dim).reach for arm in sc.arms]
         self._build_spaces()
 
         self.world = PhysicsWorld(sc.physics_hz, sc.gravity, render_mode)
-        self.arms = [Arm(self.world, arm, model, sc.joint_damping, sc.arm_collisions)
-                     for arm, model in zip(sc.arms, self.models)]
+        self.arms = self._load_arms()
         self._body_to_agent = {arm.body: i for i, arm in enumerate(self.arms)}
         for arm, q in zip(self.arms, self._nominal_q):
             arm.reset_state(q)
@@ -106,10 +111,29 @@ class FormationEnv(ParallelEnv):
         self._step_count = 0
         self._needs_reset = True
 
+    def _load_arms(self) -> list[Arm]:
+        """Load every arm once: the nominal URDF, or a perturbed copy under ``model_mismatch``."""
+        sc = self.scenario
+        if not sc.model_mismatch.active:
+            return [Arm(self.world, arm, model, sc.joint_damping, sc.arm_collisions)
+                    for arm, model in zip(sc.arms, self.nominal_models)]
+        rng = np.random.default_rng(sc.model_mismatch.seed)
+        arms = []
+        with tempfile.TemporaryDirectory(prefix="ee_formation_") as directory:
+            for arm, model in zip(sc.arms, self.nominal_models):
+                joints = [joint.name for joint in model.joints]
+                links = [joint.child for joint in model.joints]
+                length_scales = 1.0 + rng.uniform(-sc.model_mismatch.length, sc.model_mismatch.length, len(joints))
+                mass_scales = 1.0 + rng.uniform(-sc.model_mismatch.mass, sc.model_mismatch.mass, len(links))
+                urdf = write_perturbed_urdf(arm.urdf, joints, links, length_scales, mass_scales, directory)
+                true_model = SerialChain.from_urdf(urdf, arm.ee_link)
+                arms.append(Arm(self.world, arm, true_model, sc.joint_damping, sc.arm_collisions, urdf=urdf))
+        return arms
+
     # ------------------------------------------------------------------------------------------ spaces
     def _torque_limits(self, index: int) -> np.ndarray:
         limits = self.scenario.torque_limits
-        model = self.models[index]
+        model = self.nominal_models[index]
         if limits is None:
             values = model.effort_limits
             if not np.all(np.isfinite(values) & (values > 0)):
@@ -145,7 +169,7 @@ class FormationEnv(ParallelEnv):
                 desired_low, desired_high, error_bound = -z_bound, z_bound, 2 * z_bound
             slot_low = np.concatenate([[0.0], np.full(m, -z_bound), np.full(w, desired_low), np.full(w, -error_bound)])
             slot_high = np.concatenate([[1.0], np.full(m, z_bound), np.full(w, desired_high), np.full(w, error_bound)])
-            model = self.models[i]
+            model = self.nominal_models[i]
             q_low = np.where(model.continuous, -math.pi, model.lower)
             q_high = np.where(model.continuous, math.pi, model.upper)
             v = np.full(model.n_joints, sc.max_joint_velocity)
@@ -170,6 +194,11 @@ class FormationEnv(ParallelEnv):
 
     def observation_space(self, agent: str) -> gymnasium.spaces.Box:
         return self._observation_spaces[agent]
+
+    def observation_layout(self, agent: str) -> ObservationLayout:
+        """How ``agent``'s observation vector is laid out (see the class docstring)."""
+        i = self.possible_agents.index(agent)
+        return ObservationLayout(self.graph.max_degree, self.dim, self.formation.error_width, self.nominal_models[i].n_joints)
 
     def action_space(self, agent: str) -> gymnasium.spaces.Box:
         return self._action_spaces[agent]
@@ -198,7 +227,7 @@ class FormationEnv(ParallelEnv):
         self._read_state()
         zero = [np.zeros(arm.n_joints) for arm in self.arms]
         observations = self._observations()
-        infos = self._infos(zero, contacts=np.zeros(len(self.arms), dtype=np.int64), fault="")
+        infos = self._infos([z.astype(bool) for z in zero], np.zeros(len(self.arms), dtype=np.int64), "", zero)
         return observations, infos
 
     def step(self, actions: Mapping[str, np.ndarray]):
@@ -206,9 +235,10 @@ class FormationEnv(ParallelEnv):
         if self._needs_reset or not self.agents:
             raise RuntimeError("step: call reset() first (the episode has ended or never started)")
         normalized, saturation = self._check_actions(actions)
-        torques = [(a * limit).tolist() for a, limit in zip(normalized, self.torque_limits)]
+        torques = [a * limit for a, limit in zip(normalized, self.torque_limits)]
+        torque_lists = [tau.tolist() for tau in torques]
         for _ in range(self.scenario.frame_skip):
-            for arm, tau in zip(self.arms, torques):
+            for arm, tau in zip(self.arms, torque_lists):
                 arm.apply_torques(tau)
             self.world.step()
         self._step_count += 1
@@ -217,7 +247,7 @@ class FormationEnv(ParallelEnv):
 
         observations = self._observations()
         rewards = self._rewards(normalized)
-        infos = self._infos(saturation, contacts, fault)
+        infos = self._infos(saturation, contacts, fault, torques)
         ended = bool(fault) or (self.scenario.terminate_on_contact and bool(contacts.any()))
         truncated = not ended and self._step_count >= self.scenario.max_steps
         terminations = {agent: ended for agent in self.agents}
@@ -226,6 +256,31 @@ class FormationEnv(ParallelEnv):
             self.agents = []
             self._needs_reset = True
         return observations, rewards, terminations, truncations, infos
+
+    def end_effector_positions(self) -> np.ndarray:
+        """World-frame end-effector positions (N, 3), m, at the last reset/step."""
+        return self._ee_world.copy()
+
+    def edge_errors(self) -> np.ndarray:
+        """Every edge's error e_k (world frame for displacement formations), at the last reset/step."""
+        return self._edge_errors.copy()
+
+    def joint_positions(self) -> list[np.ndarray]:
+        """Each arm's joint positions (rad, unwrapped) at the last reset/step."""
+        return [q.copy() for q in self._q]
+
+    def joint_velocities(self) -> list[np.ndarray]:
+        """Each arm's joint velocities (rad/s) at the last reset/step."""
+        return [dq.copy() for dq in self._dq]
+
+    def nominal_initial_q(self, agent: str) -> np.ndarray:
+        """The scenario's initial joint positions of ``agent`` (rad), before reset noise."""
+        return self._nominal_q[self.possible_agents.index(agent)].copy()
+
+    def gravity_in_base_frame(self, agent: str) -> np.ndarray:
+        """World gravity (m/s^2) expressed in ``agent``'s base frame: what its own mounting tells it."""
+        arm = self.arms[self.possible_agents.index(agent)]
+        return arm.base_rotation.T @ np.asarray(self.scenario.gravity)
 
     def state(self) -> np.ndarray:
         """Global state for centralized critics: all end-effector positions (world, m), all q, all dq."""
@@ -376,7 +431,8 @@ class FormationEnv(ParallelEnv):
             rewards[:] = rewards.mean()
         return {agent: float(rewards[i]) for i, agent in enumerate(self.agents)}
 
-    def _infos(self, saturation: list[np.ndarray], contacts: np.ndarray, fault: str) -> dict[str, dict[str, Any]]:
+    def _infos(self, saturation: list[np.ndarray], contacts: np.ndarray, fault: str,
+               torques: list[np.ndarray]) -> dict[str, dict[str, Any]]:
         formation_error = self.formation.formation_error(self._z)
         sim_time = self._step_count * self.scenario.control_dt
         infos = {}
@@ -387,6 +443,7 @@ class FormationEnv(ParallelEnv):
                 "edge_errors": self._slot_errors(i).copy(),
                 "singularity_margin": margin,
                 "torque_saturation": float(np.mean(saturation[i])),
+                "applied_torque": torques[i].copy(),
                 "clipped_actions": int(self._clipped_actions[i]),
                 "contacts": int(contacts[i]),
                 "physics_fault": fault,

@@ -262,6 +262,8 @@ class SerialChain:
         self.continuous = _read_only(np.array([j.joint_type == "continuous" for j in movable]))
 
         n = self.n_joints
+        if n == 0:
+            raise ValueError(f"no path: no movable joint between {base_link!r} and {ee_link!r}")
         # Rotation across movable joint i at angle q: P_i + sin(q) B_i + (1 - cos(q)) C_i
         # (Rodrigues, pre-multiplied by the constant rotations of the fixed joints since the
         # previous movable joint and of joint i's rpy).
@@ -308,6 +310,15 @@ class SerialChain:
         self._nominal_translations = (self._param_map @ self.nominal_params).reshape(n + 1, 3, 1)
         # Movable joint j (row) moves parameter i (column) iff parameter i's segment is after j.
         self._regressor_mask = np.arange(n)[:, None] < self._param_segment[None, :]
+        # local_i = [1, sin q_i, cos q_i] @ basis_i with basis_i = [P + C, B, -C] (n, 3, 9);
+        # the three coefficients are sin(q * [0, 1, 1] + [pi/2, 0, pi/2]) in one ufunc call.
+        self._rot_basis = np.stack(
+            [self._rot_p + self._rot_c, self._rot_b, -self._rot_c], axis=1).reshape(n, 3, 9)
+        self._trig_scale = np.array([0.0, 1.0, 1.0])
+        self._trig_phase = np.array([math.pi / 2, 0.0, math.pi / 2])
+        # [lever_0; ...; lever_{n-1}; position] = _lever_sum @ steps, lever_i = sum_{s > i} steps_s.
+        self._lever_sum = np.triu(np.ones((n + 1, n + 1)), k=1)
+        self._lever_sum[n] = 1.0
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -354,14 +365,14 @@ class SerialChain:
         q = np.asarray(q, dtype=float)
         if q.shape != (self.n_joints,):
             raise ValueError(f"q: expected shape ({self.n_joints},), got {q.shape}")
+        trig = np.sin(q[:, None] * self._trig_scale + self._trig_phase)  # [1, sin q, cos q]
+        local = (trig.reshape(-1, 1, 3) @ self._rot_basis).reshape(-1, 3, 3)
         frames = np.empty((self.n_joints + 1, 3, 3))
         frames[0] = _IDENTITY
-        local = frames[1:]
-        np.multiply(np.sin(q)[:, None, None], self._rot_b, out=local)
-        local += self._rot_p
-        local += (1.0 - np.cos(q))[:, None, None] * self._rot_c
-        for i in range(2, self.n_joints + 1):
-            np.matmul(frames[i - 1], frames[i], out=frames[i])
+        frames[1] = local[0]
+        matmul = np.matmul
+        for i in range(1, self.n_joints):
+            matmul(frames[i], local[i], frames[i + 1])  # distinct buffers: no overlap copy
         return frames
 
     # ------------------------------------------------------------------ kinematics
@@ -369,7 +380,7 @@ class SerialChain:
                 params: np.ndarray | list[float] | None = None) -> np.ndarray:
         """End-effector link frame position (3,) in the base link frame, m."""
         frames = self._frames(q)
-        return (frames @ self._translations(params)).sum(axis=0)[:, 0]
+        return (frames @ self._translations(params)).reshape(-1, 3).sum(axis=0)
 
     def jacobian(self, q: np.ndarray | list[float],
                  params: np.ndarray | list[float] | None = None) -> np.ndarray:
@@ -381,14 +392,12 @@ class SerialChain:
                              ) -> tuple[np.ndarray, np.ndarray]:
         """End-effector position (3,), m, and translational Jacobian (3, n), m/rad, one pass."""
         frames = self._frames(q)
-        steps = (frames @ self._translations(params))[:, :, 0]  # (n + 1, 3) in the base frame
-        origins = np.cumsum(steps, axis=0)  # origins[i]: origin of movable joint i; [n]: ee
-        position = origins[-1]
-        axes = (frames[1:] @ self._axes)[:, :, 0]  # (n, 3) joint axes in the base frame
-        lever = position - origins[:-1]  # (n, 3)
-        jac = axes[:, _CROSS_A] * lever[:, _CROSS_B]
-        jac -= axes[:, _CROSS_B] * lever[:, _CROSS_A]
-        return position, jac.T
+        steps = (frames @ self._translations(params)).reshape(-1, 3)  # (n + 1, 3), base frame
+        levers = self._lever_sum @ steps  # rows: ee position - joint origin, then ee position
+        axes = (frames[1:] @ self._axes).reshape(-1, 3)  # (n, 3) joint axes in the base frame
+        skews = (axes @ _SKEW_BASIS).reshape(-1, 3, 3)  # S(omega_i), omega_i x v = S v
+        jac = (skews @ levers[:-1, :, None]).reshape(-1, 3)
+        return levers[-1], jac.T
 
     def forward_batch(self, q_batch: np.ndarray,
                       params: np.ndarray | list[float] | None = None) -> np.ndarray:
@@ -418,10 +427,10 @@ class SerialChain:
         elif zeta.shape != (3,):
             raise ValueError(f"zeta: expected shape (3,) or (2,), got {zeta.shape}")
         frames = self._frames(q)
-        axes = (frames[1:] @ self._axes)[:, :, 0]  # (n, 3)
-        # zeta . (omega_j x v) = (zeta x omega_j) . v
-        zeta_x_axes = zeta[_CROSS_A] * axes[:, _CROSS_B] - zeta[_CROSS_B] * axes[:, _CROSS_A]
-        columns = (frames[self._param_segment] @ self._param_directions)[:, :, 0]  # (p, 3)
+        axes = (frames[1:] @ self._axes).reshape(-1, 3)  # (n, 3)
+        # zeta . (omega_j x v) = (zeta x omega_j) . v and zeta x omega = S(zeta) omega
+        zeta_x_axes = axes @ (zeta @ _SKEW_BASIS).reshape(3, 3).T
+        columns = (frames[self._param_segment] @ self._param_directions).reshape(-1, 3)  # (p, 3)
         return (zeta_x_axes @ columns.T) * self._regressor_mask
 
     def sample_configurations(self, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -432,6 +441,5 @@ class SerialChain:
 
 
 _IDENTITY = np.eye(3)
-# a x b = a[_CROSS_A] * b[_CROSS_B] - a[_CROSS_B] * b[_CROSS_A], component-wise.
-_CROSS_A = np.array([1, 2, 0])
-_CROSS_B = np.array([2, 0, 1])
+# v @ _SKEW_BASIS, reshaped to (3, 3), is the cross-product matrix S(v): S(v) @ w = v x w.
+_SKEW_BASIS = np.stack([_skew(e) for e in np.eye(3)]).reshape(3, 9)

@@ -26,11 +26,13 @@ class Arm:
     """
 
     def __init__(self, world: PhysicsWorld, config: ArmConfig, model: SerialChain,
-                 joint_damping: float | str, collide_with_other_arms: bool):
+                 joint_damping: float | str, collide_with_other_arms: bool, urdf: str | None = None):
+        """``model`` is the kinematic model of the simulated robot, loaded from ``urdf`` (default: the
+        scenario's URDF; a perturbed copy under model mismatch)."""
         self.world = world
         self.config = config
         self.model = model
-        self.body = world.load_urdf(config.urdf, config.base_position, config.base_rpy)
+        self.body = world.load_urdf(urdf or config.urdf, config.base_position, config.base_rpy)
         self.base_position = np.asarray(config.base_position, dtype=np.float64)
         self.base_rotation = rpy_matrix(config.base_rpy)  # base frame -> world frame
         client = world.client

@@ -35,6 +35,9 @@ key                      meaning
 ``singularity_threshold`` smallest Jacobian singular value (m) below which an initial configuration
                          is rejected as singular (default 1e-3)
 ``reward``               reward weights, see :class:`RewardConfig`
+``model_mismatch``       ``{"length": L, "mass": M, "seed": s}``: simulate robots whose link lengths
+                         and masses differ from the nominal URDFs by up to +-L and +-M (relative);
+                         default none. See :mod:`ee_formation_env.mismatch`
 =======================  =====================================================================
 
 Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ROBOTS`) or ``urdf`` (a path, absolute,
@@ -58,6 +61,7 @@ import yaml
 
 from ee_formation_env.assets import asset_path
 from ee_formation_env.formation import FORMATION_KINDS
+from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 
 
 @dataclass(frozen=True)
@@ -123,6 +127,7 @@ class Scenario:
     max_joint_velocity: float = 50.0
     singularity_threshold: float = 1e-3
     reward: RewardConfig = field(default_factory=RewardConfig)
+    model_mismatch: MismatchConfig = field(default_factory=MismatchConfig)
 
     @property
     def n_agents(self) -> int:
@@ -150,8 +155,8 @@ class Scenario:
             value = getattr(self, spec.name)
             if spec.name == "arms":
                 value = [_arm_to_dict(arm) for arm in value]
-            elif spec.name == "reward":
-                value = {f.name: getattr(value, f.name) for f in fields(RewardConfig)}
+            elif spec.name in ("reward", "model_mismatch"):
+                value = {f.name: getattr(value, f.name) for f in fields(value)}
             data[spec.name] = _plain(value)
         return data
 
@@ -287,8 +292,8 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] = "planar_squa
         raise TypeError(f"scenario: expected a name, a path or a dict, got {type(scenario).__name__}")
 
     for key, value in overrides.items():
-        if key == "reward" and isinstance(value, Mapping) and isinstance(data.get("reward"), Mapping):
-            data["reward"] = {**data["reward"], **value}
+        if key in ("reward", "model_mismatch") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
+            data[key] = {**data[key], **value}
         else:
             data[key] = value
     return _parse(name, data, base_dir)
@@ -354,6 +359,7 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["max_joint_velocity"] = _positive("max_joint_velocity", data.get("max_joint_velocity", 50.0))
     kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", 1e-3))
     kwargs["reward"] = _parse_reward(data.get("reward", {}))
+    kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
 
     return Scenario(
         name=name, arms=arms, edges=tuple((int(t), int(h)) for t, h in edges),

@@ -1,0 +1,78 @@
+"""Reference policies for ee-formation-env: the paper's three controllers, plus ``zero`` and ``random``.
+
+    import ee_formation_env, baselines
+    env = ee_formation_env.parallel_env("planar_square")
+    policies = {agent: baselines.make_policy("adaptive_jacobian", env, agent) for agent in env.possible_agents}
+
+See :mod:`baselines.controllers` for the laws and :mod:`baselines.gains` for default gains and the rule
+that derives them for any robot.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from baselines.controllers import (AdaptiveJacobianController, AgentModel, ApproxJacobianController, Gains,
+                                   GradientController, RandomPolicy, ZeroPolicy)
+from baselines.dynamics import nominal_dynamics
+from baselines.gains import default_gains
+from ee_formation_env.env import FormationEnv
+
+_CONTROLLERS = {
+    "gradient": GradientController,
+    "approx_jacobian": ApproxJacobianController,
+    "adaptive_jacobian": AdaptiveJacobianController,
+}
+POLICIES: tuple[str, ...] = (*_CONTROLLERS, "zero", "random")
+
+__all__ = ["POLICIES", "Gains", "make_policy", "make_policies", "agent_model", "default_gains"]
+
+
+def agent_model(env: FormationEnv, agent: str) -> AgentModel:
+    """What ``agent`` knows about itself in ``env``: nominal models, mounting, limits and control step."""
+    if agent not in env.possible_agents:
+        raise ValueError(f"agent: expected one of {env.possible_agents}, got {agent!r}")
+    i = env.possible_agents.index(agent)
+    chain = env.nominal_models[i]
+    return AgentModel(
+        layout=env.observation_layout(agent),
+        formation_kind=env.formation.kind,
+        chain=chain,
+        dynamics=nominal_dynamics(env.scenario.arms[i].urdf, chain.joint_names),
+        gravity_in_base=env.gravity_in_base_frame(agent),
+        torque_limits=env.torque_limits[i],
+        control_dt=env.scenario.control_dt,
+    )
+
+
+def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping[str, Any] | None = None,
+                a_hat0: Any = None, seed: int = 0, **options: Any):
+    """A reference policy for one agent: ``reset()`` and ``__call__(observation) -> action``.
+
+    ``gains``: a :class:`Gains`, or a dict of overrides of the defaults for this scenario
+    (:func:`baselines.gains.default_gains`). ``a_hat0``: initial kinematic estimate (default: the nominal
+    URDF's parameters). ``options``: controller options, e.g. ``projection=False`` or ``param_box``
+    for ``adaptive_jacobian``. ``seed`` seeds ``random``.
+    """
+    if name not in POLICIES:
+        raise ValueError(f"policy: unknown policy {name!r}; available: {list(POLICIES)}")
+    model = agent_model(env, agent)
+    if name == "zero":
+        return ZeroPolicy(model.chain.n_joints)
+    if name == "random":
+        return RandomPolicy(model.chain.n_joints, seed=seed + env.possible_agents.index(agent))
+    if gains is None or isinstance(gains, Mapping):
+        gains = default_gains(env, agent).with_updates(**dict(gains or {}))
+    elif not isinstance(gains, Gains):
+        raise TypeError(f"gains: expected a Gains, a dict or None, got {type(gains).__name__}")
+    if options and name != "adaptive_jacobian":
+        raise ValueError(f"options: {name} takes no options, got {sorted(options)}")
+    return _CONTROLLERS[name](model, gains, None if a_hat0 is None else np.asarray(a_hat0, dtype=np.float64),
+                              **options)
+
+
+def make_policies(name: str, env: FormationEnv, **kwargs: Any) -> dict[str, Any]:
+    """One policy of kind ``name`` per agent of ``env`` (same arguments as :func:`make_policy`)."""
+    return {agent: make_policy(name, env, agent, **kwargs) for agent in env.possible_agents}

@@ -1,0 +1,179 @@
+"""Episode metrics: the one definition used by ``baselines.evaluate``, ``baselines.reproduce`` and ``train.py``.
+
+A policy here is anything with ``reset()`` and ``__call__(observation) -> action`` (normalized torques),
+one per agent. :func:`run_episode` rolls one seeded episode and returns :class:`EpisodeMetrics`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Mapping, Protocol, Sequence
+
+import numpy as np
+
+from ee_formation_env.env import FormationEnv
+
+
+class Policy(Protocol):
+    def reset(self) -> None: ...
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray: ...
+
+
+DEFAULT_POSITION_TOLERANCE = 0.01  # m: the edge-length accuracy that counts as "in formation"
+DEFAULT_HOLD_SECONDS = 1.0  # s: the formation must be held at least this long before the episode ends
+
+
+def formation_tolerance(env: FormationEnv, position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> float:
+    """Formation-error threshold (formation units) equivalent to an edge accuracy ``position_tolerance`` (m).
+
+    Distance formations: ``e = |z|^2 - d^2 ~ 2 d delta``, so the threshold is ``2 rms(d*) delta`` (m^2);
+    displacement formations: ``delta`` (m).
+    """
+    formation = env.formation
+    if formation.kind == "distance":
+        return 2.0 * float(np.sqrt(np.mean(formation.desired**2))) * position_tolerance
+    return position_tolerance
+
+
+@dataclass
+class EpisodeMetrics:
+    """What one episode achieved. Units: formation units (m^2 distance, m displacement), s, N m."""
+
+    success: bool  # error below tolerance from settling_time to the end, for at least hold_seconds
+    final_formation_error: float
+    settling_time: float  # s; first time after which the error stays below tolerance; nan if never
+    control_energy: float  # sum over agents of the integral of |tau|^2 dt, N^2 m^2 s
+    peak_torque: float  # N m, over all joints and steps
+    saturation_fraction: float  # fraction of (step, joint) action entries clipped at the torque limit
+    min_singularity_margin: float  # m, smallest Jacobian singular value seen
+    contact_steps: int  # env steps with any contact between arms
+    centroid_drift: float  # m, displacement of the end-effectors' centroid from start to end
+    mean_return: float  # mean over agents of the summed reward
+    sim_time: float  # s
+    physics_fault: str = ""
+    trajectory: dict[str, np.ndarray] | None = field(default=None, repr=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data.pop("trajectory")
+        return data
+
+
+def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
+                position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
+                record: bool = False, on_step: Callable[[FormationEnv], None] | None = None) -> EpisodeMetrics:
+    """Roll one episode from ``reset(seed=seed)`` to its end with one policy per agent.
+
+    ``record=True`` keeps time series (``t``, ``formation_error``, ``edge_errors`` per edge, ``ee`` world
+    positions, ``q``, ``dq``, ``torque``) in ``metrics.trajectory``; ``on_step(env)`` is called after
+    each step (e.g. to log a controller's internal state).
+    """
+    observations, infos = env.reset(seed=seed)
+    for policy in policies.values():
+        policy.reset()
+    agents = list(env.possible_agents)
+    dt = env.scenario.control_dt
+    tolerance = formation_tolerance(env, position_tolerance)
+    start_centroid = env.end_effector_positions().mean(axis=0)
+    errors, energy, peak, clipped, entries, contact_steps = [], 0.0, 0.0, 0, 0, 0
+    returns = dict.fromkeys(agents, 0.0)
+    min_margin = min(info["singularity_margin"] for info in infos.values())
+    series: dict[str, list] = {key: [] for key in ("t", "formation_error", "edge_errors", "ee", "q", "dq", "torque")}
+    fault = ""
+    if record:
+        _record(series, env, infos, 0.0, [np.zeros(len(limits)) for limits in env.torque_limits])
+    while env.agents:
+        actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
+        observations, rewards, terminations, truncations, infos = env.step(actions)
+        torques = [infos[agent]["applied_torque"] for agent in agents]
+        energy += sum(float(tau @ tau) for tau in torques) * dt
+        peak = max(peak, max(float(np.max(np.abs(tau))) for tau in torques))
+        clipped += sum(int(round(infos[agent]["torque_saturation"] * len(torques[i]))) for i, agent in enumerate(agents))
+        entries += sum(len(tau) for tau in torques)
+        contact_steps += int(any(infos[agent]["contacts"] > 0 for agent in agents))
+        min_margin = min(min_margin, min(infos[agent]["singularity_margin"] for agent in agents))
+        for agent in agents:
+            returns[agent] += rewards[agent]
+        first = infos[agents[0]]
+        errors.append(first["formation_error"])
+        fault = fault or first["physics_fault"]
+        if record:
+            _record(series, env, infos, first["sim_time"], torques)
+        if on_step is not None:
+            on_step(env)
+
+    error_series = np.asarray(errors)
+    above = np.flatnonzero(~(error_series < tolerance))
+    settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
+    settled = settle_index < len(error_series) and not fault
+    settling_time = settle_index * dt if settled else math.nan
+    held = (len(error_series) - settle_index) * dt if settled else 0.0
+    metrics = EpisodeMetrics(
+        success=bool(settled and held >= hold_seconds),
+        final_formation_error=float(error_series[-1]),
+        settling_time=float(settling_time),
+        control_energy=energy,
+        peak_torque=peak,
+        saturation_fraction=clipped / max(entries, 1),
+        min_singularity_margin=float(min_margin),
+        contact_steps=contact_steps,
+        centroid_drift=float(np.linalg.norm(env.end_effector_positions().mean(axis=0) - start_centroid)),
+        mean_return=float(np.mean(list(returns.values()))),
+        sim_time=len(error_series) * dt,
+        physics_fault=fault,
+    )
+    if record:
+        metrics.trajectory = {key: np.asarray(values) for key, values in series.items()}
+    return metrics
+
+
+def _record(series: dict[str, list], env: FormationEnv, infos: Mapping[str, Mapping[str, Any]], t: float,
+            torques: Sequence[np.ndarray]) -> None:
+    series["t"].append(t)
+    series["formation_error"].append(next(iter(infos.values()))["formation_error"])
+    series["edge_errors"].append(env.edge_errors().copy())
+    series["ee"].append(env.end_effector_positions().copy())
+    series["q"].append(np.concatenate(env.joint_positions()))
+    series["dq"].append(np.concatenate(env.joint_velocities()))
+    series["torque"].append(np.concatenate(torques))
+
+
+SUMMARY_FIELDS = ("final_formation_error", "settling_time", "control_energy", "peak_torque", "saturation_fraction",
+                  "min_singularity_margin", "contact_steps", "centroid_drift", "mean_return")
+
+
+def summarize(episodes: Sequence[EpisodeMetrics]) -> dict[str, Any]:
+    """Success rate and the mean / std of every metric over episodes (settling time over successes only)."""
+    summary: dict[str, Any] = {"episodes": len(episodes),
+                               "success_rate": float(np.mean([e.success for e in episodes])),
+                               "physics_faults": int(sum(bool(e.physics_fault) for e in episodes))}
+    for name in SUMMARY_FIELDS:
+        values = np.array([getattr(e, name) for e in episodes], dtype=np.float64)
+        if name == "settling_time":
+            values = values[np.isfinite(values)]
+        summary[name] = float(values.mean()) if len(values) else math.nan
+        summary[f"{name}_std"] = float(values.std()) if len(values) else math.nan
+    summary["min_singularity_margin"] = float(min(e.min_singularity_margin for e in episodes))  # worst case
+    return summary
+
+
+_COLUMNS = [("success_rate", "success", "{:.0%}"), ("final_formation_error", "final err", "{:.2e}"),
+            ("settling_time", "settle s", "{:.2f}"), ("control_energy", "energy", "{:.3g}"),
+            ("peak_torque", "peak N m", "{:.3g}"), ("saturation_fraction", "saturated", "{:.1%}"),
+            ("min_singularity_margin", "min sigma", "{:.3f}"), ("contact_steps", "contacts", "{:.1f}"),
+            ("centroid_drift", "drift m", "{:.3f}")]
+
+
+def format_table(rows: Mapping[str, Mapping[str, Any]]) -> str:
+    """A markdown table, one row per policy, from :func:`summarize` outputs."""
+    header = "| policy | " + " | ".join(title for _, title, _ in _COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (len(_COLUMNS) + 1)]
+    for name, summary in rows.items():
+        cells = []
+        for key, _, fmt in _COLUMNS:
+            value = summary.get(key, math.nan)
+            cells.append("n/a" if isinstance(value, float) and math.isnan(value) else fmt.format(value))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

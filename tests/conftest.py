@@ -1,0 +1,78 @@
+"""Shared fixtures: an env factory that closes every env it made, and scenario helpers."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+
+import ee_formation_env
+from ee_formation_env.scenario import builtin_scenario
+
+#: Short episodes keep the suite fast; every test that needs more asks for it explicitly.
+SHORT = 0.5
+
+
+@pytest.fixture
+def make_env() -> Callable[..., ee_formation_env.FormationEnv]:
+    """``make_env(scenario, render_mode=None, **overrides)``: a FormationEnv closed at teardown."""
+    envs: list[Any] = []
+
+    def factory(scenario: Any = "planar_square", render_mode: str | None = None, **overrides: Any):
+        overrides.setdefault("episode_seconds", SHORT)
+        env = ee_formation_env.parallel_env(scenario, render_mode=render_mode, **overrides)
+        envs.append(env)
+        return env
+
+    yield factory
+    for env in envs:
+        env.close()
+
+
+@pytest.fixture
+def closer() -> Callable[[Any], Any]:
+    """``closer(obj)`` registers any object with a ``close()`` for teardown and returns it."""
+    objects: list[Any] = []
+
+    def register(obj: Any) -> Any:
+        objects.append(obj)
+        return obj
+
+    yield register
+    for obj in objects:
+        obj.close()
+
+
+def scenario_dict(name: str = "planar_square", **changes: Any) -> dict[str, Any]:
+    """A fresh plain-data copy of a built-in scenario with top-level keys replaced."""
+    data = copy.deepcopy(builtin_scenario(name))
+    data.update(changes)
+    return data
+
+
+def random_actions(env: Any, rng: np.random.Generator, agents: list[str] | None = None,
+                   scale: float = 1.0) -> dict[str, np.ndarray]:
+    """A uniform [-scale, scale] action per agent from a numpy generator (reproducible streams)."""
+    agents = env.agents if agents is None else agents
+    return {a: (scale * rng.uniform(-1.0, 1.0, env.action_space(a).shape)).astype(np.float32) for a in agents}
+
+
+def two_planar_arms(**changes: Any) -> dict[str, Any]:
+    """Two planar arms 3 m apart facing each other, one displacement edge, dim 2."""
+    data = {
+        "arms": [
+            {"robot": "planar_2link", "base_position": [0.0, 0.0, 0.0], "initial_q": [0.0, 0.8]},
+            {"robot": "planar_2link", "base_position": [3.0, 0.0, 0.0], "base_rpy": [0.0, 0.0, np.pi],
+             "initial_q": [0.0, 0.8]},
+        ],
+        "edges": [[0, 1]],
+        "shape": [[0.0, 0.0], [1.0, 0.0]],
+        "formation": "displacement",
+        "dim": 2,
+        "gravity": [0.0, 0.0, -9.81],
+        "initial_q_noise": 0.0,
+    }
+    data.update(changes)
+    return data
