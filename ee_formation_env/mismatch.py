@@ -76,8 +76,8 @@ def write_perturbed_urdf(urdf: str, chain_joints: list[str], chain_links: list[s
     for name, scale in zip(chain_joints, length_scales):
         origin = joints[name].find("origin")
         if origin is not None and origin.get("xyz"):
-            xyz = np.array([float(v) for v in origin.get("xyz").split()]) * scale
-            origin.set("xyz", " ".join(repr(float(v)) for v in xyz))
+            xyz = [float(v) * float(scale) for v in origin.get("xyz").split()]
+            origin.set("xyz", " ".join(repr(v) for v in xyz))
     links = {link.get("name"): link for link in root.iter("link")}
     for name, scale in zip(chain_links, mass_scales):
         inertial = links[name].find("inertial")
@@ -85,12 +85,12 @@ def write_perturbed_urdf(urdf: str, chain_joints: list[str], chain_links: list[s
             continue
         mass = inertial.find("mass")
         if mass is not None:
-            mass.set("value", repr(float(mass.get("value")) * scale))
+            mass.set("value", repr(float(mass.get("value")) * float(scale)))
         inertia = inertial.find("inertia")
         if inertia is not None:
             for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"):
                 if inertia.get(key) is not None:
-                    inertia.set(key, repr(float(inertia.get(key)) * scale))
+                    inertia.set(key, repr(float(inertia.get(key)) * float(scale)))
     handle, path = tempfile.mkstemp(suffix=".urdf", dir=directory)
     with os.fdopen(handle, "wb") as out:
         tree.write(out)
