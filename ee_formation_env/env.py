@@ -155,14 +155,15 @@ class FormationEnv(ParallelEnv):
         self._slot_signs: list[np.ndarray] = []
         self._observation_spaces: dict[str, gymnasium.spaces.Box] = {}
         self._action_spaces: dict[str, gymnasium.spaces.Box] = {}
-        desired_scale = float(np.max(np.abs(formation.desired)))
+        # One bound on |z_ij| for every agent (the largest base distance plus reaches over all edges), so
+        # that identical arms get identical spaces and can share one policy.
+        z_bound = max(float(np.max(np.abs(formation.desired))), max(
+            float(np.linalg.norm(bases[tail] - bases[head])) + self._reaches[tail] + self._reaches[head]
+            for tail, head in graph.edges))
         for i, agent in enumerate(self.possible_agents):
             neighbors = graph.neighbors[i]
             self._slot_edges.append(np.array([n.edge for n in neighbors], dtype=np.int64))
             self._slot_signs.append(np.array([n.sign for n in neighbors], dtype=np.float64))
-            z_bound = max(float(np.linalg.norm(bases[i] - bases[n.agent])) + self._reaches[i] + self._reaches[n.agent]
-                          for n in neighbors)
-            z_bound = max(z_bound, desired_scale)
             if sc.formation == "distance":
                 desired_low, desired_high, error_bound = 0.0, z_bound, z_bound**2
             else:

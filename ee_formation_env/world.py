@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import sys
 
 import numpy as np
 import pybullet
@@ -18,6 +20,9 @@ class PhysicsWorld:
 
     def __init__(self, physics_hz: float, gravity: tuple[float, float, float], render_mode: str | None = None):
         mode = pybullet.GUI if render_mode == "human" else pybullet.DIRECT
+        if mode == pybullet.GUI and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+            # PyBullet's GUI calls exit() when it finds no X server: fail here with an exception instead.
+            raise RuntimeError('render_mode="human" needs a display (DISPLAY is not set); use "rgb_array" headless')
         self.client = pybullet.connect(mode)
         if self.client < 0:
             raise RuntimeError("PyBullet could not connect (is another GUI client already open?)")

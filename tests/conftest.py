@@ -60,12 +60,17 @@ def random_actions(env: Any, rng: np.random.Generator, agents: list[str] | None 
 
 
 def two_planar_arms(**changes: Any) -> dict[str, Any]:
-    """Two planar arms 3 m apart facing each other, one displacement edge, dim 2."""
+    """Two planar arms with bases 3 m apart, one displacement edge, dim 2.
+
+    Arm 1 is arm 0 turned by pi about z. Both upper arms point up (+y), the forearms lean toward each other:
+    the end-effectors start 0.2 m apart at (1.398, 2.044) and (1.602, 2.044), without contact. Opening
+    the elbows (joint 2 torque +/- for arm 0/1, :data:`CLOSING`) makes the forearms collide.
+    """
     data = {
         "arms": [
-            {"robot": "planar_2link", "base_position": [0.0, 0.0, 0.0], "initial_q": [0.0, 0.8]},
+            {"robot": "planar_2link", "base_position": [0.0, 0.0, 0.0], "initial_q": [np.pi / 2, -1.2]},
             {"robot": "planar_2link", "base_position": [3.0, 0.0, 0.0], "base_rpy": [0.0, 0.0, np.pi],
-             "initial_q": [0.0, 0.8]},
+             "initial_q": [-np.pi / 2, 1.2]},
         ],
         "edges": [[0, 1]],
         "shape": [[0.0, 0.0], [1.0, 0.0]],
@@ -76,3 +81,7 @@ def two_planar_arms(**changes: Any) -> dict[str, Any]:
     }
     data.update(changes)
     return data
+
+
+#: Actions that drive the two arms of :func:`two_planar_arms` into each other.
+CLOSING = {"arm_0": np.array([0.0, 0.3], np.float32), "arm_1": np.array([0.0, -0.3], np.float32)}

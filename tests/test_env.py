@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import pickle
+import subprocess
+import sys
 
 import numpy as np
 import pybullet
@@ -17,7 +20,7 @@ import ee_formation_env
 from ee_formation_env import BUILTIN_SCENARIOS, FormationEnv
 from ee_formation_env.validation import rpy_matrix
 
-from conftest import random_actions, scenario_dict, two_planar_arms
+from conftest import CLOSING, random_actions, scenario_dict, two_planar_arms
 
 BUILTINS = sorted(BUILTIN_SCENARIOS)
 
@@ -93,19 +96,19 @@ def test_observation_contents_match_simulator(make_env, name):
     env.reset(seed=1)
     rng = np.random.default_rng(1)
     for _ in range(5):
-        observations, rewards, *_ = env.step(random_actions(env, rng, scale=0.5))
+        observations, _, _, _, infos = env.step(random_actions(env, rng, scale=0.5))
     m = env.dim
+    client = env.world.client
     ee = _ee_world(env)
     shape = np.asarray(env.scenario.shape)
     w = 1 if env.scenario.formation == "distance" else m
     size = 1 + m + 2 * w
-    weights = env.scenario.reward
     for i, agent in enumerate(env.agents):
         obs = observations[agent].astype(np.float64)
         arm = env.arms[i]
         rotation = rpy_matrix(env.scenario.arms[i].base_rpy)
         neighbours = [(t, h) for t, h in env.scenario.edges if i in (t, h)]
-        errors = []
+        slot_errors = []
         for s, (tail, head) in enumerate(neighbours):
             j = head if tail == i else tail
             slot = obs[s * size:(s + 1) * size]
@@ -118,23 +121,39 @@ def test_observation_contents_match_simulator(make_env, name):
                 np.testing.assert_allclose(slot[1 + m], np.linalg.norm(desired), atol=1e-5)
                 error = z_world[:m] @ z_world[:m] - desired @ desired
                 np.testing.assert_allclose(slot[2 + m], error, atol=1e-4)
-                errors.append(abs(error))
+                slot_errors.append(error)
             else:
                 desired_local = (rotation.T @ np.append(desired, [0.0] * (3 - m)))[:m]
                 np.testing.assert_allclose(slot[1 + m:1 + 2 * m], desired_local, atol=1e-5)
                 np.testing.assert_allclose(slot[1 + 2 * m:], z_local - desired_local, atol=2e-5)
-                errors.append(np.linalg.norm(z_local - desired_local))
+                slot_errors.append(z_local - desired_local)
         padding = obs[len(neighbours) * size:env.graph.max_degree * size]
         assert np.all(padding == 0.0)
+        # info["edge_errors"]: the same slot errors, own frame (PyBullet's link positions carry ~1e-7 m of
+        # float rounding, hence the tolerances).
+        np.testing.assert_allclose(np.asarray(infos[agent]["edge_errors"]).reshape(len(neighbours), -1),
+                                   np.asarray(slot_errors).reshape(len(neighbours), -1), atol=1e-5)
         q, dq = arm.read_state()
         n = arm.n_joints
         np.testing.assert_allclose(obs[-2 * n:-n], np.where(arm.model.continuous, (q + np.pi) % (2 * np.pi) - np.pi, q),
                                    atol=1e-6)
         np.testing.assert_allclose(obs[-n:], dq, atol=1e-5)
-        # Reward of the docstring; the action of the last step is not needed when torque weight is 0.
-        if weights.torque == 0.0 and not weights.team:
-            expected = -(weights.formation * np.mean(errors) + weights.velocity * dq @ dq)
-            np.testing.assert_allclose(rewards[agent], expected, rtol=1e-4)
+        # info["singularity_margin"]: smallest singular value of PyBullet's translational Jacobian (base
+        # frame, first m rows).
+        link = _ee_link_index(arm.body, arm.config.ee_link, client)
+        jacobian, _ = pybullet.calculateJacobian(arm.body, link, [0.0, 0.0, 0.0], q.tolist(), [0.0] * n, [0.0] * n,
+                                                 physicsClientId=client)
+        margin = np.linalg.svd(np.asarray(jacobian)[:m], compute_uv=False).min()
+        assert infos[agent]["singularity_margin"] == pytest.approx(margin, rel=1e-6, abs=1e-9)
+    # state(): end-effector positions (world, first m coordinates), then every q, then every dq.
+    state = env.state().astype(np.float64)
+    n_agents = len(env.arms)
+    np.testing.assert_allclose(state[:n_agents * m], ee[:, :m].ravel(), atol=2e-5)
+    joints = [arm.read_state() for arm in env.arms]
+    q_all = np.concatenate([np.where(arm.model.continuous, (q + np.pi) % (2 * np.pi) - np.pi, q)
+                            for arm, (q, _) in zip(env.arms, joints)])
+    np.testing.assert_allclose(state[n_agents * m:n_agents * m + len(q_all)], q_all, atol=1e-6)
+    np.testing.assert_allclose(state[n_agents * m + len(q_all):], np.concatenate([dq for _, dq in joints]), atol=1e-5)
 
 
 @pytest.mark.parametrize("formation", ["planar_square", "planar_square_displacement"])
@@ -212,9 +231,11 @@ def test_same_seed_same_initial_obs_different_seed_different_q(make_env):
     q_other = [arm.read_state()[0] for arm in env.arms]
     for q1, q2 in zip(q_first, q_other):
         assert not np.allclose(q1, q2)
-        # noise is bounded by initial_q_noise around the nominal q
-    for arm, q, nominal in zip(env.arms, q_other, env.scenario.arms):
-        assert np.all(np.abs(q - np.asarray(nominal.initial_q)) <= env.scenario.initial_q_noise + 1e-12)
+    # The noise is uniform within +-initial_q_noise around the nominal q, and really used.
+    for q, nominal in zip(q_other, env.scenario.arms):
+        offset = q - np.asarray(nominal.initial_q)
+        assert np.all(np.abs(offset) <= env.scenario.initial_q_noise + 1e-12)
+        assert np.max(np.abs(offset)) > 0.1 * env.scenario.initial_q_noise
 
 
 @pytest.mark.parametrize("name", ["planar_square", "planar_square_rotated", "spatial_tetrahedron"])
@@ -228,12 +249,31 @@ def test_zero_noise_gives_scenario_initial_q(make_env, name):
             assert np.array_equal(dq, np.zeros_like(dq))
 
 
+def test_initial_noise_is_clipped_to_joint_limits(make_env):
+    data = scenario_dict("spatial_tetrahedron")
+    for arm in data["arms"]:
+        q = list(arm["initial_q"])
+        q[6] = 0.61  # PERA wrist yaw at its upper limit
+        arm["initial_q"] = q
+    env = make_env(data, initial_q_noise=0.3)
+    at_limit = 0
+    for seed in range(5):
+        env.reset(seed=seed)
+        for arm in env.arms:
+            q, _ = arm.read_state()
+            assert np.all(q >= arm.model.lower) and np.all(q <= arm.model.upper), q
+            at_limit += int(q[6] == arm.model.upper[6])
+    assert at_limit > 0  # some draws were clipped onto the limit
+
+
 # ------------------------------------------------------------------------------------------ rendering
 @pytest.mark.parametrize("name", ["planar_square", "spatial_tetrahedron"])
 def test_render_rgb_array(make_env, name):
     env = make_env(name, render_mode="rgb_array")
+    before_reset = env.render()  # allowed: shows the initial configuration
     env.reset(seed=0)
     frame = env.render()
+    assert before_reset.shape == frame.shape
     assert isinstance(frame, np.ndarray) and frame.dtype == np.uint8
     assert frame.ndim == 3 and frame.shape[2] == 3 and frame.shape[0] > 50 and frame.shape[1] > 50
     colours = np.unique(frame.reshape(-1, 3), axis=0)
@@ -251,6 +291,23 @@ def test_render_none_and_invalid_mode(make_env):
         assert env.render() is None
     with pytest.raises(ValueError, match="render_mode"):
         ee_formation_env.parallel_env("planar_square", render_mode="rgb")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the X11 check is Linux-only")
+def test_human_mode_without_display_raises_instead_of_exiting():
+    """PyBullet's GUI calls exit() without an X server; the env must raise a RuntimeError instead.
+
+    Run in a subprocess so that a regression fails this test instead of killing the test session.
+    """
+    code = ("import ee_formation_env\n"
+            "try:\n"
+            "    ee_formation_env.parallel_env('planar_square', render_mode='human')\n"
+            "except RuntimeError as error:\n"
+            "    print('raised:', error)\n")
+    environment = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    result = subprocess.run([sys.executable, "-c", code], env=environment, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "raised:" in result.stdout and "DISPLAY" in result.stdout
 
 
 # ------------------------------------------------------------------------------------------ local frames
@@ -367,6 +424,26 @@ def test_physics_fault_terminates_and_reset_recovers(make_env):
         assert out_env[4]["arm_0"]["physics_fault"] == ""
 
 
+def test_non_finite_state_is_a_fault(make_env, monkeypatch):
+    env = make_env("planar_square", episode_seconds=1.0)
+    env.reset(seed=0)
+    arm = env.arms[1]
+    real = arm.read_state
+
+    def broken():
+        q, dq = real()
+        return q, np.array([np.nan, dq[1]])
+
+    monkeypatch.setattr(arm, "read_state", broken)
+    observations, rewards, terminations, truncations, infos = env.step(_valid(env))
+    assert all(terminations.values()) and not any(truncations.values())
+    assert infos["arm_0"]["physics_fault"].startswith("arm_1: non-finite joint state")
+    for agent, obs in observations.items():
+        assert np.all(np.isfinite(obs)) and env.observation_space(agent).contains(obs)
+    assert all(math.isfinite(r) for r in rewards.values())
+    assert np.all(np.isfinite(env.state()))
+
+
 # ------------------------------------------------------------------------------------------ actions
 def _valid(env):
     return {a: np.full(env.action_space(a).shape, 0.25, np.float32) for a in env.possible_agents}
@@ -434,41 +511,63 @@ def test_out_of_range_actions_are_clipped_and_counted(make_env):
 
 
 # ------------------------------------------------------------------------------------------ contacts
-def _drive_together(env, steps=120):
-    """Both arms swing their elbows toward each other; returns (max contacts, steps run, terminated)."""
+def _drive(env, actions, steps=120):
+    """Step with fixed actions; returns (contacts per step, terminated, last info of arm_0)."""
     env.reset(seed=0)
-    push = {"arm_0": np.array([0.0, -0.3], np.float32), "arm_1": np.array([0.0, -0.3], np.float32)}
-    most, terminated, info = 0, False, None
-    for t in range(steps):
-        _, _, terminations, _, infos = env.step(push)
-        most = max(most, infos["arm_0"]["contacts"], infos["arm_1"]["contacts"])
+    counts, terminated, info = [], False, None
+    for _ in range(steps):
+        _, _, terminations, _, infos = env.step(actions)
+        assert infos["arm_0"]["contacts"] == infos["arm_1"]["contacts"]  # a contact point involves both
+        counts.append(infos["arm_0"]["contacts"])
+        info = infos["arm_0"]
         if any(terminations.values()):
-            terminated, info = True, infos["arm_0"]
+            terminated = True
             break
-    return most, t + 1, terminated, info
+    return counts, terminated, info
 
 
 def test_contacts_reported(make_env):
     env = make_env(two_planar_arms(), episode_seconds=2.0)
-    _, infos = env.reset(seed=0)
-    assert infos["arm_0"]["contacts"] == 0  # apart at the start
-    most, steps, terminated, _ = _drive_together(env, steps=60)
-    assert most > 0
+    counts, terminated, _ = _drive(env, CLOSING, steps=100)
+    assert counts[0] == 0  # apart at the start
+    assert max(counts) > 0
     assert not terminated
+    # Control: without torques (gravity is along the joint axes) the arms never touch.
+    counts, _, _ = _drive(env, {a: np.zeros(2, np.float32) for a in env.possible_agents}, steps=100)
+    assert max(counts) == 0
 
 
 def test_terminate_on_contact(make_env):
     env = make_env(two_planar_arms(terminate_on_contact=True), episode_seconds=2.0)
-    most, steps, terminated, info = _drive_together(env)
-    assert terminated and most > 0
-    assert info["physics_fault"] == "" and info["contacts"] > 0
+    counts, terminated, info = _drive(env, CLOSING)
+    assert terminated and counts[-1] > 0 and max(counts[:-1], default=0) == 0  # ends at the first contact
+    assert info["physics_fault"] == ""
     assert env.agents == []
 
 
 def test_no_contacts_without_arm_collisions(make_env):
     env = make_env(two_planar_arms(arm_collisions=False, terminate_on_contact=True), episode_seconds=2.0)
-    most, steps, terminated, _ = _drive_together(env, steps=60)
-    assert most == 0 and not terminated and steps == 60
+    counts, terminated, _ = _drive(env, CLOSING, steps=100)
+    assert max(counts) == 0 and not terminated and len(counts) == 100
+
+
+def test_reset_after_contact_is_history_free(make_env):
+    """A reset in the middle of a collision gives the same episode as a fresh env (contact caches included)."""
+    env = make_env(two_planar_arms(initial_q_noise=0.05), episode_seconds=2.0)
+    fresh = make_env(two_planar_arms(initial_q_noise=0.05), episode_seconds=2.0)
+    env.reset(seed=0)
+    for _ in range(200):
+        infos = env.step(CLOSING)[4]
+        if infos["arm_0"]["contacts"] > 0:
+            break
+    assert infos["arm_0"]["contacts"] > 0
+    obs_a, _ = env.reset(seed=1)
+    obs_b, _ = fresh.reset(seed=1)
+    assert _max_abs_diff(obs_a, obs_b) == 0.0
+    for _ in range(100):
+        out_a, out_b = env.step(CLOSING), fresh.step(CLOSING)
+        assert _max_abs_diff(out_a[0], out_b[0]) == 0.0
+        assert out_a[4]["arm_0"]["contacts"] == out_b[4]["arm_0"]["contacts"]
 
 
 # ------------------------------------------------------------------------------------------ other URDFs
@@ -532,6 +631,9 @@ def test_copies_are_independent(make_env, closer, duplicate):
     assert isinstance(twin, FormationEnv)
     assert twin.world.client >= 0 and twin.world.client != env.world.client
     assert twin.scenario == env.scenario
+    assert twin.agents == []  # a copy is a fresh env in a new world: it needs a reset
+    with pytest.raises(RuntimeError):
+        twin.step(_valid(twin))
     reference = make_env("planar_square", episode_seconds=1.0)
     env.reset(seed=8)
     twin.reset(seed=8)

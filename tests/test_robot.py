@@ -33,7 +33,8 @@ def _kinetic_energy(arm) -> float:
     return 0.5 * float(dq @ _mass_matrix(arm, q) @ dq)
 
 
-def _hold_others(env, moving) -> None:
+def _zero_torques(env) -> None:
+    """Zero torque on every arm for the next physics step."""
     for arm in env.arms:
         arm.apply_torques([0.0] * arm.n_joints)
 
@@ -154,7 +155,7 @@ def _spin_straight_planar_arm(env, rate: float, seconds: float) -> tuple[float, 
     _set_state(arm, [0.3, 0.0], [rate, 0.0])
     before = _kinetic_energy(arm)
     for _ in range(int(round(seconds * env.scenario.physics_hz))):
-        _hold_others(env, arm)
+        _zero_torques(env)
         env.world.step()
     return before, _kinetic_energy(arm), arm.read_state()[1]
 
@@ -203,7 +204,7 @@ def _coast(env, seconds: float) -> tuple[float, float]:
     _set_state(arm, q, 0.5 * np.array([1.0, -0.8, 0.6, 1.2, -1.0, 0.7, 0.5]))
     before = _kinetic_energy(arm)
     for _ in range(int(round(seconds * env.scenario.physics_hz))):
-        _hold_others(env, arm)
+        _zero_torques(env)
         env.world.step()
     return before, _kinetic_energy(arm)
 
@@ -238,6 +239,14 @@ def test_extra_joints_are_not_agent_joints(make_env):
     assert arm.n_joints == 7 and env.action_space("arm_0").shape == (7,)
 
 
-def test_planar_scenario_joint_limits_are_continuous(make_env):
-    env = make_env(scenario_dict("planar_square"))
+def test_planar_joints_are_continuous(make_env):
+    """The planar arm's joints have no limits: q may wind past pi (observed wrapped to [-pi, pi))."""
+    env = make_env(scenario_dict("planar_square"), gravity=[0.0, 0.0, 0.0], max_joint_velocity=100.0)
     assert all(arm.model.continuous.all() for arm in env.arms)
+    env.reset(seed=0)
+    _set_state(env.arms[0], [3.0, 0.0], [20.0, 0.0])
+    for _ in range(100):  # 0.1 s at 20 rad/s: q1 goes from 3.0 to 5.0 rad, no limit stops it
+        _zero_torques(env)
+        env.world.step()
+    q, dq = env.arms[0].read_state()
+    assert q[0] == pytest.approx(5.0, abs=1e-6) and dq[0] == pytest.approx(20.0, abs=1e-6)

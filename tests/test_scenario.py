@@ -93,6 +93,12 @@ def test_env_accepts_a_scenario_object(make_env):
         assert same.scenario is scenario
     finally:
         same.close()
+    # Overrides on a Scenario object re-parse it and keep its name.
+    custom = load_scenario({**scenario_dict("planar_square", frame_skip=5), "name": "mine"})
+    assert custom.name == "mine"
+    changed = make_env(custom, episode_seconds=0.2, initial_q_noise=0.0)
+    assert changed.scenario.name == "mine" and changed.scenario.frame_skip == 5
+    assert changed.scenario.episode_seconds == 0.2 and changed.scenario.max_steps == 40
 
 
 # ------------------------------------------------------------------------------------------ files and round trips

@@ -10,7 +10,7 @@ import pytest
 
 import ee_formation_env
 import ee_formation_env.world
-from ee_formation_env.scenario import load_scenario
+from ee_formation_env.scenario import ROBOTS, load_scenario
 from ee_formation_env.validation import find_reachable_placement, validate_scenario
 
 from conftest import scenario_dict
@@ -79,6 +79,19 @@ def test_initial_q_outside_joint_limits(no_physics):
 
 def test_torque_limit_list_of_wrong_length(no_physics):
     _rejects(scenario_dict(torque_limits=[10.0, 10.0, 10.0]), r"torque_limits: arms\[0\] has 2 joints, got 3")
+
+
+def test_urdf_without_effort_limits_needs_torque_limits(no_physics, tmp_path, make_env):
+    text = ROBOTS["planar_2link"].urdf.read_text(encoding="utf-8").replace('effort="50.0" ', "")
+    assert "effort" not in text
+    urdf = tmp_path / "no_effort.urdf"
+    urdf.write_text(text, encoding="utf-8")
+    data = scenario_dict()
+    for arm in data["arms"]:
+        del arm["robot"]
+        arm.update(urdf=str(urdf), ee_link="ee_link")
+    with pytest.raises(ValueError, match=r"torque_limits: arms\[0\] URDF has joints without a positive effort limit"):
+        ee_formation_env.parallel_env(data)
 
 
 def test_initial_configuration_at_singularity(no_physics):

@@ -1,0 +1,74 @@
+"""Packaging: the wheel ships the package, its robot assets, and works when installed on its own."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+_IGNORE = shutil.ignore_patterns(".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache",
+                                 ".hypothesis", ".venv", "runs", "results")
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    """Build a wheel from a copy of the checkout (the checkout itself gets no build/ or egg-info churn)."""
+    root = tmp_path_factory.mktemp("packaging")
+    source = root / "src"
+    shutil.copytree(REPO, source, ignore=_IGNORE)
+    out = root / "wheels"
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-w", str(out), str(source)],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    wheels = list(out.glob("ee_formation_env-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0]
+
+
+def test_wheel_contents(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for required in ("ee_formation_env/__init__.py", "ee_formation_env/env.py", "ee_formation_env/scenario.py",
+                     "ee_formation_env/validation.py", "ee_formation_env/world.py", "ee_formation_env/robot.py",
+                     "ee_formation_env/assets/__init__.py", "ee_formation_env/assets/planar_2link.urdf",
+                     "ee_formation_env/assets/pera_arm.urdf"):
+        assert required in names, required
+    assert not any(name.startswith("tests/") for name in names)
+    metadata = next(n for n in names if n.endswith(".dist-info/METADATA"))
+    text = zipfile.ZipFile(wheel).read(metadata).decode()
+    for dependency in ("pybullet", "pettingzoo", "gymnasium", "numpy", "pyyaml"):
+        assert dependency in text.lower(), dependency
+
+
+def test_installed_wheel_finds_its_assets(wheel, tmp_path):
+    """Installed alone (not the editable checkout), the package builds an env from its shipped URDFs."""
+    target = tmp_path / "site"
+    result = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--target",
+                             str(target), str(wheel)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    code = (
+        "import ee_formation_env, pathlib\n"
+        "print(pathlib.Path(ee_formation_env.__file__).resolve())\n"
+        "from ee_formation_env.scenario import ROBOTS\n"
+        "print(ROBOTS['pera_arm'].urdf.resolve())\n"
+        "env = ee_formation_env.parallel_env('spatial_tetrahedron', episode_seconds=0.1)\n"
+        "obs, _ = env.reset(seed=0)\n"
+        "space = env.observation_space('arm_0')\n"
+        "print('obs', obs['arm_0'].shape == space.shape and space.contains(obs['arm_0']))\n"
+        "env.close()\n"
+    )
+    environment = dict(os.environ, PYTHONPATH=str(target))
+    run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=environment, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    lines = run.stdout.strip().splitlines()
+    package_file, urdf = Path(lines[0]), Path(lines[1])
+    assert target.resolve() in package_file.parents
+    assert target.resolve() in urdf.parents and urdf.name == "pera_arm.urdf"
+    assert lines[2] == "obs True"
