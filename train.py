@@ -51,10 +51,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--residual-scale", type=float, default=0.3, help="residual action scale (0, 1]")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
-    parser.add_argument("--total-timesteps", type=int, default=300_000, help="agent steps (all agents count)")
+    parser.add_argument("--total-timesteps", type=int, default=600_000, help="agent steps (all agents count)")
     parser.add_argument("--n-envs", type=int, default=2, help="parallel envs (each with all its agents)")
-    parser.add_argument("--n-workers", type=int, default=None,
-                        help="worker processes for the envs (default: min(n_envs, CPU count); 0 = in-process)")
+    parser.add_argument("--n-workers", type=int, default=0,
+                        help="worker processes for the envs (0 = step them in this process, the fastest for "
+                             "the planar scenarios; use 2 on 2 cores for costlier scenarios)")
     parser.add_argument("--train-episode-seconds", type=float, default=10.0,
                         help="episode length while training, s (evaluation uses the scenario's)")
     parser.add_argument("--seed", type=int, default=0)
@@ -70,8 +71,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
-    if args.n_workers is None:
-        args.n_workers = min(args.n_envs, os.cpu_count() or 1)
+    if args.n_workers < 0:
+        parser.error("--n-workers must be >= 0")
     return args
 
 
@@ -150,6 +151,9 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
 
     from ee_formation_env.sb3 import SharedPolicyVecEnv
 
+    import torch
+
+    torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
     factory = env_factory(args, training_overrides(args))
     venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers)
     venv = VecMonitor(venv, filename=str(out_dir / "monitor.csv"))

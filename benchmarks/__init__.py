@@ -1,0 +1,1 @@
+"""Speed benchmarks of ee-formation-env: ``python -m benchmarks.run`` (see ``benchmarks/README.md``)."""
