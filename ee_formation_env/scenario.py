@@ -377,8 +377,8 @@ def _parse_arm(index: int, arm: Any, base_dir: Path) -> ArmConfig:
     if ("robot" in arm) == ("urdf" in arm):
         raise ValueError(f"{where}: give exactly one of 'robot' (one of {sorted(ROBOTS)}) or 'urdf'")
     robot = arm.get("robot")
-    if robot is not None:
-        if robot not in ROBOTS:
+    if "robot" in arm:
+        if not isinstance(robot, str) or robot not in ROBOTS:
             raise ValueError(f"{where}.robot: unknown robot {robot!r}; available: {sorted(ROBOTS)}")
         urdf = str(ROBOTS[robot].urdf)
         ee_link = arm.get("ee_link", ROBOTS[robot].ee_link)
