@@ -4,14 +4,16 @@ Built-in scenarios have tuned defaults that respect the scenario's torque limits
 :data:`PAPER_GAINS` are the paper's (they need torque limits lifted and 1 ms control steps). For any
 other scenario :func:`derive_gains` computes gains from the agent's nominal model and control step:
 
-1. Damping: explicit (sampled) velocity feedback is stable only for ``dt < 2 lambda_min(H) / K_D``
-   (FACTS.md), so ``K_D = min(K_D_max, lambda_min(H) / dt)``: half that bound, capped at
-   ``K_D_max = 20 N m s/rad``. ``lambda_min(H)`` is the smallest eigenvalue of the nominal mass matrix
-   over sampled configurations within the joint limits.
-2. Formation gain from the torque budget: ``K_P = 0.5 tau_min / (reach * e_ref)``, where ``e_ref`` is the
-   agent gradient |e_hat| produced by a 10 % error on each incident edge (``2 * 2 d^2 0.1 * d`` per edge
-   for distance formations, ``0.1 d`` for displacement ones), so that such an error asks for half the
-   weakest joint's torque.
+1. Damping, per joint: sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while the
+   spectral radius ``dt rho(H^-1 K_D) < 2`` (FACTS.md: ``dt < 2 lambda_min(H) / K_D`` for a scalar gain).
+   Each joint gets ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the
+   step), then all are scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every
+   sampled configuration; ``K_D_max = 20 N m s/rad``. A robot whose light distal joints leave little damping
+   at the scenario's control step needs a smaller step (``frame_skip``) or reflected rotor inertia.
+2. Formation gain from the torque budget, per joint: ``K_P,j = 0.5 tau_j / (reach * e_ref)``, where
+   ``e_ref`` is the agent gradient |e_hat| produced by a 10 % error on each incident edge
+   (``2 * 2 d^2 0.1 * d`` per edge for distance formations, ``0.1 d`` for displacement ones), so that such
+   an error asks each joint for about half its torque limit ``tau_j``.
 3. Internal model: ``K_I = 1 1/s`` when gravity acts on the joints, else 0; adaptation ``alpha`` is the
    inverse of the largest ``|Z|^2`` at that reference error (a unit adaptation rate).
 """
@@ -57,8 +59,7 @@ def derive_gains(env: FormationEnv, agent: str) -> Gains:
     i = env.possible_agents.index(agent)
     chain = env.nominal_models[i]
     dt = env.scenario.control_dt
-    lambda_min = _smallest_inertia(env.scenario.arms[i].urdf, env.scenario.arms[i].ee_link)
-    kd = min(K_D_MAX, lambda_min / dt)
+    kd = stable_damping(env.scenario.arms[i].urdf, env.scenario.arms[i].ee_link, dt)
 
     neighbors = env.graph.neighbors[i]
     lengths = np.linalg.norm(env.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
@@ -68,7 +69,7 @@ def derive_gains(env: FormationEnv, agent: str) -> Gains:
         e_ref = float(np.sum(0.1 * lengths))
     reach = float(np.max(np.linalg.norm(chain.forward_batch(chain.sample_configurations(
         256, np.random.default_rng(0))), axis=1)))
-    kp = 0.5 * float(np.min(env.torque_limits[i])) / (reach * max(e_ref, 1e-9))
+    kp = 0.5 * env.torque_limits[i] / (reach * max(e_ref, 1e-9))
 
     gravity_acts = np.linalg.norm(env.gravity_in_base_frame(agent)) > 0 and _gravity_loads_joints(env, i)
     q0 = env.nominal_initial_q(agent)
@@ -79,13 +80,17 @@ def derive_gains(env: FormationEnv, agent: str) -> Gains:
     return Gains(kp=kp, kd=kd, ki=1.0 if gravity_acts else 0.0, alpha=alpha)
 
 
-@functools.lru_cache(maxsize=32)
-def _smallest_inertia(urdf: str, ee_link: str) -> float:
-    """Smallest eigenvalue of the nominal mass matrix over 200 sampled configurations (kg m^2)."""
+@functools.lru_cache(maxsize=64)
+def stable_damping(urdf: str, ee_link: str, dt: float) -> np.ndarray:
+    """Per-joint damping gains (N m s/rad) by rule 1 of the module docstring."""
     chain = chain_model(urdf, ee_link)
     dynamics = nominal_dynamics(urdf, chain.joint_names)
-    samples = chain.sample_configurations(200, np.random.default_rng(0))
-    return float(min(np.linalg.eigvalsh(dynamics.mass_matrix(q))[0] for q in samples))
+    inverses = [np.linalg.inv(dynamics.mass_matrix(q))
+                for q in chain.sample_configurations(200, np.random.default_rng(0))]
+    worst_diagonal = np.max([np.diag(inverse) for inverse in inverses], axis=0)
+    kd = np.minimum(K_D_MAX, 1.0 / (dt * worst_diagonal))
+    radius = max(float(np.max(np.abs(np.linalg.eigvals(dt * inverse * kd)))) for inverse in inverses)
+    return kd / max(radius, 1.0)
 
 
 def _gravity_loads_joints(env: FormationEnv, index: int) -> bool:

@@ -1,0 +1,54 @@
+"""Default gains and the rule that derives stable gains for any robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import baselines
+import ee_formation_env
+from baselines.dynamics import nominal_dynamics
+from baselines.gains import SCENARIO_GAINS, derive_gains
+from baselines.metrics import run_episode
+from ee_formation_env.scenario import BUILTIN_SCENARIOS
+
+KUKA_TRIANGLE = {
+    "name": "kuka_triangle",
+    "arms": [
+        {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "base_position": [0, 0, 0],
+         "initial_q": [0, 0.6, 0, -1.2, 0, 0.8, 0]},
+        {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "base_position": [0, 1.0, 0],
+         "initial_q": [0, 0.6, 0, -1.2, 0, 0.8, 0]},
+        {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "base_position": [0.9, 0.5, 0],
+         "initial_q": [2.9, 0.6, 0, -1.2, 0, 0.8, 0]},
+    ],
+    "edges": [[0, 1], [1, 2], [2, 0]],
+    "shape": [[0.5, 0.2, 0.6], [0.5, 0.8, 0.6], [0.3, 0.5, 0.7]],
+    "formation": "distance", "dim": 3, "episode_seconds": 15.0, "torque_limits": 50.0,
+}
+
+
+def test_every_builtin_scenario_has_tuned_defaults():
+    assert set(SCENARIO_GAINS) == set(BUILTIN_SCENARIOS)
+
+
+def test_derived_damping_respects_the_explicit_step_rule():
+    with ee_formation_env.parallel_env(KUKA_TRIANGLE) as env:
+        gains = derive_gains(env, "arm_0")
+        chain = env.nominal_models[0]
+        dynamics = nominal_dynamics(env.scenario.arms[0].urdf, chain.joint_names)
+        dt = env.scenario.control_dt
+        for q in chain.sample_configurations(50, np.random.default_rng(1)):
+            radius = np.max(np.abs(np.linalg.eigvals(dt * np.linalg.inv(dynamics.mass_matrix(q)) * gains.kd)))
+            assert radius <= 1.0 + 1e-9
+        assert np.all(np.asarray(gains.kd) > 0)
+        assert gains.ki == 1.0  # gravity loads the kuka's joints
+
+
+@pytest.mark.parametrize("policy", ["gradient", "adaptive_jacobian"])
+def test_derived_gains_converge_on_a_robot_without_tuned_defaults(policy):
+    with ee_formation_env.parallel_env(KUKA_TRIANGLE, initial_q_noise=0.0) as env:
+        assert env.scenario.name not in SCENARIO_GAINS  # so make_policy uses derive_gains
+        metrics = run_episode(env, baselines.make_policies(policy, env), seed=0)
+        assert metrics.physics_fault == ""
+        assert metrics.success, metrics.final_formation_error
