@@ -56,8 +56,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--n-workers", type=int, default=0,
                         help="worker processes for the envs (0 = step them in this process, the fastest for "
                              "the planar scenarios; use 2 on 2 cores for costlier scenarios)")
-    parser.add_argument("--train-episode-seconds", type=float, default=10.0,
-                        help="episode length while training, s (evaluation uses the scenario's)")
+    parser.add_argument("--train-episode-seconds", type=float, default=None,
+                        help="episode length while training, s (default: the scenario's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
@@ -82,7 +82,7 @@ def run_name(args: argparse.Namespace) -> str:
 
 
 def training_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    return {"episode_seconds": args.train_episode_seconds}
+    return {} if args.train_episode_seconds is None else {"episode_seconds": args.train_episode_seconds}
 
 
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:

@@ -107,7 +107,9 @@ class FormationController:
         errors = parts.edge_errors * mask
         e_hat = agent_gradient(self.agent.formation_kind, parts.relative_positions * mask,
                                errors[:, 0] if self.agent.formation_kind == "distance" else errors)
-        return np.pad(e_hat, (0, 3 - len(e_hat)))
+        padded = np.zeros(3)
+        padded[:len(e_hat)] = e_hat
+        return padded
 
     def torque(self, parts: ObservationParts) -> np.ndarray:
         raise NotImplementedError
@@ -173,11 +175,12 @@ class AdaptiveJacobianController(ApproxJacobianController):
             self.param_high = np.broadcast_to(np.asarray(param_box[1], dtype=np.float64), self.a_hat0.shape).copy()
             if np.any(self.param_low > self.param_high):
                 raise ValueError(f"param_box: lower bounds exceed upper bounds: {param_box!r}")
+        self._identity = np.eye(len(self.a_hat0))
 
     def _adapt(self, parts: ObservationParts, e_hat: np.ndarray) -> None:
         regressor = self.agent.chain.regressor(parts.q, e_hat)  # (n, p): J^T e_hat = Z a
         dt, alpha = self.agent.control_dt, self.gains.alpha
-        system = np.eye(len(self.a_hat)) + dt * alpha * (regressor.T @ regressor)
+        system = self._identity + dt * alpha * (regressor.T @ regressor)
         self.a_hat = np.linalg.solve(system, self.a_hat + dt * (regressor.T @ parts.dq))
         if self.projection:
             np.clip(self.a_hat, self.param_low, self.param_high, out=self.a_hat)

@@ -24,6 +24,19 @@ from ee_formation_env.world import PhysicsWorld, draw_segment, project_points
 _EDGE_COLOR = (220, 30, 30)
 
 
+def smallest_singular_values(matrices: np.ndarray) -> np.ndarray:
+    """Smallest singular value of each matrix of a stack (k, r, c).
+
+    2 x 2 matrices [[a, b], [c, d]] use the closed form sigma_min = |hypot(a + d, b - c) - hypot(a - d, b + c)| / 2
+    (the two hypotenuses are sigma_max + sigma_min and sigma_max - sigma_min), accurate to rounding relative to
+    sigma_max and much cheaper than a LAPACK call at this size; other shapes use ``np.linalg.svd``.
+    """
+    if matrices.shape[1:] == (2, 2):
+        a, b, c, d = matrices[:, 0, 0], matrices[:, 0, 1], matrices[:, 1, 0], matrices[:, 1, 1]
+        return 0.5 * np.abs(np.hypot(a + d, b - c) - np.hypot(a - d, b + c))
+    return np.linalg.svd(matrices, compute_uv=False).min(axis=1)
+
+
 class FormationEnv(ParallelEnv):
     """End-effector formation control of N robot arms (Wu et al., "Distributed formation control for
     manipulator end-effectors"), one agent per arm, simulated by PyBullet in torque-control mode.
@@ -55,8 +68,10 @@ class FormationEnv(ParallelEnv):
     Bounds are finite: |z| is bounded by base distances plus reaches, ``q`` by the joint limits, ``dq``
     by ``max_joint_velocity`` (faster is a physics fault). Observations are clipped into them.
 
-    **Reward** of agent ``i`` (weights in ``scenario.reward``): ``-(formation * mean_k |e_k| + velocity *
-    |dq_i|^2 + torque * |a_i|^2)`` over its incident edges, or the team mean with ``team = True``.
+    **Reward** of agent ``i``, in [0, 1] (weights in ``scenario.reward``, see :class:`RewardConfig`):
+    ``1 - formation * tanh(mean_k(|e_k| / s_k) / formation_scale) - velocity * tanh(|dq_i| / velocity_scale)
+    - torque * mean(a_i^2)`` over its incident edges (``s_k = d*_k^2`` or ``|z*_k|``: relative edge errors),
+    or the team mean with ``team = True``. Never negative, so ending an episode early never pays.
 
     **Info** of agent ``i``: ``formation_error`` (RMS over all edges of |e_k|, m^2 or m),
     ``edge_errors`` (its slots' errors, own frame), ``singularity_margin`` (smallest singular value of its
@@ -103,6 +118,7 @@ class FormationEnv(ParallelEnv):
         self.world = PhysicsWorld(sc.physics_hz, sc.gravity, render_mode)
         self.arms = self._load_arms()
         self._body_to_agent = {arm.body: i for i, arm in enumerate(self.arms)}
+        self._build_step_tables()
         for arm, q in zip(self.arms, self._nominal_q):
             arm.reset_state(q)
         self.world.save_snapshot()
@@ -151,8 +167,6 @@ class FormationEnv(ParallelEnv):
         m, w, slots = self.dim, formation.error_width, graph.max_degree
         self._slot_size = 1 + m + 2 * w
         bases = np.asarray([arm.base_position for arm in sc.arms])
-        self._slot_edges: list[np.ndarray] = []
-        self._slot_signs: list[np.ndarray] = []
         self._observation_spaces: dict[str, gymnasium.spaces.Box] = {}
         self._action_spaces: dict[str, gymnasium.spaces.Box] = {}
         # One bound on |z_ij| for every agent (the largest base distance plus reaches over all edges), so
@@ -161,9 +175,6 @@ class FormationEnv(ParallelEnv):
             float(np.linalg.norm(bases[tail] - bases[head])) + self._reaches[tail] + self._reaches[head]
             for tail, head in graph.edges))
         for i, agent in enumerate(self.possible_agents):
-            neighbors = graph.neighbors[i]
-            self._slot_edges.append(np.array([n.edge for n in neighbors], dtype=np.int64))
-            self._slot_signs.append(np.array([n.sign for n in neighbors], dtype=np.float64))
             if sc.formation == "distance":
                 desired_low, desired_high, error_bound = 0.0, z_bound, z_bound**2
             else:
@@ -226,18 +237,19 @@ class FormationEnv(ParallelEnv):
         self._clipped_actions = np.zeros(len(self.agents), dtype=np.int64)
         self._needs_reset = False
         self._read_state()
-        zero = [np.zeros(arm.n_joints) for arm in self.arms]
         observations = self._observations()
-        infos = self._infos([z.astype(bool) for z in zero], np.zeros(len(self.arms), dtype=np.int64), "", zero)
+        infos = self._infos(np.zeros(len(self.arms), dtype=np.int64), self._no_contacts, "",
+                            np.zeros(len(self._torque_limits_flat)))
         return observations, infos
 
     def step(self, actions: Mapping[str, np.ndarray]):
         """Apply one action per live agent for ``frame_skip`` physics steps."""
         if self._needs_reset or not self.agents:
             raise RuntimeError("step: call reset() first (the episode has ended or never started)")
-        normalized, saturation = self._check_actions(actions)
-        torques = [a * limit for a, limit in zip(normalized, self.torque_limits)]
-        torque_lists = [tau.tolist() for tau in torques]
+        normalized, clipped = self._check_actions(actions)
+        torques = normalized * self._torque_limits_flat  # every agent's joint torques, N m, one flat vector
+        torque_values = torques.tolist()
+        torque_lists = [torque_values[joints] for joints in self._joint_slices]
         for _ in range(self.scenario.frame_skip):
             for arm, tau in zip(self.arms, torque_lists):
                 arm.apply_torques(tau)
@@ -248,11 +260,11 @@ class FormationEnv(ParallelEnv):
 
         observations = self._observations()
         rewards = self._rewards(normalized)
-        infos = self._infos(saturation, contacts, fault, torques)
-        ended = bool(fault) or (self.scenario.terminate_on_contact and bool(contacts.any()))
+        infos = self._infos(clipped, contacts, fault, torques)
+        ended = bool(fault) or (self.scenario.terminate_on_contact and any(contacts))
         truncated = not ended and self._step_count >= self.scenario.max_steps
-        terminations = {agent: ended for agent in self.agents}
-        truncations = {agent: truncated for agent in self.agents}
+        terminations = dict.fromkeys(self.agents, ended)
+        truncations = dict.fromkeys(self.agents, truncated)
         if ended or truncated:
             self.agents = []
             self._needs_reset = True
@@ -268,11 +280,11 @@ class FormationEnv(ParallelEnv):
 
     def joint_positions(self) -> list[np.ndarray]:
         """Each arm's joint positions (rad, unwrapped) at the last reset/step."""
-        return [q.copy() for q in self._q]
+        return [self._q[joints].copy() for joints in self._joint_slices]
 
     def joint_velocities(self) -> list[np.ndarray]:
         """Each arm's joint velocities (rad/s) at the last reset/step."""
-        return [dq.copy() for dq in self._dq]
+        return [self._dq[joints].copy() for joints in self._joint_slices]
 
     def nominal_initial_q(self, agent: str) -> np.ndarray:
         """The scenario's initial joint positions of ``agent`` (rad), before reset noise."""
@@ -285,9 +297,7 @@ class FormationEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Global state for centralized critics: all end-effector positions (world, m), all q, all dq."""
-        n = len(self.arms)
-        state = np.concatenate([self._ee_world[:, :self.dim].ravel(), *self._q_observed, *self._dq])
-        del n
+        state = np.concatenate([self._ee_world[:, :self.dim].ravel(), self._q_observed, self._dq])
         return np.clip(state, self.state_space.low, self.state_space.high).astype(np.float32)
 
     def render(self) -> np.ndarray | None:
@@ -333,120 +343,246 @@ class FormationEnv(ParallelEnv):
         self.__init__(state["scenario"], render_mode=state["render_mode"])
 
     # ------------------------------------------------------------------------------------------ internals
-    def _check_actions(self, actions: Mapping[str, np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    # The step is vectorized over agents: per-agent quantities live in flat arrays indexed by the tables
+    # below, so that one numpy call serves every agent (the cost of a step is mostly per call, not per
+    # element, at these sizes).
+    def _build_step_tables(self) -> None:
+        """Index tables of the vectorized step, built once.
+
+        - Joints: arm i's joints are ``self._joint_slices[i]`` of every flat joint vector (q, dq, actions,
+          torques).
+        - Kinematics: arms that share one kinematic model object are evaluated in one batch.
+        - Slots: the real neighbour slots of all agents, agent by agent (``_slot_edge``, ``_slot_sign``,
+          ``_slot_rotation``); agent i's are ``self._slot_slices[i]``. Padding slots are never computed.
+        - Observations: all agents' observations are gathered by one index (``_obs_gather``) from one
+          source vector ``[0, 1, desired (S w), z (S m), e (S w), q_observed (T), dq (T)]`` (S real slots,
+          T joints); agent i's is ``self._obs_slices[i]`` of the result.
+        """
+        m, w, n_slots = self.dim, self.formation.error_width, self.graph.max_degree
+        n_agents = len(self.arms)
+        sizes = [arm.n_joints for arm in self.arms]
+        joint_bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+        n_total = int(joint_bounds[-1])
+        self._n_joints_total = n_total
+        self._joint_slices = [slice(int(a), int(b)) for a, b in zip(joint_bounds[:-1], joint_bounds[1:])]
+        self._joint_starts = joint_bounds[:-1]
+        self._joint_counts = np.asarray(sizes, dtype=np.float64)
+        self._action_shapes = [(n,) for n in sizes]
+        self._agent_set = frozenset(self.possible_agents)
+        self._torque_limits_flat = np.concatenate(self.torque_limits)
+        self._continuous = np.concatenate([arm.model.continuous for arm in self.arms])
+        self._no_contacts = [0] * n_agents
+
+        groups: dict[int, list[int]] = {}
+        for i, arm in enumerate(self.arms):
+            groups.setdefault(id(arm.model), []).append(i)
+        self._kinematic_groups: list[tuple[SerialChain, np.ndarray, np.ndarray | None]] = []
+        for members in groups.values():
+            joints = np.concatenate([np.arange(joint_bounds[i], joint_bounds[i + 1]) for i in members])
+            in_order = len(members) == n_agents and np.array_equal(joints, np.arange(n_total))
+            self._kinematic_groups.append((self.arms[members[0]].model, np.array(members), None if in_order else joints))
+        self._base_rotations = np.stack([arm.base_rotation for arm in self.arms])  # base -> world
+        self._base_positions = np.stack([arm.base_position for arm in self.arms])
+
+        neighbors = self.graph.neighbors
+        degrees = [len(slots) for slots in neighbors]
+        slot_bounds = np.concatenate([[0], np.cumsum(degrees)]).astype(np.intp)
+        slot_agent = np.array([i for i, slots in enumerate(neighbors) for _ in slots], dtype=np.intp)
+        self._slot_edge = np.array([n.edge for slots in neighbors for n in slots], dtype=np.intp)
+        self._slot_sign = np.array([[float(n.sign)] for slots in neighbors for n in slots])  # (S, 1)
+        self._slot_rotation = self._base_rotations[slot_agent][:, :m, :m]  # row-vector @ R: world -> own base
+        self._slot_starts = slot_bounds[:-1]
+        self._slot_degrees = np.asarray(degrees, dtype=np.float64)
+        self._slot_slices = [slice(int(a), int(b)) for a, b in zip(slot_bounds[:-1], slot_bounds[1:])]
+
+        # The desired relations in each agent's own frame are constants.
+        desired = []
+        for i, slots in enumerate(neighbors):
+            edges = np.array([n.edge for n in slots], dtype=np.intp)
+            if self.formation.kind == "distance":
+                desired.append(self.formation.desired[edges])
+            else:
+                signs = np.array([n.sign for n in slots], dtype=np.float64)
+                rotation = self.arms[i].base_rotation[:m, :m]
+                desired.append((signs[:, None] * self.formation.desired_vectors[edges]) @ rotation)
+        n_real = int(slot_bounds[-1])
+        self._obs_constants = np.concatenate([[0.0, 1.0], *(d.ravel() for d in desired)])
+        offset_desired, offset_z = 2, 2 + n_real * w
+        offset_e = offset_z + n_real * m
+        offset_q = offset_e + n_real * w
+        offset_dq = offset_q + n_total
+        gather, obs_bounds = [], [0]
+        for i in range(n_agents):
+            for k in range(n_slots):
+                if k < degrees[i]:
+                    r = int(slot_bounds[i]) + k
+                    gather += [1, *range(offset_z + r * m, offset_z + (r + 1) * m),
+                               *range(offset_desired + r * w, offset_desired + (r + 1) * w),
+                               *range(offset_e + r * w, offset_e + (r + 1) * w)]
+                else:
+                    gather += [0] * self._slot_size
+            gather += [*range(offset_q + joint_bounds[i], offset_q + joint_bounds[i + 1]),
+                       *range(offset_dq + joint_bounds[i], offset_dq + joint_bounds[i + 1])]
+            obs_bounds.append(len(gather))
+        self._obs_gather = np.array(gather, dtype=np.intp)
+        self._obs_slices = [slice(a, b) for a, b in zip(obs_bounds[:-1], obs_bounds[1:])]
+        spaces = [self._observation_spaces[agent] for agent in self.possible_agents]
+        self._obs_low = np.concatenate([space.low for space in spaces]).astype(np.float64)
+        self._obs_high = np.concatenate([space.high for space in spaces]).astype(np.float64)
+
+    def _check_actions(self, actions: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Validate one action per live agent; return every agent's action clipped to [-1, 1] as one flat
+        vector (float64) and the number of entries clipped per agent. Raises before anything changes."""
         if not isinstance(actions, Mapping):
             raise TypeError(f"actions: expected a dict agent -> array, got {type(actions).__name__}")
-        missing = [a for a in self.agents if a not in actions]
-        unknown = [a for a in actions if a not in self.agents]
-        if missing or unknown:
+        if actions.keys() != self._agent_set:
+            missing = [a for a in self.agents if a not in actions]
+            unknown = [a for a in actions if a not in self.agents]
             raise ValueError(f"actions: missing agents {missing}, unknown agents {unknown}; expected keys {self.agents}")
-        normalized, saturation = [], []
-        for i, agent in enumerate(self.agents):
-            shape = self._action_spaces[agent].shape
+        parts = []
+        for agent, shape in zip(self.agents, self._action_shapes):
             try:
                 action = np.asarray(actions[agent], dtype=np.float64)
             except (TypeError, ValueError):
+                self._raise_if_not_finite(parts)
                 raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}") from None
             if action.shape != shape:
+                self._raise_if_not_finite(parts)
                 raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
+            parts.append(action)
+        normalized = np.concatenate(parts)
+        if not np.isfinite(normalized).all():
+            self._raise_if_not_finite(parts)
+        clipped = np.add.reduceat(np.abs(normalized) > 1.0, self._joint_starts, dtype=np.int64)
+        np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)  # np.clip, without its overhead
+        self._clipped_actions += clipped
+        return normalized, clipped
+
+    def _raise_if_not_finite(self, parts: list[np.ndarray]) -> None:
+        """The error of the first of the (agent-ordered) actions with a non-finite entry, if any."""
+        for agent, action in zip(self.agents, parts):
             if not np.all(np.isfinite(action)):
+                shape = self._action_spaces[agent].shape
                 raise ValueError(f"actions[{agent!r}]: expected finite values of shape {shape}, got {action.tolist()}")
-            outside = np.abs(action) > 1.0
-            normalized.append(np.clip(action, -1.0, 1.0))
-            saturation.append(outside)
-        for i, outside in enumerate(saturation):
-            self._clipped_actions[i] += int(outside.sum())
-        return normalized, saturation
 
     def _read_state(self) -> str:
-        """Read joint states, compute end-effector positions and Jacobians; return a fault reason or ""."""
-        self._q, self._dq, self._jacobians, ee = [], [], [], []
+        """Read joint states, compute end-effector positions, Jacobians and edge errors; return a fault
+        reason or ""."""
+        states = [arm.read_state() for arm in self.arms]
+        joint_state = np.concatenate([state[0] for state in states] + [state[1] for state in states])
+        q, dq = joint_state[:self._n_joints_total], joint_state[self._n_joints_total:]
         fault = ""
-        for i, arm in enumerate(self.arms):
-            q, dq = arm.read_state()
+        if not np.isfinite(joint_state).all() or np.abs(dq).max() > self.scenario.max_joint_velocity:
+            q, dq, fault = self._physics_fault(states)
+        self._q, self._dq = q, dq
+
+        positions, self._group_jacobians = [], []
+        for model, members, joints in self._kinematic_groups:
+            position, jacobian = model.forward_and_jacobian_batch((q if joints is None else q[joints]).reshape(len(members), -1))
+            positions.append(position)
+            self._group_jacobians.append(jacobian)
+        if len(positions) == 1:
+            ee_base = positions[0]
+        else:
+            ee_base = np.empty((len(self.arms), 3))
+            for (_, members, _), position in zip(self._kinematic_groups, positions):
+                ee_base[members] = position
+        self._ee_world = (self._base_rotations @ ee_base[:, :, None])[:, :, 0] + self._base_positions
+        if self._continuous.any():  # continuous joints are observed wrapped to [-pi, pi)
+            wrapped = (q + math.pi) % (2 * math.pi) - math.pi
+            self._q_observed = wrapped if self._continuous.all() else np.where(self._continuous, wrapped, q)
+        else:
+            self._q_observed = q
+        self._z = self.graph.edge_vectors(self._ee_world[:, :self.dim])
+        self._edge_errors = self.formation.edge_errors(self._z)
+        errors = self._edge_errors.reshape(self.graph.n_edges, -1)
+        self._edge_squares = np.add.reduce(errors * errors, axis=1)  # |e_k|^2
+        self._slot_z, self._slot_errors = self._slots_in_own_frames()
+        return fault
+
+    def _physics_fault(self, states: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, str]:
+        """The first arm's fault (non-finite state, or a joint speed over ``max_joint_velocity``) and the
+        joint states with non-finite values replaced by finite ones."""
+        fault, qs, dqs = "", [], []
+        limit = self.scenario.max_joint_velocity
+        for i, (q, dq) in enumerate(states):
             if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
                 fault = fault or f"arm_{i}: non-finite joint state"
                 q, dq = np.nan_to_num(q), np.nan_to_num(dq)
-            elif np.max(np.abs(dq)) > self.scenario.max_joint_velocity:
+            elif np.max(np.abs(dq)) > limit:
                 fault = fault or (f"arm_{i}: joint speed {np.max(np.abs(dq)):.1f} rad/s exceeds "
-                                  f"max_joint_velocity {self.scenario.max_joint_velocity} rad/s")
-            position, jacobian = arm.model.forward_and_jacobian(q)
-            self._q.append(q)
-            self._dq.append(dq)
-            self._jacobians.append(jacobian)
-            ee.append(arm.to_world(position))
-        self._ee_world = np.asarray(ee)
-        self._q_observed = [np.where(arm.model.continuous, (q + math.pi) % (2 * math.pi) - math.pi, q)
-                            for arm, q in zip(self.arms, self._q)]
-        self._z = self.graph.edge_vectors(self._ee_world[:, :self.dim])
-        self._edge_errors = self.formation.edge_errors(self._z)
-        return fault
+                                  f"max_joint_velocity {limit} rad/s")
+            qs.append(q)
+            dqs.append(dq)
+        return np.concatenate(qs), np.concatenate(dqs), fault
 
-    def _count_contacts(self) -> np.ndarray:
-        counts = np.zeros(len(self.arms), dtype=np.int64)
-        for body_a, body_b in self.world.contact_pairs():
+    def _count_contacts(self) -> list[int]:
+        """Contact points of each agent with other arms."""
+        pairs = self.world.contact_pairs()
+        if not pairs:
+            return self._no_contacts
+        counts = [0] * len(self.arms)
+        for body_a, body_b in pairs:
             a, b = self._body_to_agent.get(body_a), self._body_to_agent.get(body_b)
             if a is not None and b is not None and a != b:
                 counts[a] += 1
                 counts[b] += 1
         return counts
 
-    def _slot_errors(self, i: int) -> np.ndarray:
-        """Agent i's slot edge errors in its own frame: (deg,) or (deg, m)."""
-        errors = self._edge_errors[self._slot_edges[i]]
+    def _slots_in_own_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every real slot's z_ij (S, m) and edge error ((S,) or (S, m)), each in its agent's base frame."""
+        z_slots = self._slot_sign * self._z[self._slot_edge]  # z_ij = x_i - x_j, world frame
         if self.formation.kind == "distance":
-            return errors
-        rotation = self.arms[i].base_rotation[:self.dim, :self.dim]
-        return (self._slot_signs[i][:, None] * errors) @ rotation
+            return (z_slots[:, None, :] @ self._slot_rotation)[:, 0], self._edge_errors[self._slot_edge]
+        errors = self._slot_sign * self._edge_errors[self._slot_edge]
+        rotated = np.stack([z_slots, errors], axis=1) @ self._slot_rotation
+        return rotated[:, 0], rotated[:, 1]
 
     def _observations(self) -> dict[str, np.ndarray]:
-        m, w, size = self.dim, self.formation.error_width, self._slot_size
-        observations = {}
-        for i, agent in enumerate(self.agents):
-            rotation = self.arms[i].base_rotation[:m, :m]  # world <- base; row-vector @ R maps world -> base
-            edges, signs = self._slot_edges[i], self._slot_signs[i]
-            degree = len(edges)
-            slots = np.zeros((self.graph.max_degree, size))
-            slots[:degree, 0] = 1.0
-            slots[:degree, 1:1 + m] = (signs[:, None] * self._z[edges]) @ rotation
-            if self.formation.kind == "distance":
-                slots[:degree, 1 + m] = self.formation.desired[edges]
-            else:
-                slots[:degree, 1 + m:1 + m + w] = (signs[:, None] * self.formation.desired_vectors[edges]) @ rotation
-            slots[:degree, 1 + m + w:] = self._slot_errors(i).reshape(degree, w)
-            space = self._observation_spaces[agent]
-            observation = np.concatenate([slots.ravel(), self._q_observed[i], self._dq[i]])
-            observations[agent] = np.clip(observation, space.low, space.high).astype(np.float32)
-        return observations
+        source = np.concatenate([self._obs_constants, self._slot_z.ravel(), self._slot_errors.ravel(),
+                                 self._q_observed, self._dq])
+        observation = source[self._obs_gather]
+        np.minimum(np.maximum(observation, self._obs_low, out=observation), self._obs_high, out=observation)  # clip
+        observation = observation.astype(np.float32)
+        return {agent: observation[part] for agent, part in zip(self.agents, self._obs_slices)}
 
-    def _rewards(self, normalized: list[np.ndarray]) -> dict[str, float]:
+    def _rewards(self, normalized: np.ndarray) -> dict[str, float]:
         weights = self.scenario.reward
-        per_edge = np.linalg.norm(self._edge_errors.reshape(self.graph.n_edges, -1), axis=1)
-        rewards = np.array([
-            -(weights.formation * float(per_edge[self._slot_edges[i]].mean())
-              + weights.velocity * float(self._dq[i] @ self._dq[i])
-              + weights.torque * float(normalized[i] @ normalized[i]))
-            for i in range(len(self.arms))
-        ])
+        relative = np.sqrt(self._edge_squares) / self.formation.error_scales  # |e_k| / s_k
+        formation = np.add.reduceat(relative[self._slot_edge], self._slot_starts) / self._slot_degrees
+        speed = np.sqrt(np.add.reduceat(self._dq * self._dq, self._joint_starts))
+        effort = np.add.reduceat(normalized * normalized, self._joint_starts) / self._joint_counts
+        rewards = 1.0 - (weights.formation * np.tanh(formation / weights.formation_scale)
+                         + weights.velocity * np.tanh(speed / weights.velocity_scale) + weights.torque * effort)
         if weights.team:
             rewards[:] = rewards.mean()
-        return {agent: float(rewards[i]) for i, agent in enumerate(self.agents)}
+        return dict(zip(self.agents, rewards.tolist()))
 
-    def _infos(self, saturation: list[np.ndarray], contacts: np.ndarray, fault: str,
-               torques: list[np.ndarray]) -> dict[str, dict[str, Any]]:
-        formation_error = self.formation.formation_error(self._z)
+    def _singularity_margins(self) -> list[float]:
+        """Smallest singular value of each arm's Jacobian restricted to the formation's axes, m."""
+        margins = np.empty(len(self.arms))
+        for (_, members, _), jacobians in zip(self._kinematic_groups, self._group_jacobians):
+            margins[members] = smallest_singular_values(jacobians[:, :self.dim])
+        return margins.tolist()
+
+    def _infos(self, clipped: np.ndarray, contacts: list[int], fault: str,
+               torques: np.ndarray) -> dict[str, dict[str, Any]]:
+        formation_error = math.sqrt(float(self._edge_squares.sum()) / self.graph.n_edges)  # RMS of |e_k|
         sim_time = self._step_count * self.scenario.control_dt
+        margins = self._singularity_margins()
+        saturation = (clipped / self._joint_counts).tolist()
+        clipped_so_far = self._clipped_actions.tolist()
+        errors = self._slot_errors
         infos = {}
         for i, agent in enumerate(self.agents):
-            margin = float(np.linalg.svd(self._jacobians[i][:self.dim], compute_uv=False).min())
             infos[agent] = {
                 "formation_error": formation_error,
-                "edge_errors": self._slot_errors(i).copy(),
-                "singularity_margin": margin,
-                "torque_saturation": float(np.mean(saturation[i])),
-                "applied_torque": torques[i].copy(),
-                "clipped_actions": int(self._clipped_actions[i]),
-                "contacts": int(contacts[i]),
+                "edge_errors": errors[self._slot_slices[i]].copy(),
+                "singularity_margin": margins[i],
+                "torque_saturation": saturation[i],
+                "applied_torque": torques[self._joint_slices[i]].copy(),
+                "clipped_actions": clipped_so_far[i],
+                "contacts": contacts[i],
                 "physics_fault": fault,
                 "sim_time": sim_time,
             }

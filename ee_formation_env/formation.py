@@ -153,11 +153,15 @@ class Formation:
         )
         # Width of one edge error: 1 (m^2) for distance, dim (m) for displacement.
         self.error_width = 1 if kind == "distance" else self.dim
+        # Size of each edge's error relative to which it is judged: d*_k^2 (m^2) or |z*_k| (m).
+        lengths = np.linalg.norm(self.desired_vectors, axis=1)
+        self.error_scales = np.maximum(lengths**2 if kind == "distance" else lengths, 1e-6)
+        self._desired_squared = self.desired**2 if kind == "distance" else None
 
     def edge_errors(self, z: np.ndarray) -> np.ndarray:
         """Edge errors e_k from edge vectors z (n_edges, dim): (n_edges,) m^2 or (n_edges, dim) m."""
         if self.kind == "distance":
-            return np.einsum("kd,kd->k", z, z) - self.desired**2
+            return np.einsum("kd,kd->k", z, z) - self._desired_squared
         return z - self.desired_vectors
 
     def formation_error(self, z: np.ndarray) -> float:

@@ -319,6 +319,8 @@ class SerialChain:
         # [lever_0; ...; lever_{n-1}; position] = _lever_sum @ steps, lever_i = sum_{s > i} steps_s.
         self._lever_sum = np.triu(np.ones((n + 1, n + 1)), k=1)
         self._lever_sum[n] = 1.0
+        # The last (q bytes, (frames, axes)) evaluated by _pose.
+        self._last_pose: tuple[bytes, tuple[np.ndarray, np.ndarray]] = (b"", (np.empty(0), np.empty(0)))
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -360,11 +362,20 @@ class SerialChain:
             raise ValueError(f"params: expected shape ({self.n_params},), got {a.shape}")
         return (self._param_map @ a).reshape(self.n_joints + 1, 3, 1)
 
-    def _frames(self, q: np.ndarray | list[float]) -> np.ndarray:
-        """Segment frame orientations (n + 1, 3, 3) in the base frame; frames[0] = identity."""
+    def _pose(self, q: np.ndarray | list[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Segment frame orientations (n + 1, 3, 3) in the base frame (frames[0] = identity) and the joint
+        axes (n, 3) in the base frame, both read-only.
+
+        The last result is kept: a controller that asks for the regressor and then the Jacobian at the
+        same ``q`` (bit for bit) evaluates the chain once.
+        """
         q = np.asarray(q, dtype=float)
         if q.shape != (self.n_joints,):
             raise ValueError(f"q: expected shape ({self.n_joints},), got {q.shape}")
+        key = q.tobytes()
+        last_key, last_pose = self._last_pose
+        if key == last_key:
+            return last_pose
         trig = np.sin(q[:, None] * self._trig_scale + self._trig_phase)  # [1, sin q, cos q]
         local = (trig.reshape(-1, 1, 3) @ self._rot_basis).reshape(-1, 3, 3)
         frames = np.empty((self.n_joints + 1, 3, 3))
@@ -373,7 +384,15 @@ class SerialChain:
         matmul = np.matmul
         for i in range(1, self.n_joints):
             matmul(frames[i], local[i], frames[i + 1])  # distinct buffers: no overlap copy
-        return frames
+        axes = (frames[1:] @ self._axes).reshape(-1, 3)
+        frames.flags.writeable = False
+        axes.flags.writeable = False
+        self._last_pose = (key, (frames, axes))  # one assignment: readers never see a mixed pair
+        return frames, axes
+
+    def _frames(self, q: np.ndarray | list[float]) -> np.ndarray:
+        """Segment frame orientations (n + 1, 3, 3) in the base frame; frames[0] = identity."""
+        return self._pose(q)[0]
 
     # ------------------------------------------------------------------ kinematics
     def forward(self, q: np.ndarray | list[float],
@@ -391,13 +410,32 @@ class SerialChain:
                              params: np.ndarray | list[float] | None = None
                              ) -> tuple[np.ndarray, np.ndarray]:
         """End-effector position (3,), m, and translational Jacobian (3, n), m/rad, one pass."""
-        frames = self._frames(q)
+        frames, axes = self._pose(q)  # axes: (n, 3) joint axes in the base frame
         steps = (frames @ self._translations(params)).reshape(-1, 3)  # (n + 1, 3), base frame
         levers = self._lever_sum @ steps  # rows: ee position - joint origin, then ee position
-        axes = (frames[1:] @ self._axes).reshape(-1, 3)  # (n, 3) joint axes in the base frame
         skews = (axes @ _SKEW_BASIS).reshape(-1, 3, 3)  # S(omega_i), omega_i x v = S v
         jac = (skews @ levers[:-1, :, None]).reshape(-1, 3)
         return levers[-1], jac.T
+
+    def forward_and_jacobian_batch(self, q_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """End-effector positions (k, 3), m, and Jacobians (k, 3, n), m/rad, at joint angles q_batch (k, n),
+        with the URDF's parameters: :meth:`forward_and_jacobian` for k configurations (e.g. k arms) at once."""
+        q_batch = np.asarray(q_batch, dtype=float)
+        if q_batch.ndim != 2 or q_batch.shape[1] != self.n_joints:
+            raise ValueError(f"q_batch: expected shape (k, {self.n_joints}), got {q_batch.shape}")
+        k, n = q_batch.shape
+        trig = np.sin(q_batch[:, :, None] * self._trig_scale + self._trig_phase)  # (k, n, 3)
+        local = (trig[:, :, None, :] @ self._rot_basis).reshape(k, n, 3, 3)
+        frames = np.empty((n + 1, k, 3, 3))  # segment-major: each frames[i] is one contiguous (k, 3, 3) block
+        frames[0] = _IDENTITY
+        frames[1] = local[:, 0]
+        for i in range(1, n):
+            np.matmul(frames[i], local[:, i], out=frames[i + 1])
+        steps = (frames @ self._nominal_translations[:, None]).reshape(n + 1, 3 * k)  # base frame
+        levers = (self._lever_sum @ steps).reshape(n + 1, k, 3)  # ee - joint origins, then ee position
+        axes = (frames[1:] @ self._axes[:, None]).reshape(n, k, 3)  # joint axes in the base frame
+        jac = ((axes @ _SKEW_BASIS).reshape(n, k, 3, 3) @ levers[:-1, :, :, None]).reshape(n, k, 3)
+        return levers[-1], jac.transpose(1, 2, 0)
 
     def forward_batch(self, q_batch: np.ndarray,
                       params: np.ndarray | list[float] | None = None) -> np.ndarray:
@@ -426,8 +464,7 @@ class SerialChain:
             zeta = np.array([zeta[0], zeta[1], 0.0])
         elif zeta.shape != (3,):
             raise ValueError(f"zeta: expected shape (3,) or (2,), got {zeta.shape}")
-        frames = self._frames(q)
-        axes = (frames[1:] @ self._axes).reshape(-1, 3)  # (n, 3)
+        frames, axes = self._pose(q)  # axes: (n, 3)
         # zeta . (omega_j x v) = (zeta x omega_j) . v and zeta x omega = S(zeta) omega
         zeta_x_axes = axes @ (zeta @ _SKEW_BASIS).reshape(3, 3).T
         columns = (frames[self._param_segment] @ self._param_directions).reshape(-1, 3)  # (p, 3)

@@ -78,9 +78,8 @@ class Arm:
     def read_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Joint positions (rad) and velocities (rad/s) of the chain joints."""
         states = pybullet.getJointStates(self.body, self.joint_indices, physicsClientId=self.world.client)
-        q = np.fromiter((s[0] for s in states), dtype=np.float64, count=len(states))
-        dq = np.fromiter((s[1] for s in states), dtype=np.float64, count=len(states))
-        return q, dq
+        positions, velocities, _, _ = zip(*states)
+        return np.array(positions), np.array(velocities)
 
     def apply_torques(self, torques: list[float]) -> None:
         """Joint torques (N m) for the next physics step only."""

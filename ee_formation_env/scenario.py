@@ -92,16 +92,22 @@ class ArmConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Per-agent reward ``r_i = -(formation * mean_k|e_k| + velocity * |dq_i|^2 + torque * |a_i|^2)``.
+    """Per-agent reward in [0, 1] (1: in formation, still, no torque); weights sum to at most 1.
 
-    ``mean_k|e_k|`` runs over the agent's incident edges (m^2 for distance, m for displacement
-    formations); ``dq_i`` in rad/s; ``a_i`` is the normalized action in [-1, 1]. With ``team = True``
-    every agent receives the mean of all agents' rewards.
+    ``r_i = 1 - formation * tanh(mean_k(|e_k| / s_k) / formation_scale)
+              - velocity * tanh(|dq_i| / velocity_scale) - torque * mean_j(a_ij^2)``
+
+    over the agent's incident edges k, with ``s_k = d*_k^2`` (distance) or ``|z*_k|`` (displacement), so
+    ``|e_k| / s_k`` is a relative edge error; ``dq_i`` in rad/s; ``a_i`` the normalized action in [-1, 1].
+    The reward never goes negative, so ending an episode early (a physics fault) never pays.
+    With ``team = True`` every agent receives the mean of all agents' rewards.
     """
 
-    formation: float = 1.0
-    velocity: float = 0.01
-    torque: float = 0.01
+    formation: float = 0.6
+    velocity: float = 0.2
+    torque: float = 0.2
+    formation_scale: float = 0.1  # relative edge error at which the formation term reaches tanh(1)
+    velocity_scale: float = 5.0  # rad/s
     team: bool = False
 
 
@@ -486,9 +492,17 @@ def _parse_reward(value: Any) -> RewardConfig:
             if not isinstance(weight, bool):
                 raise ValueError(f"reward.team: expected true or false, got {weight!r}")
             parsed[key] = weight
+        elif key.endswith("_scale"):
+            parsed[key] = _positive(f"reward.{key}", weight)
         else:
             parsed[key] = _non_negative(f"reward.{key}", weight)
-    return RewardConfig(**parsed)
+    config = RewardConfig(**parsed)
+    if config.formation + config.velocity + config.torque > 1.0 + 1e-9:
+        raise ValueError(
+            f"reward: the weights formation + velocity + torque must sum to at most 1 (so that rewards stay in "
+            f"[0, 1]), got {config.formation + config.velocity + config.torque:g}"
+        )
+    return config
 
 
 def _float_array(name: str, value: Any, ndim: int) -> np.ndarray:

@@ -158,7 +158,8 @@ def test_observation_contents_match_simulator(make_env, name):
 
 @pytest.mark.parametrize("formation", ["planar_square", "planar_square_displacement"])
 def test_reward_matches_docstring(make_env, formation):
-    env = make_env(formation, episode_seconds=1.0, reward={"formation": 2.0, "velocity": 0.3, "torque": 0.7})
+    weights = {"formation": 0.5, "velocity": 0.3, "torque": 0.15, "formation_scale": 0.2, "velocity_scale": 2.0}
+    env = make_env(formation, episode_seconds=1.0, reward=weights)
     env.reset(seed=2)
     rng = np.random.default_rng(2)
     for _ in range(3):
@@ -170,14 +171,18 @@ def test_reward_matches_docstring(make_env, formation):
     z_star = np.array([shape[t] - shape[h] for t, h in env.scenario.edges])
     if env.scenario.formation == "distance":
         per_edge = np.abs(np.sum(z**2, axis=1) - np.sum(z_star**2, axis=1))
+        scales = np.sum(z_star**2, axis=1)
     else:
         per_edge = np.linalg.norm(z - z_star, axis=1)
+        scales = np.linalg.norm(z_star, axis=1)
     for i, agent in enumerate(env.agents):
         incident = [k for k, (t, h) in enumerate(env.scenario.edges) if i in (t, h)]
         _, dq = env.arms[i].read_state()
         a = np.clip(actions[agent].astype(np.float64), -1, 1)
-        expected = -(2.0 * per_edge[incident].mean() + 0.3 * dq @ dq + 0.7 * a @ a)
+        relative = (per_edge[incident] / scales[incident]).mean()
+        expected = 1.0 - (0.5 * np.tanh(relative / 0.2) + 0.3 * np.tanh(np.linalg.norm(dq) / 2.0) + 0.15 * np.mean(a**2))
         assert rewards[agent] == pytest.approx(expected, rel=1e-6)
+        assert 0.0 <= rewards[agent] <= 1.0
         expected_rms = math.sqrt(np.mean(per_edge**2))
         assert infos[agent]["formation_error"] == pytest.approx(expected_rms, rel=1e-6)
 
@@ -678,3 +683,15 @@ def test_resets_do_not_reload_urdfs(make_env):
         env.step({a: env.action_space(a).sample() for a in env.agents})
     assert pybullet.getNumBodies(physicsClientId=client) == count
     assert [pybullet.getBodyUniqueId(k, physicsClientId=client) for k in range(count)] == ids
+
+
+def test_smallest_singular_values_match_svd():
+    from ee_formation_env.env import smallest_singular_values
+
+    rng = np.random.default_rng(5)
+    for shape in [(200, 2, 2), (200, 3, 7), (200, 3, 2), (200, 2, 3)]:
+        matrices = rng.normal(size=shape) * rng.uniform(0.01, 3.0, size=(shape[0], 1, 1))
+        matrices[:20, 1] = 0.5 * matrices[:20, 0] + 1e-9 * rng.normal(size=(20, shape[2]))  # nearly singular
+        expected = np.linalg.svd(matrices, compute_uv=False)
+        np.testing.assert_allclose(smallest_singular_values(matrices), expected[:, -1], rtol=0,
+                                   atol=1e-14 * expected[:, 0].max())

@@ -318,6 +318,36 @@ def test_sample_configurations_within_limits(arm):
     assert np.all(q >= low) and np.all(q < high)
 
 
+@pytest.mark.parametrize("arm", ARM_IDS)
+def test_batch_forward_and_jacobian_is_bit_identical_to_single(arm):
+    chain = _chain(arm)
+    q = chain.sample_configurations(50, np.random.default_rng(11))
+    positions, jacobians = chain.forward_and_jacobian_batch(q)
+    assert positions.shape == (50, 3) and jacobians.shape == (50, 3, chain.n_joints)
+    for k in range(len(q)):
+        position, jacobian = chain.forward_and_jacobian(q[k])
+        assert np.array_equal(position, positions[k]) and np.array_equal(jacobian, jacobians[k])
+
+
+def test_repeated_evaluation_at_the_same_q_is_consistent():
+    """The chain keeps its last evaluation; every call still answers for its own q and params."""
+    chain = _chain("kuka")
+    rng = np.random.default_rng(12)
+    q1, q2 = chain.sample_configurations(2, rng)
+    params = chain.nominal_params * 1.1
+    zeta = rng.normal(size=3)
+    first = (chain.forward(q1), chain.jacobian(q1, params), chain.regressor(q1, zeta))
+    chain.forward(q2)
+    again = (chain.forward(q1.copy()), chain.jacobian(list(q1), params), chain.regressor(q1, zeta))
+    for a, b in zip(first, again):
+        assert np.array_equal(a, b)
+    assert not np.array_equal(chain.forward(q2), first[0])
+    q = q1.copy()
+    chain.forward(q)
+    q[0] += 0.1  # mutating the caller's array must not reuse the stale evaluation
+    assert np.array_equal(chain.forward(q), SerialChain.from_urdf(*ARMS["kuka"]).forward(q))
+
+
 def test_bad_shapes_are_rejected():
     chain = _chain("planar")
     with pytest.raises(ValueError, match="q"):
@@ -328,6 +358,8 @@ def test_bad_shapes_are_rejected():
         chain.regressor([0.0, 0.0], [1.0])
     with pytest.raises(ValueError, match="q_batch"):
         chain.forward_batch(np.zeros(2))
+    with pytest.raises(ValueError, match="q_batch"):
+        chain.forward_and_jacobian_batch(np.zeros((4, 3)))
 
 
 # ---------------------------------------------------------------- errors

@@ -77,11 +77,15 @@ def test_robots_exist():
 
 # ------------------------------------------------------------------------------------------ overrides
 def test_overrides_replace_top_level_keys_and_merge_reward():
-    scenario = load_scenario("planar_square", episode_seconds=2.0, frame_skip=4, reward={"velocity": 0.5})
+    scenario = load_scenario("planar_square", episode_seconds=2.0, frame_skip=4, reward={"velocity": 0.1})
     assert scenario.episode_seconds == 2.0 and scenario.frame_skip == 4 and scenario.max_steps == 500
-    assert scenario.reward == RewardConfig(formation=1.0, velocity=0.5, torque=0.01, team=False)
-    merged = load_scenario(scenario_dict(reward={"formation": 3.0}), reward={"team": True})
-    assert merged.reward == RewardConfig(formation=3.0, velocity=0.01, torque=0.01, team=True)
+    assert scenario.reward == RewardConfig(formation=0.6, velocity=0.1, torque=0.2, team=False)
+    merged = load_scenario(scenario_dict(reward={"formation": 0.3}), reward={"team": True})
+    assert merged.reward == RewardConfig(formation=0.3, velocity=0.2, torque=0.2, team=True)
+    with pytest.raises(ValueError, match="sum to at most 1"):
+        load_scenario("planar_square", reward={"formation": 0.9})
+    with pytest.raises(ValueError, match="reward.velocity_scale: expected a positive"):
+        load_scenario("planar_square", reward={"velocity_scale": 0.0})
 
 
 def test_env_accepts_a_scenario_object(make_env):
@@ -160,11 +164,11 @@ def test_yaml_written_by_hand(tmp_path):
         "shape: [[0, 0], [1, 0]]\n"
         "formation: displacement\n"
         "dim: 2\n"
-        "reward: {formation: 2.0}\n",
+        "reward: {formation: 0.5}\n",
         encoding="utf-8")
     scenario = load_scenario(path)
     assert scenario.name == "pair" and scenario.n_agents == 2 and scenario.edges == ((0, 1),)
-    assert scenario.reward.formation == 2.0 and scenario.reward.velocity == 0.01
+    assert scenario.reward.formation == 0.5 and scenario.reward.velocity == 0.2
     assert scenario.physics_hz == 1000.0 and scenario.frame_skip == 10  # defaults
 
 

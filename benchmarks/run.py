@@ -1,0 +1,458 @@
+"""Speed benchmarks: raw PyBullet floor, ``env.step``, closed loop, SB3 rollouts, scaling and reset cost.
+
+    python -m benchmarks.run                  # full run (a few minutes), table + results/benchmarks.json
+    python -m benchmarks.run --quick          # a smoke run (seconds), same sections, few steps
+    python -m benchmarks.run --json out.json
+
+Every figure comes from this one process and one run (the SB3 section's worker processes are started by
+it), so the ratios between rows are meaningful even on a loaded machine; absolute rates are not. Each
+measurement is repeated (``--repeats``) with the cases of one scenario interleaved round by round, and the
+fastest repeat is reported (the one least disturbed by other processes); every repeat is in the JSON.
+
+Sections (issue 5):
+
+- ``raw_floor``: the env's own bodies, torques set with ``setJointMotorControlArray`` and
+  ``stepSimulation`` only; and, for reference, a naive per-arm ``getJointStates`` + ``getLinkState`` +
+  ``setJointMotorControlArray`` loop;
+- ``env_step``: ``env.step`` with zero actions at ``frame_skip`` 1 and at the scenario's default;
+- ``closed_loop``: ``env.step`` plus the ``adaptive_jacobian`` controller on every agent;
+- ``sb3_rollout``: ``PPO.collect_rollouts`` through :class:`~ee_formation_env.sb3.SharedPolicyVecEnv`
+  with 2 worker processes (and in-process, for comparison);
+- ``scaling``: 2, 4, 8 and 16 arms on a minimally rigid graph (:mod:`benchmarks.scenarios`), 2-DOF planar
+  and 7-DOF spatial arms: raw floor, ``env.step`` at ``frame_skip`` 1, and reset cost;
+- ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios.
+
+Figures: physics steps/s, env steps/s, the ratio to the raw floor of the same bodies (physics steps/s
+over raw physics steps/s) and the real-time factor (simulated seconds per wall-clock second).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import platform
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import pybullet
+
+import ee_formation_env
+from ee_formation_env.env import FormationEnv
+
+if __package__ in (None, ""):  # run as a script: python benchmarks/run.py
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks.scenarios import planar_ring, spatial_ring  # noqa: E402
+
+SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "scaling", "reset")
+ARM_COUNTS = (2, 4, 8, 16)
+DEFAULT_JSON = "results/benchmarks.json"
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How many steps each measurement takes, and how often it is repeated."""
+
+    physics_steps: int  # simulated span of one raw-floor / env.step run, in physics steps (same for both)
+    closed_loop_seconds: float  # simulated seconds of closed loop per repeat (planar_square)
+    closed_loop_seconds_spatial: float
+    sb3_steps: int  # n_steps of the PPO rollout (per slot)
+    resets: int
+    repeats: int
+    scaling_repeats: int
+
+
+FULL = Budget(physics_steps=10_000, closed_loop_seconds=30.0,
+              closed_loop_seconds_spatial=10.0, sb3_steps=512, resets=200, repeats=5, scaling_repeats=3)
+QUICK = Budget(physics_steps=200, closed_loop_seconds=0.5,
+               closed_loop_seconds_spatial=0.2, sb3_steps=16, resets=5, repeats=1, scaling_repeats=1)
+
+
+# ---------------------------------------------------------------------------------------------- timers
+def _zero_actions(env: FormationEnv) -> dict[str, np.ndarray]:
+    return {agent: np.zeros(env.action_space(agent).shape, dtype=np.float32) for agent in env.possible_agents}
+
+
+def time_raw_floor(env: FormationEnv, steps: int) -> float:
+    """Seconds for ``steps`` physics steps of the env's bodies: zero torques set, ``stepSimulation``."""
+    env.reset(seed=0)
+    client = env.world.client
+    arms = [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm in env.arms]
+    set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
+    start = time.perf_counter()
+    for _ in range(steps):
+        for body, joints, forces in arms:
+            set_motors(body, joints, torque_control, forces=forces, physicsClientId=client)
+        step(physicsClientId=client)
+    return time.perf_counter() - start
+
+
+def _ee_link_index(body: int, name: str, client: int) -> int:
+    for j in range(pybullet.getNumJoints(body, physicsClientId=client)):
+        if pybullet.getJointInfo(body, j, physicsClientId=client)[12].decode() == name:
+            return j
+    raise ValueError(f"link {name!r} not found")
+
+
+def time_naive_loop(env: FormationEnv, steps: int) -> float:
+    """Seconds for ``steps`` physics steps with a naive per-arm query loop: joint states, end-effector link
+    state and torques, one PyBullet call each per arm and step (the FACTS.md reference, 0.21x the floor)."""
+    env.reset(seed=0)
+    client = env.world.client
+    arms = [(arm.body, arm.joint_indices, _ee_link_index(arm.body, arm.config.ee_link, client), [0.0] * arm.n_joints)
+            for arm in env.arms]
+    start = time.perf_counter()
+    for _ in range(steps):
+        for body, joints, link, forces in arms:
+            pybullet.getJointStates(body, joints, physicsClientId=client)
+            pybullet.getLinkState(body, link, computeForwardKinematics=1, physicsClientId=client)
+            pybullet.setJointMotorControlArray(body, joints, pybullet.TORQUE_CONTROL, forces=forces,
+                                               physicsClientId=client)
+        pybullet.stepSimulation(physicsClientId=client)
+    return time.perf_counter() - start
+
+
+def time_env_steps(env: FormationEnv, steps: int, seed: int = 0) -> float:
+    """Seconds for ``steps`` calls of ``env.step`` with zero actions (episodes that end are reset)."""
+    actions = _zero_actions(env)
+    env.reset(seed=seed)
+    start = time.perf_counter()
+    for _ in range(steps):
+        env.step(actions)
+        if not env.agents:
+            env.reset()
+    return time.perf_counter() - start
+
+
+def time_closed_loop(env: FormationEnv, policies: dict[str, Any], steps: int, seed: int = 0) -> float:
+    """Seconds for ``steps`` env steps with one controller per agent acting on its observation."""
+    observations, _ = env.reset(seed=seed)
+    for policy in policies.values():
+        policy.reset()
+    start = time.perf_counter()
+    for _ in range(steps):
+        actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
+        observations, _, _, _, _ = env.step(actions)
+        if not env.agents:
+            observations, _ = env.reset()
+            for policy in policies.values():
+                policy.reset()
+    return time.perf_counter() - start
+
+
+def time_resets(env: FormationEnv, count: int) -> float:
+    """Mean seconds of one ``env.reset`` (after a few steps, so that there is state to restore)."""
+    actions = _zero_actions(env)
+    total = 0.0
+    for k in range(count):
+        env.reset(seed=k)
+        env.step(actions)
+        start = time.perf_counter()
+        env.reset(seed=k + 1)
+        total += time.perf_counter() - start
+    return total / count
+
+
+def interleaved(cases: dict[str, Callable[[], float]], repeats: int) -> dict[str, list[float]]:
+    """Run every case once per round, ``repeats`` rounds; the seconds of each run per case."""
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    for _ in range(repeats):
+        for name, case in cases.items():
+            times[name].append(case())
+    return times
+
+
+# ---------------------------------------------------------------------------------------------- rows
+def _row(section: str, case: str, seconds: Sequence[float], env_steps: int, frame_skip: int, physics_hz: float,
+         raw_rate: float | None, **extra: Any) -> dict[str, Any]:
+    """One result row from the repeat times of a run of ``env_steps`` env steps (best repeat)."""
+    best = min(seconds)
+    physics_rate = env_steps * frame_skip / best
+    return {
+        "section": section, "case": case, "env_steps": env_steps, "frame_skip": frame_skip,
+        "seconds": [round(s, 6) for s in seconds], "best_seconds": best,
+        "spread": (max(seconds) - best) / best,
+        "env_steps_per_s": env_steps / best, "physics_steps_per_s": physics_rate,
+        "ratio_to_raw": physics_rate / raw_rate if raw_rate else None,
+        "real_time_factor": physics_rate / physics_hz,
+        "us_per_env_step": 1e6 * best / env_steps,
+        **extra,
+    }
+
+
+def _make_env(scenario: Any, **overrides: Any) -> FormationEnv:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ee_formation_env.parallel_env(scenario, **overrides)
+
+
+def bench_scenario(name: str, budget: Budget) -> list[dict[str, Any]]:
+    """Sections (a) and (b) for one built-in scenario: raw floor, naive loop, env.step at two frame skips."""
+    env1 = _make_env(name, frame_skip=1)
+    env_default = _make_env(name)
+    hz, fs = env1.scenario.physics_hz, env_default.scenario.frame_skip
+    # Every case covers the same simulated span from the same reset state, so the physics is the same.
+    steps, default_steps = budget.physics_steps, budget.physics_steps // fs
+    try:
+        times = interleaved({
+            "raw": lambda: time_raw_floor(env1, steps),
+            "naive": lambda: time_naive_loop(env1, steps),
+            "fs1": lambda: time_env_steps(env1, steps),
+            "default": lambda: time_env_steps(env_default, default_steps),
+        }, budget.repeats)
+    finally:
+        env1.close()
+        env_default.close()
+    raw_rate = steps / min(times["raw"])
+    n = env1.scenario.n_agents
+    return [
+        _row("raw_floor", f"{name}: setJointMotorControlArray + stepSimulation", times["raw"], steps, 1, hz,
+             raw_rate, scenario=name, n_arms=n),
+        _row("raw_floor", f"{name}: naive per-arm query loop", times["naive"], steps, 1, hz, raw_rate,
+             scenario=name, n_arms=n),
+        _row("env_step", f"{name}: env.step, zero action, frame_skip 1", times["fs1"], steps, 1, hz,
+             raw_rate, scenario=name, n_arms=n),
+        _row("env_step", f"{name}: env.step, zero action, frame_skip {fs}", times["default"], default_steps,
+             fs, hz, raw_rate, scenario=name, n_arms=n),
+    ]
+
+
+def bench_closed_loop(name: str, seconds: float, budget: Budget, raw_rate: float) -> dict[str, Any]:
+    """Section (c): env plus ``adaptive_jacobian`` on every agent, ``seconds`` of simulated time."""
+    import baselines
+
+    env = _make_env(name)
+    try:
+        policies = baselines.make_policies("adaptive_jacobian", env)
+        steps = max(1, int(round(seconds / env.scenario.control_dt)))
+        times = interleaved({"loop": lambda: time_closed_loop(env, policies, steps)},
+                            max(1, min(budget.repeats, 3)))["loop"]
+        scenario = env.scenario
+    finally:
+        env.close()
+    row = _row("closed_loop", f"{name}: env + adaptive_jacobian ({seconds:g} s simulated)", times, steps,
+               scenario.frame_skip, scenario.physics_hz, raw_rate, scenario=name, n_arms=scenario.n_agents,
+               simulated_seconds=seconds)
+    row["wall_seconds_per_30s_simulated"] = 30.0 / row["real_time_factor"]
+    return row
+
+
+def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> list[dict[str, Any]]:
+    """Section (d): ``PPO.collect_rollouts`` through SharedPolicyVecEnv, 2 worker processes and in-process."""
+    try:
+        import torch
+        from stable_baselines3 import PPO
+
+        from ee_formation_env.sb3 import SharedPolicyVecEnv
+    except ImportError as error:  # the optional "train" extra
+        return [{"section": "sb3_rollout", "case": f"{name}: skipped ({error})", "skipped": True}]
+    torch.set_num_threads(1)
+    rows = []
+    for workers in (2, 0):
+        factories = [functools.partial(_make_env, name) for _ in range(n_envs)]
+        venv = SharedPolicyVecEnv(factories, n_workers=workers)
+        try:
+            model = PPO("MlpPolicy", venv, n_steps=budget.sb3_steps, batch_size=budget.sb3_steps, device="cpu",
+                        seed=0, verbose=0)
+            _, callback = model._setup_learn(budget.sb3_steps * venv.num_envs, None)
+            callback.on_training_start(locals(), globals())
+
+            def collect() -> float:
+                start = time.perf_counter()
+                model.collect_rollouts(venv, callback, model.rollout_buffer, n_rollout_steps=budget.sb3_steps)
+                return time.perf_counter() - start
+
+            times = interleaved({"collect": collect}, max(1, min(budget.repeats, 3)))["collect"]
+            scenario, slots = venv.scenario, venv.num_envs
+        finally:
+            venv.close()
+        where = f"{workers} worker processes" if workers else "in-process"
+        # One VecEnv step advances every env by one env step: count env steps over all envs.
+        rows.append(_row("sb3_rollout", f"{name}: PPO.collect_rollouts, {n_envs} envs ({slots} agent slots), {where}",
+                         times, budget.sb3_steps * n_envs, scenario.frame_skip, scenario.physics_hz, raw_rate,
+                         scenario=name, n_envs=n_envs, n_workers=workers, slots=slots,
+                         samples_per_s=budget.sb3_steps * slots / min(times)))
+    return rows
+
+
+def bench_scaling(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
+    """Section (e): raw floor, env.step at frame_skip 1 and reset cost versus the number of arms and DOF."""
+    rows = []
+    for family, builder in (("planar 2-DOF", planar_ring), ("spatial 7-DOF", spatial_ring)):
+        steps = budget.physics_steps // 2
+        for n in counts:
+            env = _make_env(builder(n), frame_skip=1)
+            try:
+                times = interleaved({
+                    "raw": lambda: time_raw_floor(env, steps),
+                    "fs1": lambda: time_env_steps(env, steps),
+                }, budget.scaling_repeats)
+                reset_seconds = time_resets(env, budget.resets // 2 or 1)
+                hz, dof = env.scenario.physics_hz, env.nominal_models[0].n_joints
+            finally:
+                env.close()
+            raw_rate = steps / min(times["raw"])
+            row = _row("scaling", f"{family}, {n} arms: env.step, frame_skip 1", times["fs1"], steps,
+                       1, hz, raw_rate, family=family, n_arms=n, dof=dof, raw_physics_steps_per_s=raw_rate,
+                       raw_seconds=[round(s, 6) for s in times["raw"]], reset_ms=1e3 * reset_seconds)
+            row["us_per_env_step_per_arm"] = row["us_per_env_step"] / n
+            rows.append(row)
+    return rows
+
+
+def bench_resets(names: Sequence[str], budget: Budget) -> list[dict[str, Any]]:
+    """Reset cost of built-in scenarios."""
+    rows = []
+    for name in names:
+        env = _make_env(name)
+        try:
+            seconds = min(time_resets(env, budget.resets) for _ in range(max(1, min(budget.repeats, 3))))
+            rows.append({"section": "reset", "case": f"{name}: env.reset", "scenario": name,
+                         "n_arms": env.scenario.n_agents, "reset_ms": 1e3 * seconds})
+        finally:
+            env.close()
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------- report
+def linear_fit(counts: Sequence[int], values: Sequence[float]) -> dict[str, float]:
+    """Least-squares ``value = intercept + slope * n`` and its largest relative residual."""
+    n, v = np.asarray(counts, dtype=float), np.asarray(values, dtype=float)
+    slope, intercept = np.polyfit(n, v, 1)
+    residual = np.max(np.abs(intercept + slope * n - v) / v)
+    return {"intercept_us": float(intercept), "slope_us_per_arm": float(slope), "max_relative_residual": float(residual)}
+
+
+def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """The issue's targets, each with the measured value and whether it is met."""
+    rows = {(r["section"], r.get("scenario"), r.get("frame_skip")): r for r in results["rows"]}
+    targets = []
+
+    def add(name: str, value: float | None, limit: float, at_least: bool, unit: str = "") -> None:
+        met = value is not None and (value >= limit if at_least else value <= limit)
+        targets.append({"target": name, "value": value, "limit": limit, "at_least": at_least, "unit": unit,
+                        "met": bool(met)})
+
+    for scenario, limit in (("planar_square", 0.35), ("spatial_tetrahedron", 0.6)):
+        row = rows.get(("env_step", scenario, 1))
+        add(f"env.step frame_skip 1 / raw floor, {scenario}", row and row["ratio_to_raw"], limit, True, "x")
+    loop = rows.get(("closed_loop", "planar_square", 10))
+    add("closed loop planar_square: wall s per 30 s simulated", loop and loop["wall_seconds_per_30s_simulated"],
+        2.0, False, "s")
+    reset = rows.get(("reset", "planar_square", None))
+    add("reset, 4 arms (planar_square)", reset and reset["reset_ms"], 5.0, False, "ms")
+    reset = rows.get(("reset", "spatial_tetrahedron", None))
+    add("reset, 4 arms (spatial_tetrahedron)", reset and reset["reset_ms"], 5.0, False, "ms")
+    for family, fit in results.get("scaling_fits", {}).items():
+        add(f"scaling {family}: per-arm env.step cost, {max(ARM_COUNTS)} arms / 4 arms", fit["per_arm_cost_ratio"],
+            1.25, False, "x")
+    return targets
+
+
+def _fmt(value: Any, spec: str) -> str:
+    return "-" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, spec)
+
+
+def format_tables(results: dict[str, Any]) -> str:
+    lines = ["| section | case | physics steps/s | env steps/s | x raw floor | real-time factor | us/env step |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for r in results["rows"]:
+        if r["section"] == "reset" or r.get("skipped"):
+            continue
+        lines.append(f"| {r['section']} | {r['case']} | {_fmt(r['physics_steps_per_s'], ',.0f')} | "
+                     f"{_fmt(r['env_steps_per_s'], ',.0f')} | {_fmt(r['ratio_to_raw'], '.2f')} | "
+                     f"{_fmt(r['real_time_factor'], '.1f')} | {_fmt(r['us_per_env_step'], ',.1f')} |")
+    scaling = [r for r in results["rows"] if r["section"] == "scaling"]
+    if scaling:
+        lines += ["", "| arms | DOF | raw physics steps/s | env.step (fs 1) steps/s | x raw floor | us/step | us/step/arm | reset ms |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in scaling:
+            lines.append(f"| {r['n_arms']} | {r['dof']} | {r['raw_physics_steps_per_s']:,.0f} | "
+                         f"{r['env_steps_per_s']:,.0f} | {r['ratio_to_raw']:.2f} | {r['us_per_env_step']:,.1f} | "
+                         f"{r['us_per_env_step_per_arm']:,.1f} | {r['reset_ms']:.2f} |")
+    resets = [r for r in results["rows"] if r["section"] == "reset"]
+    if resets:
+        lines += ["", "| reset | arms | ms |", "|---|---:|---:|"]
+        lines += [f"| {r['scenario']} | {r['n_arms']} | {r['reset_ms']:.2f} |" for r in resets]
+    lines += ["", "| target | measured | limit | met |", "|---|---:|---:|---|"]
+    for t in results["targets"]:
+        sign = ">=" if t["at_least"] else "<="
+        lines.append(f"| {t['target']} | {_fmt(t['value'], '.3g')} {t['unit']} | {sign} {t['limit']:g} {t['unit']} | "
+                     f"{'yes' if t['met'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def run(quick: bool = False, sections: Sequence[str] = SECTIONS, progress: Callable[[str], None] = print
+        ) -> dict[str, Any]:
+    """Run the selected sections; return the results dict (rows, fits, targets, machine info)."""
+    budget = QUICK if quick else FULL
+    started = time.time()
+    results: dict[str, Any] = {
+        "quick": quick, "sections": list(sections),
+        "machine": {"python": platform.python_version(), "numpy": np.__version__, "platform": platform.platform(),
+                    "cpu_count": os.cpu_count(), "load_average_start": list(os.getloadavg())},
+        "budget": budget.__dict__, "rows": [],
+    }
+    raw_rates: dict[str, float] = {}
+    if {"raw_floor", "env_step", "closed_loop", "sb3_rollout"} & set(sections):
+        for name in ("planar_square", "spatial_tetrahedron"):
+            progress(f"raw floor and env.step: {name}")
+            rows = bench_scenario(name, budget)
+            raw_rates[name] = rows[0]["physics_steps_per_s"]
+            results["rows"] += [r for r in rows if r["section"] in sections]
+    if "closed_loop" in sections:
+        for name, seconds in (("planar_square", budget.closed_loop_seconds),
+                              ("spatial_tetrahedron", budget.closed_loop_seconds_spatial)):
+            progress(f"closed loop: {name}")
+            results["rows"].append(bench_closed_loop(name, seconds, budget, raw_rates[name]))
+    if "sb3_rollout" in sections:
+        progress("SB3 rollouts: planar_square")
+        results["rows"] += bench_sb3("planar_square", budget, raw_rates["planar_square"])
+    if "scaling" in sections:
+        counts = ARM_COUNTS
+        progress(f"scaling: {list(counts)} arms, 2 and 7 DOF")
+        scaling = bench_scaling(budget, counts)
+        results["rows"] += scaling
+        fits = {}
+        for family in dict.fromkeys(r["family"] for r in scaling):
+            rows = [r for r in scaling if r["family"] == family]
+            fit = linear_fit([r["n_arms"] for r in rows], [r["us_per_env_step"] for r in rows])
+            per_arm = {r["n_arms"]: r["us_per_env_step_per_arm"] for r in rows}
+            fit["per_arm_cost_ratio"] = per_arm[max(counts)] / per_arm[4]
+            fits[family] = fit
+        results["scaling_fits"] = fits
+    if "reset" in sections:
+        progress("reset")
+        results["rows"] += bench_resets(("planar_square", "spatial_tetrahedron"), budget)
+    results["targets"] = evaluate_targets(results)
+    results["machine"]["load_average_end"] = list(os.getloadavg())
+    results["wall_seconds"] = time.time() - started
+    return results
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="few steps, one repeat: a smoke test, not a measurement")
+    parser.add_argument("--json", default=DEFAULT_JSON, metavar="PATH", help=f"write the results here ({DEFAULT_JSON})")
+    parser.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS), metavar="SECTION",
+                        help=f"run only these sections, of {list(SECTIONS)}")
+    args = parser.parse_args(argv)
+    results = run(quick=args.quick, sections=args.sections, progress=lambda text: print(text, file=sys.stderr, flush=True))
+    print(format_tables(results))
+    path = Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+    print(f"\nwrote {path} ({results['wall_seconds']:.0f} s, load average {results['machine']['load_average_start'][0]:.2f} "
+          f"at start on {results['machine']['cpu_count']} CPUs)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
