@@ -106,7 +106,7 @@ class RewardConfig:
     formation: float = 0.6
     velocity: float = 0.2
     torque: float = 0.2
-    formation_scale: float = 0.1  # relative edge error at which the formation term reaches tanh(1)
+    formation_scale: float = 1.0  # relative edge error at which the formation term reaches tanh(1)
     velocity_scale: float = 5.0  # rad/s
     team: bool = False
 
