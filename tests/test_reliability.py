@@ -143,37 +143,36 @@ def test_model_mismatch_leaves_no_temporary_files(tmp_path, monkeypatch):
 
 
 # ---------------------------------------------------------------------------------------- determinism
-_ROLLOUT = """
-import hashlib, numpy as np, ee_formation_env
-env = ee_formation_env.parallel_env({scenario!r}, episode_seconds=0.5)
-digest = hashlib.sha256()
-observations, _ = env.reset(seed=5)
-rng = np.random.default_rng(11)
-while env.agents:
-    for agent in env.possible_agents:
-        digest.update(observations[agent].tobytes())
-    actions = {{a: rng.uniform(-0.5, 0.5, env.action_space(a).shape) for a in env.agents}}
-    observations, rewards, *_ = env.step(actions)
-    digest.update(np.array([rewards[a] for a in env.possible_agents]).tobytes())
-print(digest.hexdigest())
+def rollout_digest(env) -> str:
+    """SHA-256 of every observation and reward of one seeded episode with a seeded action stream."""
+    digest = hashlib.sha256()
+    observations, _ = env.reset(seed=5)
+    rng = np.random.default_rng(11)
+    while env.agents:
+        for agent in env.possible_agents:
+            digest.update(observations[agent].tobytes())
+        actions = {a: rng.uniform(-0.5, 0.5, env.action_space(a).shape) for a in env.agents}
+        observations, rewards, *_ = env.step(actions)
+        digest.update(np.array([rewards[a] for a in env.possible_agents]).tobytes())
+    return digest.hexdigest()
+
+
+_IN_ANOTHER_PROCESS = """
+import sys
+sys.path.insert(0, {tests!r})
+import ee_formation_env
+from test_reliability import rollout_digest
+print(rollout_digest(ee_formation_env.parallel_env({scenario!r}, episode_seconds=0.5)))
 """
 
 
 @pytest.mark.parametrize("scenario", ["planar_square", "spatial_tetrahedron"])
 def test_same_seed_is_bit_identical_in_another_process_and_after_other_history(scenario):
-    other_process = subprocess.run([sys.executable, "-c", _ROLLOUT.format(scenario=scenario)], capture_output=True,
-                                   text=True, check=True).stdout.split()[-1]
+    code = _IN_ANOTHER_PROCESS.format(tests=os.path.dirname(__file__), scenario=scenario)
+    other_process = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                   check=True).stdout.split()[-1]
     with ee_formation_env.parallel_env(scenario, episode_seconds=0.5) as env:
         env.reset(seed=99)  # a different history first
         for _ in range(10):
             env.step({a: np.full(env.action_space(a).shape, 0.3) for a in env.agents})
-        digest = hashlib.sha256()
-        observations, _ = env.reset(seed=5)
-        rng = np.random.default_rng(11)
-        while env.agents:
-            for agent in env.possible_agents:
-                digest.update(observations[agent].tobytes())
-            actions = {a: rng.uniform(-0.5, 0.5, env.action_space(a).shape) for a in env.agents}
-            observations, rewards, *_ = env.step(actions)
-            digest.update(np.array([rewards[a] for a in env.possible_agents]).tobytes())
-    assert digest.hexdigest() == other_process
+        assert rollout_digest(env) == other_process
