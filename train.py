@@ -158,8 +158,12 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
     venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers)
     venv = VecMonitor(venv, filename=str(out_dir / "monitor.csv"))
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
+    # A residual policy should start close to "no correction": a smaller initial action noise.
+    policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64])
+    if args.mode == "residual":
+        policy_kwargs["log_std_init"] = -1.0
     common = dict(seed=args.seed, verbose=0, tensorboard_log=str(out_dir / "tensorboard"), device="cpu",
-                  policy_kwargs=dict(net_arch=[64, 64]))
+                  policy_kwargs=policy_kwargs)
     if args.algo == "ppo":
         model = PPO("MlpPolicy", venv, n_steps=256, batch_size=512, n_epochs=5, learning_rate=3e-4,
                     gamma=0.99, gae_lambda=0.95, clip_range=0.2, **common)

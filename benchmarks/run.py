@@ -332,7 +332,10 @@ def linear_fit(counts: Sequence[int], values: Sequence[float]) -> dict[str, floa
 
 def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
     """The issue's targets, each with the measured value and whether it is met."""
-    rows = {(r["section"], r.get("scenario"), r.get("frame_skip")): r for r in results["rows"]}
+    def find(section: str, scenario: str, frame_skip: int | None = None) -> dict[str, Any] | None:
+        return next((r for r in results["rows"] if r["section"] == section and r.get("scenario") == scenario
+                     and frame_skip in (None, r.get("frame_skip"))), None)
+
     targets = []
 
     def add(name: str, value: float | None, limit: float, at_least: bool, unit: str = "") -> None:
@@ -341,15 +344,14 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
                         "met": bool(met)})
 
     for scenario, limit in (("planar_square", 0.35), ("spatial_tetrahedron", 0.6)):
-        row = rows.get(("env_step", scenario, 1))
+        row = find("env_step", scenario, frame_skip=1)
         add(f"env.step frame_skip 1 / raw floor, {scenario}", row and row["ratio_to_raw"], limit, True, "x")
-    loop = rows.get(("closed_loop", "planar_square", 10))
+    loop = find("closed_loop", "planar_square")
     add("closed loop planar_square: wall s per 30 s simulated", loop and loop["wall_seconds_per_30s_simulated"],
         2.0, False, "s")
-    reset = rows.get(("reset", "planar_square", None))
-    add("reset, 4 arms (planar_square)", reset and reset["reset_ms"], 5.0, False, "ms")
-    reset = rows.get(("reset", "spatial_tetrahedron", None))
-    add("reset, 4 arms (spatial_tetrahedron)", reset and reset["reset_ms"], 5.0, False, "ms")
+    for scenario in ("planar_square", "spatial_tetrahedron"):
+        reset = find("reset", scenario)
+        add(f"reset, 4 arms ({scenario})", reset and reset["reset_ms"], 5.0, False, "ms")
     for family, fit in results.get("scaling_fits", {}).items():
         add(f"scaling {family}: per-arm env.step cost, {max(ARM_COUNTS)} arms / 4 arms", fit["per_arm_cost_ratio"],
             1.25, False, "x")
@@ -377,11 +379,16 @@ def format_tables(results: dict[str, Any]) -> str:
             lines.append(f"| {r['n_arms']} | {r['dof']} | {r['raw_physics_steps_per_s']:,.0f} | "
                          f"{r['env_steps_per_s']:,.0f} | {r['ratio_to_raw']:.2f} | {r['us_per_env_step']:,.1f} | "
                          f"{r['us_per_env_step_per_arm']:,.1f} | {r['reset_ms']:.2f} |")
+        for family, fit in results.get("scaling_fits", {}).items():
+            lines.append(f"\n{family}: env.step ~ {fit['intercept_us']:.0f} us + {fit['slope_us_per_arm']:.1f} us per arm "
+                         f"(largest deviation from the line {fit['max_relative_residual']:.0%})")
     resets = [r for r in results["rows"] if r["section"] == "reset"]
     if resets:
         lines += ["", "| reset | arms | ms |", "|---|---:|---:|"]
         lines += [f"| {r['scenario']} | {r['n_arms']} | {r['reset_ms']:.2f} |" for r in resets]
     lines += ["", "| target | measured | limit | met |", "|---|---:|---:|---|"]
+    if results["quick"]:
+        lines.insert(len(lines) - 2, "--quick: few steps and one repeat; a smoke run, not a measurement\n")
     for t in results["targets"]:
         sign = ">=" if t["at_least"] else "<="
         lines.append(f"| {t['target']} | {_fmt(t['value'], '.3g')} {t['unit']} | {sign} {t['limit']:g} {t['unit']} | "

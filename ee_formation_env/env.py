@@ -249,11 +249,8 @@ class FormationEnv(ParallelEnv):
         normalized, clipped = self._check_actions(actions)
         torques = normalized * self._torque_limits_flat  # every agent's joint torques, N m, one flat vector
         torque_values = torques.tolist()
-        torque_lists = [torque_values[joints] for joints in self._joint_slices]
-        for _ in range(self.scenario.frame_skip):
-            for arm, tau in zip(self.arms, torque_lists):
-                arm.apply_torques(tau)
-            self.world.step()
+        commands = [(arm.body, arm.joint_indices, torque_values[joints]) for arm, joints in zip(self.arms, self._joint_slices)]
+        self.world.step_with_torques(commands, self.scenario.frame_skip)  # Arm.apply_torques + step, frame_skip times
         self._step_count += 1
         fault = self._read_state()
         contacts = self._count_contacts()
@@ -370,7 +367,9 @@ class FormationEnv(ParallelEnv):
         self._action_shapes = [(n,) for n in sizes]
         self._agent_set = frozenset(self.possible_agents)
         self._torque_limits_flat = np.concatenate(self.torque_limits)
-        self._continuous = np.concatenate([arm.model.continuous for arm in self.arms])
+        continuous = np.concatenate([arm.model.continuous for arm in self.arms])
+        # Continuous joints are observed wrapped to [-pi, pi): None (no joint), True (every joint) or a mask.
+        self._wrap = None if not continuous.any() else True if continuous.all() else continuous
         self._no_contacts = [0] * n_agents
 
         groups: dict[int, list[int]] = {}
@@ -488,11 +487,11 @@ class FormationEnv(ParallelEnv):
             for (_, members, _), position in zip(self._kinematic_groups, positions):
                 ee_base[members] = position
         self._ee_world = (self._base_rotations @ ee_base[:, :, None])[:, :, 0] + self._base_positions
-        if self._continuous.any():  # continuous joints are observed wrapped to [-pi, pi)
-            wrapped = (q + math.pi) % (2 * math.pi) - math.pi
-            self._q_observed = wrapped if self._continuous.all() else np.where(self._continuous, wrapped, q)
-        else:
+        if self._wrap is None:
             self._q_observed = q
+        else:
+            wrapped = (q + math.pi) % (2 * math.pi) - math.pi
+            self._q_observed = wrapped if self._wrap is True else np.where(self._wrap, wrapped, q)
         self._z = self.graph.edge_vectors(self._ee_world[:, :self.dim])
         self._edge_errors = self.formation.edge_errors(self._z)
         errors = self._edge_errors.reshape(self.graph.n_edges, -1)
@@ -560,6 +559,8 @@ class FormationEnv(ParallelEnv):
 
     def _singularity_margins(self) -> list[float]:
         """Smallest singular value of each arm's Jacobian restricted to the formation's axes, m."""
+        if len(self._group_jacobians) == 1:  # every arm has the same model, in agent order
+            return smallest_singular_values(self._group_jacobians[0][:, :self.dim]).tolist()
         margins = np.empty(len(self.arms))
         for (_, members, _), jacobians in zip(self._kinematic_groups, self._group_jacobians):
             margins[members] = smallest_singular_values(jacobians[:, :self.dim])
@@ -574,13 +575,14 @@ class FormationEnv(ParallelEnv):
         clipped_so_far = self._clipped_actions.tolist()
         errors = self._slot_errors
         infos = {}
+        # edge_errors and applied_torque are views of arrays made for this step only, one disjoint slice per agent.
         for i, agent in enumerate(self.agents):
             infos[agent] = {
                 "formation_error": formation_error,
-                "edge_errors": errors[self._slot_slices[i]].copy(),
+                "edge_errors": errors[self._slot_slices[i]],
                 "singularity_margin": margins[i],
                 "torque_saturation": saturation[i],
-                "applied_torque": torques[self._joint_slices[i]].copy(),
+                "applied_torque": torques[self._joint_slices[i]],
                 "clipped_actions": clipped_so_far[i],
                 "contacts": contacts[i],
                 "physics_fault": fault,

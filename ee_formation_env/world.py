@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from typing import Sequence
 
 import numpy as np
 import pybullet
@@ -48,6 +49,19 @@ class PhysicsWorld:
 
     def step(self) -> None:
         pybullet.stepSimulation(physicsClientId=self.client)
+
+    def step_with_torques(self, commands: Sequence[tuple[int, Sequence[int], Sequence[float]]], steps: int) -> None:
+        """``steps`` physics steps, each preceded by every ``(body, joint indices, torques N m)`` command.
+
+        PyBullet's TORQUE_CONTROL lasts one step, so the torques are re-sent before every step; this is the
+        env's inner loop, kept free of per-call Python overhead.
+        """
+        client, set_motors, step = self.client, pybullet.setJointMotorControlArray, pybullet.stepSimulation
+        torque_control = pybullet.TORQUE_CONTROL
+        for _ in range(steps):
+            for body, joints, torques in commands:
+                set_motors(body, joints, torque_control, forces=torques, physicsClientId=client)
+            step(physicsClientId=client)
 
     def save_snapshot(self) -> None:
         """Remember the current world (including contact caches) for :meth:`restore_snapshot`."""
