@@ -99,8 +99,7 @@ class FormationEnv(ParallelEnv):
                  render_mode: str | None = None, **overrides: Any):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode: expected None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.scenario = scenario if isinstance(scenario, Scenario) and not overrides else load_scenario(
-            scenario.to_dict() | {"name": scenario.name} if isinstance(scenario, Scenario) else scenario, **overrides)
+        self.scenario = load_scenario(scenario, **overrides)
         # The nominal kinematic models (what controllers may know); raises before any physics starts.
         self.nominal_models = validate_scenario(self.scenario)
         self.render_mode = render_mode

@@ -264,13 +264,17 @@ _TOP_LEVEL_KEYS = {f.name for f in fields(Scenario)} | {"incidence"}
 _ARM_KEYS = {"robot", "urdf", "ee_link", "base_position", "base_rpy", "initial_q"}
 
 
-def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] = "planar_square",
+def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "planar_square",
                   **overrides: Any) -> Scenario:
-    """Parse a scenario (built-in name, YAML/JSON path or dict) plus top-level overrides.
+    """Parse a scenario (built-in name, YAML/JSON path, dict or parsed :class:`Scenario`) plus overrides.
 
-    ``reward`` overrides are merged into the scenario's reward weights. Raises ``ValueError`` naming the
-    offending field, or ``TypeError`` for a scenario argument of the wrong type.
+    ``reward`` and ``model_mismatch`` overrides are merged into the scenario's. Raises ``ValueError``
+    naming the offending field, or ``TypeError`` for a scenario argument of the wrong type.
     """
+    if isinstance(scenario, Scenario):
+        if not overrides:
+            return scenario
+        scenario = scenario.to_dict()
     base_dir = Path.cwd()
     if isinstance(scenario, Mapping):
         data = copy.deepcopy(dict(scenario))
