@@ -48,7 +48,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--reference", default="adaptive_jacobian",
                         choices=("gradient", "approx_jacobian", "adaptive_jacobian"),
                         help="reference controller of --mode residual")
-    parser.add_argument("--residual-scale", type=float, default=0.3, help="residual action scale (0, 1]")
+    parser.add_argument("--residual-scale", type=float, default=0.1, help="residual action scale (0, 1]")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--total-timesteps", type=int, default=600_000, help="agent steps (all agents count)")

@@ -39,7 +39,7 @@ class ResidualActionEnv:
     Everything but ``step``'s action semantics is the wrapped env's (observations, rewards, spaces).
     """
 
-    def __init__(self, env: Any, reference: str = "adaptive_jacobian", scale: float = 0.3,
+    def __init__(self, env: Any, reference: str = "adaptive_jacobian", scale: float = 0.1,
                  reference_kwargs: Mapping[str, Any] | None = None):
         if reference not in ("gradient", "approx_jacobian", "adaptive_jacobian"):
             raise ValueError(f"reference: expected a model-based controller, got {reference!r}")
@@ -73,7 +73,7 @@ class ResidualActionEnv:
 
 
 def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
-                      reference: str = "adaptive_jacobian", residual_scale: float = 0.3) -> Any:
+                      reference: str = "adaptive_jacobian", residual_scale: float = 0.1) -> Any:
     """The env a learner steps: the formation env (``mode="torque"``) or its residual form.
 
     A module-level function so that ``functools.partial(make_training_env, ...)`` pickles into workers.
