@@ -16,7 +16,7 @@ from ee_formation_env.formation import Formation, FormationGraph
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.mismatch import write_perturbed_urdf
 from ee_formation_env.observation import ObservationLayout
-from ee_formation_env.robot import Arm
+from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.validation import initial_configuration, validate_scenario, workspace
 from ee_formation_env.world import PhysicsWorld, draw_segment, project_points
@@ -508,8 +508,10 @@ class FormationEnv(ParallelEnv):
                 fault = fault or f"arm_{i}: non-finite joint state"
                 q, dq = np.nan_to_num(q), np.nan_to_num(dq)
             elif np.max(np.abs(dq)) > limit:
-                fault = fault or (f"arm_{i}: joint speed {np.max(np.abs(dq)):.1f} rad/s exceeds "
-                                  f"max_joint_velocity {limit} rad/s")
+                speed = float(np.max(np.abs(dq)))
+                # At PyBullet's own clamp the true speed is unknown, only that it is at least that.
+                shown = f"at least {speed:.0f}" if speed >= 0.999 * PYBULLET_MAX_JOINT_VELOCITY else f"{speed:.1f}"
+                fault = fault or f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s"
             qs.append(q)
             dqs.append(dq)
         return np.concatenate(qs), np.concatenate(dqs), fault

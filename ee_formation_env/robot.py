@@ -12,7 +12,7 @@ from ee_formation_env.world import PhysicsWorld
 
 # PyBullet clamps joint speeds at 100 rad/s by default, which would hide a blow-up; lift it far above
 # the env's own runaway threshold (Scenario.max_joint_velocity) so that the env detects it instead.
-_PYBULLET_MAX_JOINT_VELOCITY = 1.0e4
+PYBULLET_MAX_JOINT_VELOCITY = 1.0e4
 
 
 class Arm:
@@ -49,7 +49,7 @@ class Arm:
 
         for link in [-1, *range(pybullet.getNumJoints(self.body, physicsClientId=client))]:
             pybullet.changeDynamics(self.body, link, linearDamping=0.0, angularDamping=0.0,
-                                    maxJointVelocity=_PYBULLET_MAX_JOINT_VELOCITY, physicsClientId=client)
+                                    maxJointVelocity=PYBULLET_MAX_JOINT_VELOCITY, physicsClientId=client)
             if not collide_with_other_arms:
                 pybullet.setCollisionFilterGroupMask(self.body, link, 0, 0, physicsClientId=client)
         damping = model.joint_damping if joint_damping == "urdf" else np.full(model.n_joints, float(joint_damping))
