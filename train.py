@@ -107,6 +107,11 @@ class ObservationNormalizer:
             pickle.dump({"mean": self.mean, "var": self.var, "clip": self.clip, "epsilon": self.epsilon}, handle)
 
     @classmethod
+    def identity(cls, dim: int) -> "ObservationNormalizer":
+        """A normalizer that leaves observations unchanged."""
+        return cls(np.zeros(dim), np.ones(dim), clip=np.inf, epsilon=0.0)
+
+    @classmethod
     def load(cls, path: Path) -> "ObservationNormalizer":
         with open(path, "rb") as handle:
             return cls(**pickle.load(handle))
@@ -252,7 +257,7 @@ def _save_rllib_module(module: Any, out_dir: Path) -> None:
 
     torch.save(module, out_dir / "rllib_module.pt")
     dim = int(np.prod(module.observation_space.shape))
-    ObservationNormalizer(np.zeros(dim), np.ones(dim) - 1e-8, clip=np.inf).save(out_dir / "obs_normalizer.pkl")
+    ObservationNormalizer.identity(dim).save(out_dir / "obs_normalizer.pkl")
 
 
 def _rllib_predictor(run_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
