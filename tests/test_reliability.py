@@ -10,7 +10,6 @@ import sys
 import warnings
 
 import numpy as np
-import pybullet
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis")
@@ -18,21 +17,12 @@ from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import ee_formation_env  # noqa: E402
+from benchmarks.soak import connected_clients, resident_memory_mb  # noqa: E402
 from ee_formation_env.scenario import builtin_scenario  # noqa: E402
-
-
-def connected_clients() -> int:
-    """PyBullet physics clients currently connected in this process."""
-    return sum(bool(pybullet.getConnectionInfo(i)["isConnected"]) for i in range(64))
 
 
 def open_file_descriptors() -> int:
     return len(os.listdir("/proc/self/fd"))
-
-
-def resident_memory_mb() -> float:
-    with open("/proc/self/statm") as handle:
-        return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 # ---------------------------------------------------------------------------------------- fuzzing
