@@ -85,7 +85,3 @@ class Arm:
         """Joint torques (N m) for the next physics step only."""
         pybullet.setJointMotorControlArray(self.body, self.joint_indices, pybullet.TORQUE_CONTROL,
                                            forces=torques, physicsClientId=self.world.client)
-
-    def to_world(self, point_in_base: np.ndarray) -> np.ndarray:
-        """A base-frame point (3,) in world coordinates."""
-        return self.base_rotation @ point_in_base + self.base_position
