@@ -129,13 +129,18 @@ def _random_params(chain: SerialChain, rng: np.random.Generator) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- agreement with PyBullet
-@pytest.mark.parametrize("arm", ARM_IDS)
-def test_forward_matches_pybullet_link_frame(arm, client):
+def _posed_in_pybullet(arm: str, client: int, seed: int):
+    """The chain and 20 random configurations q, each set on the PyBullet body before it is yielded."""
     chain = _chain(arm)
     body = Body(client, chain)
-    rng = np.random.default_rng(1)
-    for q in chain.sample_configurations(20, rng):
+    for q in chain.sample_configurations(20, np.random.default_rng(seed)):
         body.set_q(q)
+        yield chain, body, q
+
+
+@pytest.mark.parametrize("arm", ARM_IDS)
+def test_forward_matches_pybullet_link_frame(arm, client):
+    for chain, body, q in _posed_in_pybullet(arm, client, seed=1):
         position = chain.forward(q)
         np.testing.assert_allclose(position, body.ee_frame_position(), rtol=0, atol=1e-9)
         # getLinkState's worldLinkFramePosition itself is float32-accurate only
@@ -144,12 +149,24 @@ def test_forward_matches_pybullet_link_frame(arm, client):
 
 @pytest.mark.parametrize("arm", ARM_IDS)
 def test_jacobian_matches_pybullet(arm, client):
-    chain = _chain(arm)
-    body = Body(client, chain)
-    rng = np.random.default_rng(2)
-    for q in chain.sample_configurations(20, rng):
-        body.set_q(q)
+    for chain, body, q in _posed_in_pybullet(arm, client, seed=2):
         np.testing.assert_allclose(chain.jacobian(q), body.jacobian(), rtol=0, atol=1e-9)
+
+
+def _finite_difference_jacobian(body: "Body", q: np.ndarray, point, step: float = 1e-6) -> np.ndarray:
+    """Central differences (3, n) of ``point()`` (a world position read from PyBullet) over the joints;
+    leaves the body at ``q``."""
+    fd = np.empty((3, len(q)))
+    for j in range(len(q)):
+        positions = []
+        for sign in (1.0, -1.0):
+            shifted = q.copy()
+            shifted[j] += sign * step
+            body.set_q(shifted)
+            positions.append(np.asarray(point()))
+        fd[:, j] = (positions[0] - positions[1]) / (2 * step)
+    body.set_q(q)
+    return fd
 
 
 def test_calculate_jacobian_local_position_is_from_link_frame(client):
@@ -161,17 +178,7 @@ def test_calculate_jacobian_local_position_is_from_link_frame(client):
     body.set_q(q)
     state = body.link_state()
     assert np.linalg.norm(state[2]) > 0.01
-    step = 1e-6
-    fd = np.empty((3, chain.n_joints))
-    for j in range(chain.n_joints):
-        positions = []
-        for sign in (1.0, -1.0):
-            shifted = q.copy()
-            shifted[j] += sign * step
-            body.set_q(shifted)
-            positions.append(np.array(body.link_state()[0]))
-        fd[:, j] = (positions[0] - positions[1]) / (2 * step)
-    body.set_q(q)
+    fd = _finite_difference_jacobian(body, q, lambda: np.array(body.link_state()[0]))
     np.testing.assert_allclose(body.jacobian(state[2]), fd, rtol=0, atol=1e-7)
     assert np.abs(body.jacobian() - fd).max() > 1e-3
 
@@ -183,18 +190,8 @@ def test_calculate_jacobian_is_in_base_frame(client):
     body = Body(client, chain, position=(0.3, -0.2, 0.5), orientation=orientation)
     base_pos, base_rot = body.base_frame()
     rng = np.random.default_rng(4)
-    step = 1e-6
     for q in chain.sample_configurations(3, rng):
-        fd = np.empty((3, chain.n_joints))
-        for j in range(chain.n_joints):
-            positions = []
-            for sign in (1.0, -1.0):
-                shifted = q.copy()
-                shifted[j] += sign * step
-                body.set_q(shifted)
-                positions.append(body.ee_frame_position())
-            fd[:, j] = (positions[0] - positions[1]) / (2 * step)
-        body.set_q(q)
+        fd = _finite_difference_jacobian(body, q, body.ee_frame_position)
         position, jac = chain.forward_and_jacobian(q)
         np.testing.assert_allclose(base_pos + base_rot @ position, body.ee_frame_position(),
                                    rtol=0, atol=1e-9)
