@@ -37,26 +37,42 @@ from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
 EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
+# Training design (README, "Training"): short episodes with a wide start distribution give many starts per
+# budget; the comparison runs the scenario's own episodes (30 s) and start noise.
+DEFAULT_TIMESTEPS = {"residual": 1_000_000, "torque": 3_000_000}
+TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 5.0}
+TRAIN_INITIAL_Q_NOISE = 0.3  # rad
+REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
 
 # ------------------------------------------------------------------------------------------ arguments
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="train.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="planar_square", help="built-in name or YAML/JSON scenario file")
-    parser.add_argument("--mode", choices=("torque", "residual"), default="torque")
+    parser.add_argument("--mode", choices=("torque", "residual"), default="residual",
+                        help="residual (default): learn a correction on top of --reference; torque: learn torques")
     parser.add_argument("--reference", default="adaptive_jacobian",
                         choices=baselines.MODEL_BASED_POLICIES,
                         help="reference controller of --mode residual")
     parser.add_argument("--residual-scale", type=float, default=0.1, help="residual action scale (0, 1]")
+    parser.add_argument("--correction-penalty", type=float, default=0.5,
+                        help="residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
-    parser.add_argument("--total-timesteps", type=int, default=600_000, help="agent steps (all agents count)")
-    parser.add_argument("--n-envs", type=int, default=2, help="parallel envs (each with all its agents)")
+    parser.add_argument("--total-timesteps", type=int, default=None,
+                        help=f"agent steps (all agents count); default {DEFAULT_TIMESTEPS}")
+    parser.add_argument("--n-envs", type=int, default=8, help="parallel envs (each with all its agents)")
     parser.add_argument("--n-workers", type=int, default=0,
                         help="worker processes for the envs (0 = step them in this process, the fastest for "
                              "the planar scenarios; use 2 on 2 cores for costlier scenarios)")
     parser.add_argument("--train-episode-seconds", type=float, default=None,
-                        help="episode length while training, s (default: the scenario's)")
+                        help=f"episode length while training, s (default {TRAIN_EPISODE_SECONDS})")
+    parser.add_argument("--train-initial-q-noise", type=float, default=TRAIN_INITIAL_Q_NOISE,
+                        help="half-width of the uniform noise on the initial joint positions while training, rad "
+                             "(the scenario's is used for evaluation)")
+    parser.add_argument("--gamma", type=float, default=0.99, help="discount per control step")
+    parser.add_argument("--log-std-init", type=float, default=-1.0,
+                        help="initial log standard deviation of the Gaussian policy (ppo)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
@@ -64,14 +80,24 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--eval-seconds", type=float, default=None,
                         help="episode length for the comparison, s (default: the scenario's)")
     parser.add_argument("--address", default=None, help="rllib: address of an existing Ray cluster")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
+    if args.total_timesteps is None:
+        args.total_timesteps = DEFAULT_TIMESTEPS[args.mode]
+    if args.train_episode_seconds is None:
+        args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
     if args.total_timesteps < 1 or args.n_envs < 1 or args.eval_episodes < 1:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
     if args.n_workers < 0:
         parser.error("--n-workers must be >= 0")
+    if not 0 <= args.correction_penalty <= 1:
+        parser.error("--correction-penalty: expected a value in [0, 1]")
+    if not 0 < args.gamma <= 1:
+        parser.error("--gamma: expected a value in (0, 1]")
+    if args.train_initial_q_noise < 0 or args.train_episode_seconds <= 0:
+        parser.error("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
     return args
 
 
@@ -81,13 +107,14 @@ def run_name(args: argparse.Namespace) -> str:
 
 
 def training_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    return {} if args.train_episode_seconds is None else {"episode_seconds": args.train_episode_seconds}
+    """Scenario overrides of the training env: episode length and start randomization."""
+    return {"episode_seconds": args.train_episode_seconds, "initial_q_noise": args.train_initial_q_noise}
 
 
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:
     """A picklable factory of the env the learner steps."""
     return functools.partial(make_training_env, args.scenario, overrides, args.mode, args.reference,
-                             args.residual_scale)
+                             args.residual_scale, args.correction_penalty)
 
 
 # ------------------------------------------------------------------------------------------ learned policy
@@ -161,19 +188,21 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
     factory = env_factory(args, training_overrides(args))
     venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers)
     venv = VecMonitor(venv, filename=str(out_dir / "monitor.csv"))
-    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
-    # A residual policy should start close to "no correction": a smaller initial action noise.
+    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
+    # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 1.0 a residual
+    # policy starts far from "no correction" and a torque policy saturates every joint.
     policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64])
-    if args.mode == "residual":
-        policy_kwargs["log_std_init"] = -1.0
+    if args.algo == "ppo":
+        policy_kwargs["log_std_init"] = args.log_std_init
     common = dict(seed=args.seed, verbose=0, tensorboard_log=str(out_dir / "tensorboard"), device="cpu",
                   policy_kwargs=policy_kwargs)
     if args.algo == "ppo":
-        model = PPO("MlpPolicy", venv, n_steps=256, batch_size=512, n_epochs=5, learning_rate=3e-4,
-                    gamma=0.99, gae_lambda=0.95, clip_range=0.2, **common)
+        # 128 steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults.
+        model = PPO("MlpPolicy", venv, n_steps=128, batch_size=1024, n_epochs=5, learning_rate=3e-4,
+                    gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
     else:
         model = SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
-                    learning_starts=2_000, gamma=0.99, train_freq=1, gradient_steps=1, **common)
+                    learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
     checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
                                      save_path=str(out_dir / "checkpoints"), name_prefix="model")
     started = time.time()
@@ -227,7 +256,7 @@ def train_rllib(args: argparse.Namespace, out_dir: Path) -> None:
                      rollout_fragment_length="auto")
         .multi_agent(policies={"shared"}, policy_mapping_fn=lambda agent_id, *a, **k: "shared")
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs={"shared": RLModuleSpec()}))
-        .training(train_batch_size_per_learner=2048, minibatch_size=256, num_epochs=5, lr=3e-4, gamma=0.99)
+        .training(train_batch_size_per_learner=2048, minibatch_size=256, num_epochs=5, lr=3e-4, gamma=args.gamma)
         .debugging(seed=args.seed)
     )
     algorithm = config.build_algo() if hasattr(config, "build_algo") else config.build()
@@ -281,13 +310,18 @@ def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> 
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
     results: dict[str, Any] = {}
-    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
+    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env, \
+            _progress(len(seeds) * (1 + len(baselines.POLICIES)), "evaluating", args.no_progress) as bar:
         candidates = {"learned": lambda: learned_policies(run_dir, env, config)}
         for name in baselines.POLICIES:
             candidates[name] = functools.partial(baselines.make_policies, name, env)
         for name, build in candidates.items():
             policies = build()
-            episodes = [run_episode(env, policies, seed=seed) for seed in seeds]
+            bar.set_postfix_str(name)
+            episodes = []
+            for seed in seeds:
+                episodes.append(run_episode(env, policies, seed=seed))
+                bar.update(1)
             results[name] = summarize(episodes)
             results[name]["per_episode"] = [e.as_dict() for e in episodes]
     label = f"learned ({config['mode']})"
@@ -301,6 +335,30 @@ def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> 
     return comparison
 
 
+def _progress(total: int, description: str, disabled: bool) -> Any:
+    """A progress bar on stderr (``tqdm``), or a silent stand-in when ``disabled``."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=description, unit="episode", disable=disabled)
+
+
+def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
+    """Mean per-agent episode return of each reference policy in the *training* env (its episode length and
+    start noise, torque mode), on held-out seeds: the lines the learning curve is drawn against.
+
+    In residual mode the reference alone is the learner's zero correction, whose return is the same.
+    """
+    overrides = {"episode_seconds": config["train_episode_seconds"],
+                 "initial_q_noise": config["train_initial_q_noise"]}
+    seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
+    returns = {}
+    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
+        for name in baselines.POLICIES:
+            policies = baselines.make_policies(name, env)
+            returns[name] = float(np.mean([run_episode(env, policies, seed=seed).mean_return for seed in seeds]))
+    return returns
+
+
 def _plot(run_dir: Path, results: dict[str, Any], label: str) -> None:
     import matplotlib
 
@@ -310,11 +368,17 @@ def _plot(run_dir: Path, results: dict[str, Any], label: str) -> None:
     figure, axes = plt.subplots(1, 3, figsize=(14, 3.8))
     curve = np.loadtxt(run_dir / "learning_curve.csv", delimiter=",", skiprows=1, ndmin=2)
     if curve.size:
-        axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.4)
+        axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.2, markersize=2, color="tab:blue")
         if len(curve) >= 10:
             window = max(len(curve) // 20, 5)
-            axes[0].plot(curve[window - 1:, 0], np.convolve(curve[:, 1], np.ones(window) / window, mode="valid"))
-    axes[0].set(title="learning curve", xlabel="agent steps", ylabel="episode return (per agent)")
+            axes[0].plot(curve[window - 1:, 0], np.convolve(curve[:, 1], np.ones(window) / window, mode="valid"),
+                         color="tab:blue", label=label)
+    references_path = run_dir / "reference_returns.json"
+    if references_path.is_file():
+        for (name, value), color in zip(json.loads(references_path.read_text()).items(), plt.cm.Dark2.colors):
+            axes[0].axhline(value, linestyle="--", linewidth=1, color=color, label=name)
+        axes[0].legend(fontsize=7, loc="best")
+    axes[0].set(title="learning curve (training episodes)", xlabel="agent steps", ylabel="episode return per agent")
     names = list(results)
     ticks = [label if n == "learned" else n for n in names]
     axes[1].bar(ticks, [results[n]["final_formation_error"] for n in names])
@@ -340,6 +404,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         compare(args, config, run_dir)
         return 0
 
+    started = time.time()
     ee_formation_env.load_scenario(args.scenario)  # fail fast on a bad scenario, before any process starts
     run_dir = Path(args.out) if args.out else Path("runs") / run_name(args)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -350,7 +415,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"training {args.algo} ({args.backend}, mode {args.mode}) on {args.scenario} for {args.total_timesteps} "
           f"agent steps -> {run_dir}")
     (train_sb3 if args.backend == "sb3" else train_rllib)(args, run_dir)
+    (run_dir / "reference_returns.json").write_text(json.dumps(reference_returns(config), indent=2))
     compare(args, config, run_dir)
+    timing = json.loads((run_dir / "timing.json").read_text())
+    timing["total_seconds"] = time.time() - started  # training, reference lines and evaluation
+    (run_dir / "timing.json").write_text(json.dumps(timing))
     print(f"wrote {run_dir}/comparison.md, comparison.json, comparison.png")
     return 0
 
