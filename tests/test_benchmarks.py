@@ -43,6 +43,9 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
         if row["section"] == "reset":
             assert row["reset_ms"] > 0
             continue
+        if row["section"] == "sb3_training":
+            assert row["mode"] == "residual" and row["agent_steps_per_s"] > 0
+            continue
         for key in ("physics_steps_per_s", "env_steps_per_s", "real_time_factor", "ratio_to_raw"):
             assert math.isfinite(row[key]) and row[key] > 0, (row["case"], key)
     raw = [row for row in rows if row["section"] == "raw_floor" and "stepSimulation" in row["case"]]
