@@ -25,7 +25,9 @@ position_tolerance``. With the defaults, ``r_i`` is 1 at zero error, ~0.65 at on
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -53,6 +55,37 @@ class RewardConfig:
         if not self.error_floor < self.error_ceiling:
             raise ValueError(f"reward.error_floor: expected a value below error_ceiling ({self.error_ceiling}), "
                              f"got {self.error_floor}")
+
+
+def parse_reward(value: Any) -> RewardConfig:
+    """``reward`` from scenario data (a dict of :class:`RewardConfig` fields, missing ones at their
+    defaults); ``ValueError`` naming the field on bad input."""
+    if isinstance(value, RewardConfig):
+        return value
+    if value is None:
+        return RewardConfig()
+    if not isinstance(value, Mapping):
+        raise ValueError(f"reward: expected a dict of RewardConfig fields, got {value!r}")
+    allowed = sorted(f.name for f in fields(RewardConfig))
+    unknown = set(value) - set(allowed)
+    if unknown:
+        raise ValueError(f"reward: unknown key(s) {sorted(unknown)}; allowed: {allowed}")
+    parsed: dict[str, Any] = {}
+    for key, number in value.items():
+        if key == "team":
+            if not isinstance(number, bool):
+                raise ValueError(f"reward.team: expected true or false, got {number!r}")
+            parsed[key] = number
+            continue
+        if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(number):
+            raise ValueError(f"reward.{key}: expected a finite number, got {number!r}")
+        if key in ("formation", "in_tolerance") and number < 0:
+            raise ValueError(f"reward.{key}: expected a weight >= 0, got {number!r}")
+        if key in ("position_tolerance", "error_floor", "error_ceiling") and number <= 0:
+            raise ValueError(f"reward.{key}: expected a positive number, got {number!r}")
+        parsed[key] = float(number)
+    return RewardConfig(**parsed)
 
 
 def edge_tolerances(kind: str, desired_lengths: np.ndarray, position_tolerance: float) -> np.ndarray:
