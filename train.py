@@ -77,6 +77,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
     parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--eval-workers", type=int, default=2,
+                        help="processes for the evaluation episodes (0 = run them in this process)")
     parser.add_argument("--eval-seconds", type=float, default=None,
                         help="episode length for the comparison, s (default: the scenario's)")
     parser.add_argument("--address", default=None, help="rllib: address of an existing Ray cluster")
@@ -90,8 +92,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
-    if args.n_workers < 0:
-        parser.error("--n-workers must be >= 0")
+    if args.n_workers < 0 or args.eval_workers < 0:
+        parser.error("--n-workers and --eval-workers must be >= 0")
     if not 0 <= args.correction_penalty <= 1:
         parser.error("--correction-penalty: expected a value in [0, 1]")
     if not 0 < args.gamma <= 1:
@@ -340,24 +342,41 @@ def _rllib_predictor(run_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
 
 # ------------------------------------------------------------------------------------------ comparison
 def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> dict[str, Any]:
-    """Evaluate the learned policy and every reference policy on the same held-out seeds."""
+    """Evaluate the learned policy and every reference policy on the same held-out seeds.
+
+    Episodes run in ``--eval-workers`` processes (each its own env), or in this one with 0; an episode's
+    result does not depend on where it runs (same seed, same episode, bit for bit).
+    """
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
-    results: dict[str, Any] = {}
-    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env, \
-            _progress(len(seeds) * (1 + len(baselines.POLICIES)), "evaluating", args.no_progress) as bar:
-        candidates = {"learned": lambda: learned_policies(run_dir, env, config)}
-        for name in baselines.POLICIES:
-            candidates[name] = functools.partial(baselines.make_policies, name, env)
-        for name, build in candidates.items():
-            policies = build()
-            bar.set_postfix_str(name)
-            episodes = []
-            for seed in seeds:
-                episodes.append(run_episode(env, policies, seed=seed))
+    names = ["learned", *baselines.POLICIES]
+    jobs = [(name, seed) for name in names for seed in seeds]
+    episodes: dict[tuple[str, int], Any] = {}
+    setup = (config["scenario"], overrides, str(run_dir), config)
+    with _progress(len(jobs), "evaluating", args.no_progress) as bar:
+        if args.eval_workers == 0:
+            _evaluation_worker_setup(*setup)
+            for job in jobs:
+                episodes[job] = _evaluate_episode(*job)
                 bar.update(1)
-            results[name] = summarize(episodes)
-            results[name]["per_episode"] = [e.as_dict() for e in episodes]
+            _evaluation_worker_teardown()
+        else:
+            import concurrent.futures
+            import multiprocessing
+
+            with concurrent.futures.ProcessPoolExecutor(
+                    args.eval_workers, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_evaluation_worker_setup, initargs=setup) as pool:
+                futures = {pool.submit(_evaluate_episode, *job): job for job in jobs}
+                for future in concurrent.futures.as_completed(futures):
+                    episodes[futures[future]] = future.result()
+                    bar.set_postfix_str(futures[future][0])
+                    bar.update(1)
+    results: dict[str, Any] = {}
+    for name in names:
+        runs = [episodes[(name, seed)] for seed in seeds]
+        results[name] = summarize(runs)
+        results[name]["per_episode"] = [e.as_dict() for e in runs]
     label = f"learned ({config['mode']})"
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results}
     (run_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
@@ -367,6 +386,29 @@ def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> 
     _plot(run_dir, results, label)
     print(table)
     return comparison
+
+
+_EVALUATION: dict[str, Any] = {}  # one evaluation worker's env and policies
+
+
+def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
+    _EVALUATION.clear()
+    _EVALUATION.update(env=ee_formation_env.parallel_env(scenario, **overrides), run_dir=Path(run_dir), config=config,
+                       policies={})
+
+
+def _evaluation_worker_teardown() -> None:
+    _EVALUATION["env"].close()
+    _EVALUATION.clear()
+
+
+def _evaluate_episode(name: str, seed: int) -> Any:
+    """One held-out episode of policy ``name`` ("learned" or a reference) in this worker's env."""
+    env, policies = _EVALUATION["env"], _EVALUATION["policies"]
+    if name not in policies:
+        policies[name] = (learned_policies(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
+                          else baselines.make_policies(name, env))
+    return run_episode(env, policies[name], seed=seed)
 
 
 def _progress(total: int, description: str, disabled: bool) -> Any:

@@ -6,8 +6,9 @@
 
 **Groups.** TorchRL stacks the tensors of the agents of one group, so a group's agents need identical
 observation and action spaces. :func:`group_map` puts agents with identical spaces in one group, named
-after their robot (``planar_2link``, ``kuka_iiwa``, ...): one group for the built-in scenarios, one per
-robot kind for mixed teams (e.g. a ``kuka_iiwa`` group of 7-joint arms and a ``franka_panda`` group). Pass
+after their robot (``planar_2link``, or a URDF's robot name such as ``lbr_iiwa`` and ``panda``): one group for the built-in scenarios, one per
+robot kind for mixed teams (e.g. an ``lbr_iiwa`` group of KUKA arms and a ``panda`` group of Franka
+arms: both have 7 joints, but different joint limits and so different observation bounds). Pass
 ``group_map=MarlGroupMapType.ONE_GROUP_PER_AGENT`` for one group per arm (no stacking at all).
 TorchRL's default, grouping by the name before the last ``_`` (every agent is ``arm_<i>``), puts mixed
 robots in one group and fails to stack their actions.
@@ -18,6 +19,7 @@ Every info entry is numeric and fixed-shape per agent, so TorchRL builds specs f
 from __future__ import annotations
 
 from typing import Any
+from xml.etree import ElementTree
 
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
 from torchrl.envs.utils import MarlGroupMapType
@@ -27,11 +29,11 @@ from ee_formation_env.env import FormationEnv
 
 
 def robot_name(env: FormationEnv, index: int) -> str:
-    """The robot of arm ``index``: its built-in name, else its URDF file's stem."""
+    """The robot of arm ``index``: its built-in name, else the ``<robot name=...>`` of its URDF."""
     arm = env.scenario.arms[index]
     if arm.robot:
         return arm.robot
-    return str(arm.urdf).replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0]
+    return ElementTree.parse(arm.urdf).getroot().get("name") or f"robot_{index}"
 
 
 def group_map(env: FormationEnv) -> dict[str, list[str]]:
