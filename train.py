@@ -37,11 +37,12 @@ from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
 EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
-# Training design (README, "Training"): short episodes with a wide start distribution give many starts per
-# budget; the comparison runs the scenario's own episodes (30 s) and start noise.
-DEFAULT_TIMESTEPS = {"residual": 1_000_000, "torque": 3_000_000}
+# Training design (README, "Training"): short episodes give many starts per budget (the references settle in
+# ~1 s); torque mode also widens the start distribution. The comparison runs the scenario's own episodes (30 s)
+# and start noise.
+DEFAULT_TIMESTEPS = {"residual": 600_000, "torque": 2_500_000}
 TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 5.0}
-TRAIN_INITIAL_Q_NOISE = 0.3  # rad
+TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.3}  # rad; None: the scenario's
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
 
@@ -67,9 +68,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                              "the planar scenarios; use 2 on 2 cores for costlier scenarios)")
     parser.add_argument("--train-episode-seconds", type=float, default=None,
                         help=f"episode length while training, s (default {TRAIN_EPISODE_SECONDS})")
-    parser.add_argument("--train-initial-q-noise", type=float, default=TRAIN_INITIAL_Q_NOISE,
+    parser.add_argument("--train-initial-q-noise", type=float, default=None,
                         help="half-width of the uniform noise on the initial joint positions while training, rad "
-                             "(the scenario's is used for evaluation)")
+                             f"(default {TRAIN_INITIAL_Q_NOISE}, None: the scenario's; evaluation uses the scenario's)")
     parser.add_argument("--gamma", type=float, default=0.99, help="discount per control step")
     parser.add_argument("--log-std-init", type=float, default=-1.0,
                         help="initial log standard deviation of the Gaussian policy (ppo)")
@@ -88,6 +89,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.total_timesteps = DEFAULT_TIMESTEPS[args.mode]
     if args.train_episode_seconds is None:
         args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
+    if args.train_initial_q_noise is None:
+        args.train_initial_q_noise = TRAIN_INITIAL_Q_NOISE[args.mode]
     if args.total_timesteps < 1 or args.n_envs < 1 or args.eval_episodes < 1:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
@@ -98,7 +101,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--correction-penalty: expected a value in [0, 1]")
     if not 0 < args.gamma <= 1:
         parser.error("--gamma: expected a value in (0, 1]")
-    if args.train_initial_q_noise < 0 or args.train_episode_seconds <= 0:
+    if (args.train_initial_q_noise is not None and args.train_initial_q_noise < 0) or args.train_episode_seconds <= 0:
         parser.error("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
     return args
 
@@ -108,9 +111,14 @@ def run_name(args: argparse.Namespace) -> str:
     return f"{scenario}-{args.mode}-{args.algo}-{args.backend}-seed{args.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def training_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    """Scenario overrides of the training env: episode length and start randomization."""
-    return {"episode_seconds": args.train_episode_seconds, "initial_q_noise": args.train_initial_q_noise}
+def training_overrides(args: argparse.Namespace | dict[str, Any]) -> dict[str, Any]:
+    """Scenario overrides of the training env (from parsed arguments or a saved config): episode length
+    and start randomization."""
+    settings = vars(args) if isinstance(args, argparse.Namespace) else args
+    overrides = {"episode_seconds": settings["train_episode_seconds"]}
+    if settings.get("train_initial_q_noise") is not None:
+        overrides["initial_q_noise"] = settings["train_initial_q_noise"]
+    return overrides
 
 
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:
@@ -424,8 +432,7 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
 
     In residual mode the reference alone is the learner's zero correction, whose return is the same.
     """
-    overrides = {"episode_seconds": config["train_episode_seconds"],
-                 "initial_q_noise": config["train_initial_q_noise"]}
+    overrides = training_overrides(config)
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
     returns = {}
     with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
