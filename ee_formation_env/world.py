@@ -36,6 +36,10 @@ class PhysicsWorld:
         if mode == pybullet.GUI:
             pybullet.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0, physicsClientId=self.client)
         self._snapshot: int | None = None
+        # Kept on the instance for close(): at interpreter exit the module's globals (pybullet itself,
+        # pybullet.error) may already be None when a forgotten env is finally collected.
+        self._disconnect = pybullet.disconnect
+        self._client_error = pybullet.error
 
     @property
     def connected(self) -> bool:
@@ -100,10 +104,11 @@ class PhysicsWorld:
         return pybullet.getConnectionInfo(self.client)["connectionMethod"] == pybullet.GUI
 
     def close(self) -> None:
+        """Disconnect the client; idempotent, and safe from ``__del__`` at interpreter exit."""
         if self.client >= 0:
             try:
-                pybullet.disconnect(physicsClientId=self.client)
-            except pybullet.error:
+                self._disconnect(physicsClientId=self.client)
+            except self._client_error:
                 pass  # already gone (e.g. the GUI window was closed)
             self.client = -1
 
