@@ -19,9 +19,8 @@ from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.validation import initial_configuration, validate_scenario, workspace
-from ee_formation_env.world import PhysicsWorld, draw_segment, project_points
-
-_EDGE_COLOR = (220, 30, 30)
+from ee_formation_env.rendering import SceneRenderer, validate_render_options
+from ee_formation_env.world import PhysicsWorld
 
 
 def smallest_singular_values(matrices: np.ndarray) -> np.ndarray:
@@ -92,13 +91,15 @@ class FormationEnv(ParallelEnv):
         "is_parallelizable": True,
     }
 
-    render_width = 480
-    render_height = 360
-
     def __init__(self, scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "planar_square",
-                 render_mode: str | None = None, **overrides: Any):
+                 render_mode: str | None = None, render_width: int = 480, render_height: int = 360,
+                 real_time: bool = False, **overrides: Any):
+        """``render_width`` x ``render_height``: pixels of ``rgb_array`` frames (16 to 4096 each).
+        ``real_time``: in ``human`` mode, ``render()`` waits so that the GUI plays at simulated speed."""
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode: expected None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_width, self.render_height, real_time = validate_render_options(render_width, render_height,
+                                                                                    real_time)
         self.scenario = load_scenario(scenario, **overrides)
         # The nominal kinematic models (what controllers may know); raises before any physics starts.
         self.nominal_models = validate_scenario(self.scenario)
@@ -113,6 +114,8 @@ class FormationEnv(ParallelEnv):
         self._nominal_q = [initial_configuration(arm, model) for arm, model in zip(sc.arms, self.nominal_models)]
         self._reaches = [workspace(arm.urdf, arm.ee_link, sc.dim).reach for arm in sc.arms]
         self._build_spaces()
+        self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
+        self.action_spaces = dict(self._action_spaces)
 
         self.world = PhysicsWorld(sc.physics_hz, sc.gravity, render_mode)
         self.arms = self._load_arms()
@@ -122,7 +125,8 @@ class FormationEnv(ParallelEnv):
             arm.reset_state(q)
         self.world.save_snapshot()
         self.np_random, _ = seeding.np_random(None)
-        self._debug_lines = [-1] * self.graph.n_edges
+        self._renderer = SceneRenderer(self.world, self.formation, self.dim, self.render_width, self.render_height,
+                                       real_time)
         self._step_count = 0
         self._needs_reset = True
 
@@ -297,24 +301,21 @@ class FormationEnv(ParallelEnv):
         return np.clip(state, self.state_space.low, self.state_space.high).astype(np.float32)
 
     def render(self) -> np.ndarray | None:
-        """``rgb_array``: an RGB frame (H, W, 3) uint8 framing every arm, formation edges in red.
-        ``human``: the PyBullet GUI, with the formation edges drawn as debug lines."""
+        """``rgb_array``: an RGB frame (render_height, render_width, 3) uint8 of every arm, the current
+        formation's edges in red and the target formation (placed at the best fit) as a light blue ghost.
+        ``human``: the PyBullet GUI with the same camera and lines; returns None. Without a display, a
+        ``human`` env simulates headless (warning once) and this does nothing. See ``rendering.py``."""
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode to parallel_env")
             return None
         if not hasattr(self, "_ee_world"):
             self._read_state()
-        ee = self._ee_world
+        if self._renderer.camera is None or self._step_count == 0:  # one camera per episode: no shaking
+            self._renderer.frame([arm.body for arm in self.arms], self._ee_world)
         if self.render_mode == "human":
-            for k, (tail, head) in enumerate(self.graph.edges):
-                self._debug_lines[k] = self.world.draw_line(ee[tail], ee[head], (0.9, 0.1, 0.1), self._debug_lines[k])
+            self._renderer.render_human(self._ee_world, self._step_count * self.scenario.control_dt)
             return None
-        target, distance, yaw, pitch = self._camera()
-        image, world_to_clip = self.world.render(target, distance, yaw, pitch, self.render_width, self.render_height)
-        pixels = project_points(world_to_clip, ee, self.render_width, self.render_height)
-        for tail, head in self.graph.edges:
-            draw_segment(image, pixels[tail], pixels[head], _EDGE_COLOR)
-        return image
+        return self._renderer.render_rgb(self._ee_world)
 
     def close(self) -> None:
         """Disconnect the physics client; safe to call more than once."""
@@ -329,14 +330,15 @@ class FormationEnv(ParallelEnv):
         self.close()
 
     def __del__(self) -> None:
-        self.close()
+        self.close()  # PhysicsWorld.close stays safe at interpreter exit
 
     # Copies (pickle, deepcopy, subprocess workers) rebuild the env from its scenario in a new world.
     def __getstate__(self) -> dict[str, Any]:
-        return {"scenario": self.scenario, "render_mode": self.render_mode}
+        return {"scenario": self.scenario, "render_mode": self.render_mode, "render_width": self.render_width,
+                "render_height": self.render_height, "real_time": self._renderer.real_time}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["scenario"], render_mode=state["render_mode"])
+        self.__init__(state.pop("scenario"), **state)
 
     # ------------------------------------------------------------------------------------------ internals
     # The step is vectorized over agents: per-agent quantities live in flat arrays indexed by the tables
@@ -590,14 +592,3 @@ class FormationEnv(ParallelEnv):
                 "sim_time": sim_time,
             }
         return infos
-
-    def _camera(self) -> tuple[np.ndarray, float, float, float]:
-        bases = np.asarray([arm.base_position for arm in self.arms])
-        target = bases.mean(axis=0)
-        if self.dim == 3:
-            target = target + np.array([0.0, 0.0, -0.5 * max(self._reaches)])
-        radius = max(float(np.linalg.norm(b - target)) + r for b, r in zip(bases, self._reaches))
-        distance = 1.15 * radius / math.tan(math.radians(25.0))
-        if self.dim == 2:
-            return target, distance, 0.0, -89.9  # top view of the formation plane
-        return target, distance, 45.0, -30.0
