@@ -33,6 +33,7 @@ import numpy as np
 
 import baselines
 import ee_formation_env
+from baselines.extras import require
 from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
@@ -73,7 +74,27 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--residual-scale: expected a value in (0, 1]")
     if args.n_workers < 0:
         parser.error("--n-workers must be >= 0")
+    if args.backend == "rllib" and args.algo != "ppo":
+        parser.error("--backend rllib supports --algo ppo only")
     return args
+
+
+def require_training_extras(args: argparse.Namespace, config: dict[str, Any] | None = None) -> None:
+    """Fail in one line naming the pip extra, before anything is created, if a needed package is missing.
+
+    ``config``: a saved run's (``--eval-only``), whose backend decides what reloading its model needs.
+    """
+    backend = config["backend"] if config else args.backend
+    modules = ["torch", "matplotlib"]  # the model, comparison.png
+    if backend == "sb3":
+        modules += ["stable_baselines3", "tensorboard"]  # SB3 logs to TensorBoard
+        if not args.no_progress and not config:
+            modules += ["tqdm", "rich"]  # SB3's progress bar
+        extras = "train"
+    else:
+        modules.append("ray.rllib")
+        extras = "train,distributed"
+    require(modules, extras, f"train.py (--backend {backend})")
 
 
 def run_name(args: argparse.Namespace) -> str:
@@ -205,17 +226,13 @@ def _write_learning_curve_from_monitor(out_dir: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ rllib
 def train_rllib(args: argparse.Namespace, out_dir: Path) -> None:
-    try:
-        import ray
-        from ray.rllib.algorithms.ppo import PPOConfig
-        from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
-        from ray.rllib.core.rl_module.rl_module import RLModuleSpec
-        from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
-        from ray.tune.registry import register_env
-    except ImportError as error:
-        raise SystemExit(f"--backend rllib needs the 'distributed' extra: pip install -e '.[distributed]' ({error})")
-    if args.algo != "ppo":
-        raise SystemExit("--backend rllib supports --algo ppo")
+    import ray
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
+    from ray.tune.registry import register_env
+
     ray.init(address=args.address, ignore_reinit_error=True, include_dashboard=False, log_to_driver=False,
              num_cpus=None if args.address else max(os.cpu_count() or 1, 1))
     factory = env_factory(args, training_overrides(args))
@@ -338,10 +355,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not config_path.is_file():
             raise SystemExit(f"--eval-only: {config_path} not found")
         config = json.loads(config_path.read_text())
+        require_training_extras(args, config)
         compare(args, config, run_dir)
         return 0
 
     ee_formation_env.load_scenario(args.scenario)  # fail fast on a bad scenario, before any process starts
+    require_training_extras(args)
     run_dir = Path(args.out) if args.out else Path("runs") / run_name(args)
     run_dir.mkdir(parents=True, exist_ok=True)
     config = {key: value for key, value in vars(args).items() if key not in ("out", "eval_only")}
