@@ -28,6 +28,7 @@ FIELD_OF_VIEW_DEG = 50.0  # vertical field of view of the camera
 FRAME_MARGIN = 0.04  # fraction of the frame left free around the framed points, on each side
 LINK_PADDING = 0.12  # the framed points' half-extent across the view is widened by this fraction (link bodies)
 MIN_RESOLUTION, MAX_RESOLUTION = 16, 4096  # pixels, for render_width and render_height
+REAL_TIME_SLACK = 0.25  # s: lagging more than this behind real time restarts the real-time clock
 
 # Viewing directions (PyBullet yaw, pitch in degrees): straight down on a planar formation's plane, and
 # from above at an angle for a spatial one.
@@ -131,18 +132,12 @@ def draw_formation(image: np.ndarray, world_to_clip: np.ndarray, edges: Sequence
         draw_segment(image, current_pixels[tail], current_pixels[head], EDGE_COLOR, thickness)
 
 
-def content_fraction(image: np.ndarray) -> float:
-    """Fraction of the pixels that differ from the background, taken as the image's most common colour."""
-    colors, counts = np.unique(image.reshape(-1, image.shape[-1]), axis=0, return_counts=True)
-    background = colors[counts.argmax()]
-    return float(np.mean(np.any(image != background, axis=-1)))
-
-
 class SceneRenderer:
     """The env's rendering state: the episode's camera, the GUI's debug items and the real-time pacing.
 
     ``real_time`` (``human`` mode): each :meth:`render_human` waits until as much wall-clock time has passed
-    since the previous one as simulated time has, so the GUI plays at the speed of the simulation.
+    since the episode's first render as simulated time has, so the GUI plays at the speed of the simulation
+    (where the simulation and drawing are slower than that, it plays as fast as they go).
     """
 
     def __init__(self, world: PhysicsWorld, formation: Formation, dim: int, width: int, height: int,
@@ -152,16 +147,20 @@ class SceneRenderer:
         self.camera: Camera | None = None
         self._edge_lines = [-1] * formation.graph.n_edges
         self._ghost_lines = [-1] * formation.graph.n_edges
-        self._paced: tuple[float, float] | None = None  # (wall clock s, simulated s) at the last human render
+        self._anchor: tuple[float, float] | None = None  # (wall clock s, simulated s) that real time counts from
+        self._last_sim_time = 0.0  # s, at the previous human render
 
     def frame(self, bodies: Sequence[int], end_effectors: np.ndarray) -> Camera:
         """Frame the bases, every link frame and the ghost; the camera then stays until the next call."""
         points = [end_effectors, ghost_positions(self.formation, end_effectors, self.dim)]
         points += [self.world.link_positions(body) for body in bodies]
+        points = np.concatenate(points)
         yaw, pitch = PLANAR_VIEW if self.dim == 2 else SPATIAL_VIEW
-        self.camera = frame_points(np.concatenate(points), yaw, pitch, self.width / self.height)
-        if self.world.gui:
-            self.world.point_gui_camera(self.camera.target, self.camera.distance, self.camera.yaw, self.camera.pitch)
+        self.camera = frame_points(points, yaw, pitch, self.width / self.height)
+        if self.world.gui:  # the same framing through the window's own field of view and aspect ratio
+            fov_deg, aspect = self.world.gui_field_of_view()
+            window = frame_points(points, yaw, pitch, aspect, fov_deg)
+            self.world.point_gui_camera(window.target, window.distance, window.yaw, window.pitch)
         return self.camera
 
     def render_rgb(self, end_effectors: np.ndarray) -> np.ndarray:
@@ -186,8 +185,17 @@ class SceneRenderer:
             self._edge_lines[k] = self.world.draw_line(end_effectors[tail], end_effectors[head], edge_color,
                                                        self._edge_lines[k], width=3.0)
         if self.real_time:
-            now = time.perf_counter()
-            if self._paced is not None and sim_time > self._paced[1]:
-                time.sleep(max(0.0, (sim_time - self._paced[1]) - (now - self._paced[0])))
-                now = time.perf_counter()
-            self._paced = (now, sim_time)
+            self._pace(sim_time)
+
+    def _pace(self, sim_time: float) -> None:
+        """Sleep until the wall clock, since the episode's anchor, has caught up with simulated time."""
+        now = time.perf_counter()
+        previous, self._last_sim_time = self._last_sim_time, sim_time
+        if self._anchor is None or sim_time < previous:  # first render, or a new episode
+            self._anchor = (now, sim_time)
+            return
+        delay = self._anchor[0] + (sim_time - self._anchor[1]) - now
+        if delay > 0:
+            time.sleep(delay)
+        elif delay < -REAL_TIME_SLACK:  # the simulation runs slower than real time: do not rush to catch up
+            self._anchor = (now, sim_time)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import math
 import os
 import sys
@@ -29,8 +30,12 @@ class PhysicsWorld:
             _warn_no_display_once()
             self.gui = False
         if self.gui:
-            with c_stdout_silenced():  # the GUI prints ~45 lines of OpenGL and driver details on connect
+            # The GUI prints ~45 lines of OpenGL and driver details on connect. Its window thread may still
+            # print one line ("ven = ...") after connect returns: there is no call to wait for it.
+            with c_stdout_silenced():
                 self.client = pybullet.connect(pybullet.GUI)
+                if self.client >= 0:
+                    pybullet.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0, physicsClientId=self.client)
         else:
             self.client = pybullet.connect(pybullet.DIRECT)
         if self.client < 0:
@@ -41,8 +46,6 @@ class PhysicsWorld:
         # One solver pass per step and a fixed pair order: bit-identical trajectories from one state.
         pybullet.setPhysicsEngineParameter(numSubSteps=0, deterministicOverlappingPairs=1,
                                            physicsClientId=self.client)
-        if self.gui:
-            pybullet.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0, physicsClientId=self.client)
         self._snapshot: int | None = None
         # Kept on the instance for close(): at interpreter exit the module's globals (pybullet itself,
         # pybullet.error) may already be None when a forgotten env is finally collected.
@@ -112,6 +115,12 @@ class PhysicsWorld:
         """Point the GUI's camera (``human`` mode) at ``target`` (m) from ``distance`` (m), yaw/pitch in deg."""
         pybullet.resetDebugVisualizerCamera(distance, yaw, pitch, target.tolist(), physicsClientId=self.client)
 
+    def gui_field_of_view(self) -> tuple[float, float]:
+        """The GUI camera's vertical field of view (deg) and aspect ratio (width / height)."""
+        projection = pybullet.getDebugVisualizerCamera(physicsClientId=self.client)[3]  # column-major 4x4
+        focal = projection[5]  # 1 / tan(fov_vertical / 2)
+        return math.degrees(2.0 * math.atan(1.0 / focal)), focal / projection[0]
+
     def link_positions(self, body: int) -> np.ndarray:
         """World positions (k + 1, 3), m, of a body's base and of every link frame."""
         client = self.client
@@ -124,7 +133,11 @@ class PhysicsWorld:
         """Disconnect the client; idempotent, and safe from ``__del__`` at interpreter exit."""
         if self.client >= 0:
             try:
-                self._disconnect(physicsClientId=self.client)
+                if self.gui:
+                    with c_stdout_silenced():  # the GUI prints ~17 lines about its threads on disconnect
+                        self._disconnect(physicsClientId=self.client)
+                else:
+                    self._disconnect(physicsClientId=self.client)
             except self._client_error:
                 pass  # already gone (e.g. the GUI window was closed)
             self.client = -1
@@ -150,7 +163,8 @@ def _warn_no_display_once() -> None:
 def c_stdout_silenced() -> Iterator[None]:
     """Redirect the process's C-level stdout (file descriptor 1) to /dev/null for the duration.
 
-    PyBullet's C++ code writes straight to fd 1, so ``contextlib.redirect_stdout`` cannot silence it.
+    PyBullet's C++ code writes straight to fd 1, so ``contextlib.redirect_stdout`` cannot silence it; C's
+    stdio buffer is flushed before fd 1 is restored, or buffered chatter would still come out later.
     """
     sys.stdout.flush()
     try:
@@ -163,8 +177,17 @@ def c_stdout_silenced() -> Iterator[None]:
             os.dup2(devnull.fileno(), 1)
         yield
     finally:
+        _flush_c_stdio()
         os.dup2(saved, 1)
         os.close(saved)
+
+
+def _flush_c_stdio() -> None:
+    """``fflush(NULL)``: write out C stdio buffers (where the C library can be found)."""
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
 
 
 def project_points(world_to_clip: np.ndarray, points: np.ndarray, width: int, height: int) -> np.ndarray:
