@@ -43,7 +43,7 @@ def test_printed_law_with_paper_gains_converges_on_3m_square():
 
 
 def test_printed_law_stalls_on_4m_square_and_projection_fixes_it():
-    """FACTS.md: far from the target the printed law collapses a_hat to its spurious equilibrium 0."""
+    """Far from the target the printed law collapses a_hat to its spurious equilibrium 0 (docs/physics.md)."""
     kwargs = dict(shape=_square(4.0))
     printed, printed_errors, _, printed_estimates = _run(
         "planar_square", "adaptive_jacobian", 15.0, **kwargs,
