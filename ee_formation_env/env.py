@@ -327,13 +327,11 @@ class FormationEnv(ParallelEnv):
 
     def _measure(self) -> Measurement:
         """Read the joint states and compute everything derived from them (a physics fault included)."""
-        states = self.arm_set.read_states()
-        joint_state = np.concatenate([state[0] for state in states] + [state[1] for state in states])
-        n_total = self.arm_set.n_joints
-        q, dq = joint_state[:n_total], joint_state[n_total:]
+        q, dq = self.arm_set.read_states()
         fault = ""
-        if not np.isfinite(joint_state).all() or np.abs(dq).max() > self.scenario.max_joint_velocity:
-            q, dq, fault = self._physics_fault(states)
+        # One test for both faults: NaN fails the comparison, and a non-finite q makes its sum non-finite.
+        if not (np.abs(dq).max() <= self.scenario.max_joint_velocity and math.isfinite(q.sum())):
+            q, dq, fault = self._physics_fault(q, dq)
 
         ee_base, margins = self.arm_set.kinematics.positions_and_margins(q, self.task.dim)
         ee_world = (self.task.base_rotations @ ee_base[:, :, None])[:, :, 0] + self.task.base_positions
@@ -350,23 +348,21 @@ class FormationEnv(ParallelEnv):
                            edge_squares=np.add.reduce(errors * errors, axis=1), slot_z=slot_z,
                            slot_errors=slot_errors, singularity_margins=margins, fault=fault)
 
-    def _physics_fault(self, states: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, str]:
+    def _physics_fault(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
         """The first arm's fault (non-finite state, or a joint speed over ``max_joint_velocity``) and the
         joint states with non-finite values replaced by finite ones."""
-        fault, qs, dqs = "", [], []
         limit = self.scenario.max_joint_velocity
-        for i, (q, dq) in enumerate(states):
-            if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
-                fault = fault or f"arm_{i}: non-finite joint state"
-                q, dq = np.nan_to_num(q), np.nan_to_num(dq)
-            elif np.max(np.abs(dq)) > limit:
-                speed = float(np.max(np.abs(dq)))
+        for i, joints in enumerate(self.arm_set.joint_slices):
+            if not (np.all(np.isfinite(q[joints])) and np.all(np.isfinite(dq[joints]))):
+                fault = f"arm_{i}: non-finite joint state"
+                break
+            if np.max(np.abs(dq[joints])) > limit:
+                speed = float(np.max(np.abs(dq[joints])))
                 # At PyBullet's own clamp the true speed is unknown, only that it is at least that.
                 shown = f"at least {speed:.0f}" if speed >= 0.999 * PYBULLET_MAX_JOINT_VELOCITY else f"{speed:.1f}"
-                fault = fault or f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s"
-            qs.append(q)
-            dqs.append(dq)
-        return np.concatenate(qs), np.concatenate(dqs), fault
+                fault = f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s"
+                break
+        return np.nan_to_num(q), np.nan_to_num(dq), fault
 
     def _rewards(self, measured: Measurement, normalized: np.ndarray) -> dict[str, float]:
         weights = self.scenario.reward

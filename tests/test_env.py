@@ -433,13 +433,13 @@ def test_non_finite_state_is_a_fault(make_env, monkeypatch):
     env = make_env("planar_square", episode_seconds=1.0)
     env.reset(seed=0)
     arm = env.arms[1]
-    real = arm.read_state
+    real = arm.read_state_lists  # what the env reads joint states through
 
     def broken():
         q, dq = real()
-        return q, np.array([np.nan, dq[1]])
+        return q, [np.nan, dq[1]]
 
-    monkeypatch.setattr(arm, "read_state", broken)
+    monkeypatch.setattr(arm, "read_state_lists", broken)
     observations, rewards, terminations, truncations, infos = env.step(_valid(env))
     assert all(terminations.values()) and not any(truncations.values())
     assert infos["arm_0"]["physics_fault"].startswith("arm_1: non-finite joint state")
