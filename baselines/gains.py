@@ -1,11 +1,12 @@
 """Default gains of the reference controllers, and the rule that derives them for any robot.
 
-Built-in scenarios have tuned defaults that respect the scenario's torque limits (:data:`SCENARIO_GAINS`);
-:data:`PAPER_GAINS` are the paper's (they need torque limits lifted and 1 ms control steps). For any
-other scenario :func:`derive_gains` computes gains from the agent's nominal model and control step:
+Built-in scenarios carry gains tuned for their default torque limits and rates (their ``controller_gains``,
+dropped by any override of their physics); :data:`PAPER_GAINS` are the paper's (they need torque limits
+lifted and 1 ms control steps). For any other scenario :func:`derive_gains` computes gains from the task
+(the agent's nominal model, torque limits and control step), no env needed:
 
 1. Damping, per joint: sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while the
-   spectral radius ``dt rho(H^-1 K_D) < 2`` (FACTS.md: ``dt < 2 lambda_min(H) / K_D`` for a scalar gain).
+   spectral radius ``dt rho(H^-1 K_D) < 2`` (``docs/physics.md``: ``dt < 2 lambda_min(H) / K_D`` for a scalar gain).
    Each joint gets ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the
    step), then all are scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every
    sampled configuration; ``K_D_max = 20 N m s/rad``. A robot whose light distal joints leave little damping
@@ -26,17 +27,8 @@ import numpy as np
 
 from baselines.controllers import Gains
 from baselines.dynamics import nominal_dynamics
-from ee_formation_env.env import FormationEnv
-from ee_formation_env.validation import chain_model
-
-# Tuned for the built-in scenarios under their default torque limits (see README, "Reference policies").
-SCENARIO_GAINS: dict[str, Gains] = {
-    "planar_square": Gains(kp=5.0, kd=20.0, ki=0.0, alpha=0.02),
-    "planar_square_rotated": Gains(kp=5.0, kd=20.0, ki=0.0, alpha=0.02),
-    "planar_square_displacement": Gains(kp=60.0, kd=20.0, ki=0.0, alpha=0.5),
-    "spatial_tetrahedron": Gains(kp=120.0, kd=2.0, ki=1.0, alpha=0.01),
-    "spatial_tetrahedron_displacement": Gains(kp=20.0, kd=2.0, ki=1.0, alpha=1.0),
-}
+from ee_formation_env.kinematics import chain_model
+from ee_formation_env.task import FormationTask
 
 # The paper's gains (Sec. VI): 2D alpha = 0.02, K_P = 800, K_D = 180; 3D alpha = 0.01, K_P = 120, K_I = 1, K_D = 20.
 PAPER_GAINS: dict[int, Gains] = {
@@ -47,35 +39,34 @@ PAPER_GAINS: dict[int, Gains] = {
 K_D_MAX = 20.0  # N m s/rad
 
 
-def default_gains(env: FormationEnv, agent: str) -> Gains:
-    """Tuned gains for a built-in scenario (by name), else :func:`derive_gains`."""
-    if env.scenario.name in SCENARIO_GAINS:
-        return SCENARIO_GAINS[env.scenario.name]
-    return derive_gains(env, agent)
+def default_gains(task: FormationTask, index: int) -> Gains:
+    """The scenario's own tuned gains where it carries them (built-ins, unmodified physics), else
+    :func:`derive_gains`."""
+    tuned = task.scenario.controller_gains
+    if tuned is not None:
+        return Gains(kp=tuned.kp, kd=tuned.kd, ki=tuned.ki, alpha=tuned.alpha)
+    return derive_gains(task, index)
 
 
-def derive_gains(env: FormationEnv, agent: str) -> Gains:
-    """Gains from the agent's nominal model, torque limits and control step (rule in the module docstring)."""
-    i = env.possible_agents.index(agent)
-    chain = env.nominal_models[i]
-    dt = env.scenario.control_dt
-    kd = stable_damping(env.scenario.arms[i].urdf, env.scenario.arms[i].ee_link, dt)
+def derive_gains(task: FormationTask, index: int) -> Gains:
+    """Gains for arm ``index`` from the task: nominal model, torque limits and control step (module docstring)."""
+    chain = task.models[index]
+    arm = task.scenario.arms[index]
+    dt = task.scenario.control_dt
+    kd = stable_damping(arm.urdf, arm.ee_link, dt)
 
-    neighbors = env.graph.neighbors[i]
-    lengths = np.linalg.norm(env.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
-    if env.formation.kind == "distance":
+    neighbors = task.graph.neighbors[index]
+    lengths = np.linalg.norm(task.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
+    if task.formation.kind == "distance":
         e_ref = float(np.sum(2.0 * (2.0 * lengths**2 * 0.1) * lengths))
     else:
         e_ref = float(np.sum(0.1 * lengths))
-    reach = float(np.max(np.linalg.norm(chain.forward_batch(chain.sample_configurations(
-        256, np.random.default_rng(0))), axis=1)))
-    kp = 0.5 * env.torque_limits[i] / (reach * max(e_ref, 1e-9))
+    kp = 0.5 * task.torque_limits[index] / (task.reaches[index] * max(e_ref, 1e-9))
 
-    gravity_acts = np.linalg.norm(env.gravity_in_base_frame(agent)) > 0 and _gravity_loads_joints(env, i)
-    q0 = env.nominal_initial_q(agent)
+    gravity_acts = np.linalg.norm(task.gravity_in_base_frame(index)) > 0 and _gravity_loads_joints(task, index)
     zeta = np.zeros(3)
     zeta[0] = e_ref
-    regressor = chain.regressor(q0, zeta)
+    regressor = chain.regressor(task.initial_q[index], zeta)
     alpha = 1.0 / max(float(np.sum(regressor**2)), 1e-9)
     return Gains(kp=kp, kd=kd, ki=1.0 if gravity_acts else 0.0, alpha=alpha)
 
@@ -93,9 +84,9 @@ def stable_damping(urdf: str, ee_link: str, dt: float) -> np.ndarray:
     return kd / max(radius, 1.0)
 
 
-def _gravity_loads_joints(env: FormationEnv, index: int) -> bool:
-    chain = env.nominal_models[index]
-    dynamics = nominal_dynamics(env.scenario.arms[index].urdf, chain.joint_names)
+def _gravity_loads_joints(task: FormationTask, index: int) -> bool:
+    chain = task.models[index]
+    dynamics = nominal_dynamics(task.scenario.arms[index].urdf, chain.joint_names)
     samples = chain.sample_configurations(16, np.random.default_rng(0))
-    gravity = env.gravity_in_base_frame(env.possible_agents[index])
+    gravity = task.gravity_in_base_frame(index)
     return max(float(np.max(np.abs(dynamics.gravity_torque(q, gravity)))) for q in samples) > 1e-6

@@ -14,6 +14,7 @@ Everything here is plain numpy; the environment, the controllers and the metrics
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
@@ -57,6 +58,7 @@ class FormationGraph:
             raise ValueError(f"edges: duplicate edge (in either direction) in {edge_array.tolist()}")
         self.n_agents = int(n_agents)
         self.edges = edge_array.astype(np.int64)
+        self._tails, self._heads = self.edges[:, 0].copy(), self.edges[:, 1].copy()  # contiguous, for indexing
         self.n_edges = len(self.edges)
         self.incidence = np.zeros((self.n_agents, self.n_edges))
         self.incidence[self.edges[:, 0], np.arange(self.n_edges)] = 1.0
@@ -86,7 +88,7 @@ class FormationGraph:
 
     def edge_vectors(self, positions: np.ndarray) -> np.ndarray:
         """``z_k = x_tail - x_head`` for every edge, shape (n_edges, dim), from (n_agents, dim) positions."""
-        return positions[self.edges[:, 0]] - positions[self.edges[:, 1]]
+        return positions[self._tails] - positions[self._heads]
 
 
 def rigidity_matrix(graph: FormationGraph, positions: np.ndarray) -> np.ndarray:
@@ -167,7 +169,13 @@ class Formation:
     def formation_error(self, z: np.ndarray) -> float:
         """RMS over all edges of |e_k| (m^2 for distance formations, m for displacement formations)."""
         errors = self.edge_errors(z).reshape(self.graph.n_edges, -1)
-        return float(np.sqrt(np.mean(np.sum(errors**2, axis=1))))
+        return formation_error_from_squares(np.add.reduce(errors * errors, axis=1))
+
+
+def formation_error_from_squares(edge_squares: np.ndarray) -> float:
+    """The formation error: RMS over all edges of |e_k|, from the squares |e_k|^2 (E,); m^2 for distance
+    formations, m for displacement ones. The one definition, used by the env's infos and the metrics."""
+    return math.sqrt(float(edge_squares.sum()) / len(edge_squares))
 
 
 def agent_gradient(kind: str, relative_positions: np.ndarray, edge_errors: np.ndarray) -> np.ndarray:
