@@ -6,7 +6,7 @@ and draws the same lines as debug items. The camera is fixed for an episode: it 
 render after a reset, on the bases, every link frame and the ghost, so that a video does not shake.
 
 Colours: the current formation's edges are red; the ghost, the desired shape placed where it best fits the
-current end-effectors (:func:`ghost_positions`), is light grey-blue, so that the gap between the two is the
+current end-effectors (:func:`ghost_positions`), is light blue, so that the gap between the two is the
 remaining formation error.
 """
 
