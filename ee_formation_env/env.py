@@ -17,10 +17,9 @@ from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet
 from ee_formation_env.scenario import Scenario, load_scenario
+from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.task import FormationTask, build_task
-from ee_formation_env.world import PhysicsWorld, draw_segment, project_points
-
-_EDGE_COLOR = (220, 30, 30)
+from ee_formation_env.world import PhysicsWorld
 
 # ``info["physics_fault"]`` codes (0: none). The last fault's full reason (arm, speed) is ``env.physics_fault_reason``.
 PHYSICS_FAULTS: dict[int, str] = {0: "none", 1: "non-finite joint state", 2: "joint speed above max_joint_velocity"}
@@ -90,13 +89,15 @@ class FormationEnv(ParallelEnv):
         "is_parallelizable": True,
     }
 
-    render_width = 480
-    render_height = 360
-
     def __init__(self, scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "planar_square",
-                 render_mode: str | None = None, **overrides: Any):
+                 render_mode: str | None = None, render_width: int = 480, render_height: int = 360,
+                 real_time: bool = False, **overrides: Any):
+        """``render_width`` x ``render_height``: pixels of ``rgb_array`` frames (16 to 4096 each).
+        ``real_time``: in ``human`` mode, ``render()`` waits so that the GUI plays at simulated speed."""
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode: expected None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_width, self.render_height, real_time = validate_render_options(render_width, render_height,
+                                                                                    real_time)
         self.scenario = load_scenario(scenario, **overrides)
         self.task = build_task(self.scenario)  # validates: raises before any physics starts
         self.render_mode = render_mode
@@ -107,6 +108,8 @@ class FormationEnv(ParallelEnv):
         self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (model.n_joints,), dtype=np.float32)
                                for agent, model in zip(self.possible_agents, self.task.models)}
         self.state_space = self._observer.state_space
+        self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
+        self.action_spaces = dict(self._action_spaces)
 
         self.world = PhysicsWorld(self.scenario.physics_hz, self.scenario.gravity, render_mode)
         self.arm_set = ArmSet(self.world, self.task)
@@ -117,7 +120,8 @@ class FormationEnv(ParallelEnv):
         # Continuous joints are observed wrapped to [-pi, pi): None (no joint), True (every joint) or a mask.
         self._wrap = None if not continuous.any() else True if continuous.all() else continuous
         self.np_random, _ = seeding.np_random(None)
-        self._debug_lines = [-1] * self.task.graph.n_edges
+        self._renderer = SceneRenderer(self.world, self.task.formation, self.task.dim, self.render_width,
+                                       self.render_height, real_time)
         self._step_count = 0
         self._clipped_actions = np.zeros(self.task.n_agents, dtype=np.int64)
         self._measurement: Measurement | None = None
@@ -253,22 +257,20 @@ class FormationEnv(ParallelEnv):
         return self._observer.state(measured.ee_world, measured.q_observed, measured.dq)
 
     def render(self) -> np.ndarray | None:
-        """``rgb_array``: an RGB frame (H, W, 3) uint8 framing every arm, formation edges in red.
-        ``human``: the PyBullet GUI, with the formation edges drawn as debug lines."""
+        """``rgb_array``: an RGB frame (render_height, render_width, 3) uint8 of every arm, the current
+        formation's edges in red and the target formation (placed at the best fit) as a light blue ghost.
+        ``human``: the PyBullet GUI with the same camera and lines; returns None. Without a display, a
+        ``human`` env simulates headless (warning once) and this does nothing. See ``rendering.py``."""
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode to parallel_env")
             return None
         ee = self._last().ee_world
+        if self._renderer.camera is None or self._step_count == 0:  # one camera per episode: no shaking
+            self._renderer.frame([arm.body for arm in self.arms], ee)
         if self.render_mode == "human":
-            for k, (tail, head) in enumerate(self.graph.edges):
-                self._debug_lines[k] = self.world.draw_line(ee[tail], ee[head], (0.9, 0.1, 0.1), self._debug_lines[k])
+            self._renderer.render_human(ee, self._step_count * self.scenario.control_dt)
             return None
-        target, distance, yaw, pitch = self._camera()
-        image, world_to_clip = self.world.render(target, distance, yaw, pitch, self.render_width, self.render_height)
-        pixels = project_points(world_to_clip, ee, self.render_width, self.render_height)
-        for tail, head in self.graph.edges:
-            draw_segment(image, pixels[tail], pixels[head], _EDGE_COLOR)
-        return image
+        return self._renderer.render_rgb(ee)
 
     def close(self) -> None:
         """Disconnect the physics client; safe to call more than once."""
@@ -283,14 +285,15 @@ class FormationEnv(ParallelEnv):
         self.close()
 
     def __del__(self) -> None:
-        self.close()
+        self.close()  # PhysicsWorld.close stays safe at interpreter exit
 
     # Copies (pickle, deepcopy, subprocess workers) rebuild the env from its scenario in a new world.
     def __getstate__(self) -> dict[str, Any]:
-        return {"scenario": self.scenario, "render_mode": self.render_mode}
+        return {"scenario": self.scenario, "render_mode": self.render_mode, "render_width": self.render_width,
+                "render_height": self.render_height, "real_time": self._renderer.real_time}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["scenario"], render_mode=state["render_mode"])
+        self.__init__(state.pop("scenario"), **state)
 
     # ------------------------------------------------------------------------------------------ internals
     def _last(self) -> Measurement:
@@ -412,17 +415,6 @@ class FormationEnv(ParallelEnv):
                 "sim_time": sim_time,
             }
         return infos
-
-    def _camera(self) -> tuple[np.ndarray, float, float, float]:
-        bases = np.asarray([arm.base_position for arm in self.arms])
-        target = bases.mean(axis=0)
-        if self.dim == 3:
-            target = target + np.array([0.0, 0.0, -0.5 * max(self.task.reaches)])
-        radius = max(float(np.linalg.norm(b - target)) + r for b, r in zip(bases, self.task.reaches))
-        distance = 1.15 * radius / math.tan(math.radians(25.0))
-        if self.dim == 2:
-            return target, distance, 0.0, -89.9  # top view of the formation plane
-        return target, distance, 45.0, -30.0
 
 
 FormationEnv.__doc__ = FormationEnv.__doc__.replace(
