@@ -53,7 +53,7 @@ class EpisodeMetrics:
     centroid_drift: float  # m, displacement of the end-effectors' centroid from start to end
     mean_return: float  # mean over agents of the summed reward
     sim_time: float  # s
-    physics_fault: str = ""
+    physics_fault: str = ""  # "" or why the env ended the episode (its physics_fault_reason)
     trajectory: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
@@ -104,7 +104,8 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
             returns[agent] += rewards[agent]
         first = infos[agents[0]]
         errors.append(first["formation_error"])
-        fault = fault or first["physics_fault"]
+        if first["physics_fault"] and not fault:
+            fault = env.physics_fault_reason
         if record:
             _record(series, env, infos, first["sim_time"], torques)
         if on_step is not None:

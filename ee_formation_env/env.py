@@ -21,6 +21,9 @@ from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.task import FormationTask, build_task
 from ee_formation_env.world import PhysicsWorld
 
+# ``info["physics_fault"]`` codes (0: none). The last fault's full reason (arm, speed) is ``env.physics_fault_reason``.
+PHYSICS_FAULTS: dict[int, str] = {0: "none", 1: "non-finite joint state", 2: "joint speed above max_joint_velocity"}
+
 
 @dataclass(frozen=True, slots=True)
 class Measurement:
@@ -35,7 +38,8 @@ class Measurement:
     slot_z: np.ndarray  # (S, dim) every real neighbour slot's z_ij in its agent's base frame, m
     slot_errors: np.ndarray  # (S,) or (S, dim) the slots' edge errors in their agents' base frames
     singularity_margins: np.ndarray  # (N,) m
-    fault: str  # "" or why the episode must end
+    fault: int  # a PHYSICS_FAULTS code, 0 if none
+    fault_reason: str  # "" or why the episode must end
 
 
 class FormationEnv(ParallelEnv):
@@ -60,13 +64,14 @@ class FormationEnv(ParallelEnv):
     - torque * mean(a_i^2)`` over its incident edges (``s_k = d*_k^2`` or ``|z*_k|``: relative edge errors),
     or the team mean with ``team = True``. Never negative, so ending an episode early never pays.
 
-    **Info** of agent ``i``: ``formation_error`` (RMS over all edges of |e_k|, m^2 or m),
-    ``edge_errors`` (its slots' errors, own frame), ``singularity_margin`` (smallest singular value of its
-    Jacobian's first m rows, m), ``torque_saturation`` (fraction of its joints clipped this step),
-    ``clipped_actions`` (count of its action entries outside [-1, 1] so far this episode),
-    ``applied_torque`` (the joint torques applied during the step, N m), ``contacts``
-    (contact points with other arms), ``physics_fault`` ("" or the reason the episode was terminated),
-    ``sim_time`` (s).
+    **Info** of agent ``i``, numeric and of fixed shape (so that TorchRL and RLlib can stack it):
+    ``formation_error`` (RMS over all edges of |e_k|, m^2 or m), ``edge_errors`` (its slots' errors, own
+    frame, padded with zeros to ``D`` slots: (D,) m^2 or (D, m) m), ``edge_mask`` ((D,) bool, True for a real
+    slot), ``singularity_margin`` (smallest singular value of its Jacobian's first m rows, m),
+    ``torque_saturation`` (fraction of its joints clipped this step), ``clipped_actions`` (count of its
+    action entries outside [-1, 1] so far this episode), ``applied_torque`` (the joint torques applied during
+    the step, N m), ``contacts`` (contact points with other arms), ``physics_fault`` (int code, 0 for none,
+    see :data:`PHYSICS_FAULTS`; the full reason is :attr:`physics_fault_reason`), ``sim_time`` (s).
 
     **Episode end**: truncation after ``episode_seconds``; termination on a physics fault (non-finite
     state or |dq| > ``max_joint_velocity``) or, if ``terminate_on_contact``, on contact between arms.
@@ -115,8 +120,8 @@ class FormationEnv(ParallelEnv):
         # Continuous joints are observed wrapped to [-pi, pi): None (no joint), True (every joint) or a mask.
         self._wrap = None if not continuous.any() else True if continuous.all() else continuous
         self.np_random, _ = seeding.np_random(None)
-        self._renderer = SceneRenderer(self.world, self.formation, self.dim, self.render_width, self.render_height,
-                                       real_time)
+        self._renderer = SceneRenderer(self.world, self.task.formation, self.task.dim, self.render_width,
+                                       self.render_height, real_time)
         self._step_count = 0
         self._clipped_actions = np.zeros(self.task.n_agents, dtype=np.int64)
         self._measurement: Measurement | None = None
@@ -206,7 +211,7 @@ class FormationEnv(ParallelEnv):
                                                    measured.q_observed, measured.dq)
         rewards = self._rewards(measured, normalized)
         infos = self._infos(measured, clipped, contacts, torques)
-        ended = bool(measured.fault) or (self.scenario.terminate_on_contact and any(contacts))
+        ended = measured.fault != 0 or (self.scenario.terminate_on_contact and any(contacts))
         truncated = not ended and self._step_count >= self.scenario.max_steps
         terminations = dict.fromkeys(self.agents, ended)
         truncations = dict.fromkeys(self.agents, truncated)
@@ -214,6 +219,11 @@ class FormationEnv(ParallelEnv):
             self.agents = []
             self._needs_reset = True
         return observations, rewards, terminations, truncations, infos
+
+    @property
+    def physics_fault_reason(self) -> str:
+        """Why the last step ended the episode ("" if it did not): the arm and the fault, in words."""
+        return self._last().fault_reason
 
     def end_effector_positions(self) -> np.ndarray:
         """World-frame end-effector positions (N, 3), m, at the last reset/step."""
@@ -331,10 +341,10 @@ class FormationEnv(ParallelEnv):
     def _measure(self) -> Measurement:
         """Read the joint states and compute everything derived from them (a physics fault included)."""
         q, dq = self.arm_set.read_states()
-        fault = ""
+        fault, reason = 0, ""
         # One test for both faults: NaN fails the comparison, and a non-finite q makes its sum non-finite.
         if not (np.abs(dq).max() <= self.scenario.max_joint_velocity and math.isfinite(q.sum())):
-            q, dq, fault = self._physics_fault(q, dq)
+            q, dq, fault, reason = self._physics_fault(q, dq)
 
         ee_base, margins = self.arm_set.kinematics.positions_and_margins(q, self.task.dim)
         ee_world = (self.task.base_rotations @ ee_base[:, :, None])[:, :, 0] + self.task.base_positions
@@ -349,23 +359,23 @@ class FormationEnv(ParallelEnv):
         slot_z, slot_errors = self._observer.slots_in_own_frames(z, edge_errors)
         return Measurement(q=q, dq=dq, q_observed=q_observed, ee_world=ee_world, edge_errors=edge_errors,
                            edge_squares=np.add.reduce(errors * errors, axis=1), slot_z=slot_z,
-                           slot_errors=slot_errors, singularity_margins=margins, fault=fault)
+                           slot_errors=slot_errors, singularity_margins=margins, fault=fault,
+                           fault_reason=reason)
 
-    def _physics_fault(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
-        """The first arm's fault (non-finite state, or a joint speed over ``max_joint_velocity``) and the
-        joint states with non-finite values replaced by finite ones."""
+    def _physics_fault(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, str]:
+        """The joint states with non-finite values replaced by finite ones, and the first arm's fault
+        (non-finite state, or a joint speed over ``max_joint_velocity``): its code and reason."""
         limit = self.scenario.max_joint_velocity
         for i, joints in enumerate(self.arm_set.joint_slices):
             if not (np.all(np.isfinite(q[joints])) and np.all(np.isfinite(dq[joints]))):
-                fault = f"arm_{i}: non-finite joint state"
-                break
+                return np.nan_to_num(q), np.nan_to_num(dq), 1, f"arm_{i}: non-finite joint state"
             if np.max(np.abs(dq[joints])) > limit:
                 speed = float(np.max(np.abs(dq[joints])))
                 # At PyBullet's own clamp the true speed is unknown, only that it is at least that.
                 shown = f"at least {speed:.0f}" if speed >= 0.999 * PYBULLET_MAX_JOINT_VELOCITY else f"{speed:.1f}"
-                fault = f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s"
-                break
-        return np.nan_to_num(q), np.nan_to_num(dq), fault
+                return (np.nan_to_num(q), np.nan_to_num(dq), 2,
+                        f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s")
+        raise AssertionError("_physics_fault called without a fault")
 
     def _rewards(self, measured: Measurement, normalized: np.ndarray) -> dict[str, float]:
         weights = self.scenario.reward
@@ -387,13 +397,15 @@ class FormationEnv(ParallelEnv):
         margins = measured.singularity_margins.tolist()
         saturation = (clipped / self.arm_set.joint_counts).tolist()
         clipped_so_far = self._clipped_actions.tolist()
-        errors, slot_slices, joint_slices = measured.slot_errors, self._observer.slot_slices, self.arm_set.joint_slices
+        errors = self._observer.padded_slot_errors(measured.slot_errors)
+        masks, joint_slices = self._observer.slot_masks, self.arm_set.joint_slices
         infos = {}
         # edge_errors and applied_torque are views of arrays made for this step only, one disjoint slice per agent.
         for i, agent in enumerate(self.agents):
             infos[agent] = {
                 "formation_error": formation_error,
-                "edge_errors": errors[slot_slices[i]],
+                "edge_errors": errors[i],
+                "edge_mask": masks[i],
                 "singularity_margin": margins[i],
                 "torque_saturation": saturation[i],
                 "applied_torque": torques[joint_slices[i]],
