@@ -398,9 +398,12 @@ class FormationEnv(ParallelEnv):
         saturation = (clipped / self.arm_set.joint_counts).tolist()
         clipped_so_far = self._clipped_actions.tolist()
         errors = self._observer.padded_slot_errors(measured.slot_errors)
-        masks, joint_slices = self._observer.slot_masks, self.arm_set.joint_slices
+        # A fresh (N, D) copy of the constant masks: infos of different calls must share no object (gymnasium
+        # 1.4's check_env tests it, 1.2's does not).
+        masks, joint_slices = np.array(self._observer.slot_masks), self.arm_set.joint_slices
         infos = {}
-        # edge_errors and applied_torque are views of arrays made for this step only, one disjoint slice per agent.
+        # edge_errors, edge_mask and applied_torque are views of arrays made for this step only, one disjoint
+        # slice per agent.
         for i, agent in enumerate(self.agents):
             infos[agent] = {
                 "formation_error": formation_error,
