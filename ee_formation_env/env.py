@@ -311,25 +311,37 @@ class FormationEnv(ParallelEnv):
             missing = [a for a in self.agents if a not in actions]
             unknown = [a for a in actions if a not in self.agents]
             raise ValueError(f"actions: missing agents {missing}, unknown agents {unknown}; expected keys {self.agents}")
-        parts = []
-        for agent in self.agents:
-            shape = self._action_spaces[agent].shape
+        parts = [actions[agent] for agent in self.agents]
+        # The common case in one call: numpy arrays of the right shapes; anything else gets the detailed check.
+        if all(getattr(part, "shape", None) == space.shape for part, space in zip(parts, self._action_spaces.values())):
             try:
-                action = np.asarray(actions[agent], dtype=np.float64)
+                normalized = np.concatenate(parts, dtype=np.float64)
             except (TypeError, ValueError):
-                self._raise_if_not_finite(parts)
-                raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}") from None
-            if action.shape != shape:
-                self._raise_if_not_finite(parts)
-                raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
-            parts.append(action)
-        normalized = np.concatenate(parts)
+                normalized = self._checked_concatenation(parts)
+        else:
+            normalized = self._checked_concatenation(parts)
         if not np.isfinite(normalized).all():
-            self._raise_if_not_finite(parts)
+            self._raise_if_not_finite([np.asarray(part, dtype=np.float64) for part in parts])
         clipped = np.add.reduceat(np.abs(normalized) > 1.0, self.arm_set.joint_starts, dtype=np.int64)
         np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)  # np.clip, without its overhead
         self._clipped_actions += clipped
         return normalized, clipped
+
+    def _checked_concatenation(self, parts: list[Any]) -> np.ndarray:
+        """The agents' actions as one float64 vector, or the error of the first bad one (in agent order)."""
+        checked = []
+        for agent, part in zip(self.agents, parts):
+            shape = self._action_spaces[agent].shape
+            try:
+                action = np.asarray(part, dtype=np.float64)
+            except (TypeError, ValueError):
+                self._raise_if_not_finite(checked)
+                raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}") from None
+            if action.shape != shape:
+                self._raise_if_not_finite(checked)
+                raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
+            checked.append(action)
+        return np.concatenate(checked)
 
     def _raise_if_not_finite(self, parts: list[np.ndarray]) -> None:
         """The error of the first of the (agent-ordered) actions with a non-finite entry, if any."""
