@@ -157,7 +157,8 @@ class AdaptiveJacobianController(ApproxJacobianController):
     ``projection=True`` (default) clips a_hat after each update onto the box ``param_box`` (default
     ``[0.5, 2] x |a_hat0|`` per component, with a_hat0's signs): the paper assumes the parameters lie in a
     known compact set, and without the projection the printed law has a spurious equilibrium at
-    ``a_hat = 0`` that captures it far from the target (FACTS.md). ``projection=False`` is the printed law.
+    ``a_hat = 0`` that captures it far from the target (``docs/physics.md``, "The printed adaptive law stalls
+    far from the target"). ``projection=False`` is the printed law.
     """
 
     name = "adaptive_jacobian"
