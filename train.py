@@ -59,6 +59,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--residual-scale", type=float, default=0.1, help="residual action scale (0, 1]")
     parser.add_argument("--correction-penalty", type=float, default=0.5,
                         help="residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]")
+    parser.add_argument("--residual-gate", action="store_true",
+                        help="residual mode: scale the correction by min(1, the agent's error in tolerances)")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--total-timesteps", type=int, default=None,
@@ -145,7 +147,7 @@ def training_overrides(args: argparse.Namespace | dict[str, Any]) -> dict[str, A
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:
     """A picklable factory of the env the learner steps."""
     return functools.partial(make_training_env, args.scenario, overrides, args.mode, args.reference,
-                             args.residual_scale, args.correction_penalty)
+                             args.residual_scale, args.correction_penalty, args.residual_gate)
 
 
 # ------------------------------------------------------------------------------------------ learned policy
@@ -203,7 +205,9 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
     if config["mode"] == "torque":
         return {agent: learned for agent in env.possible_agents}
     references = baselines.make_policies(config["reference"], env)
-    return {agent: ResidualPolicy(references[agent], learned, config["residual_scale"])
+    gate = config.get("residual_gate", False)
+    return {agent: ResidualPolicy(references[agent], learned, config["residual_scale"],
+                                  env.observation_layout(agent) if gate else None)
             for agent in env.possible_agents}
 
 

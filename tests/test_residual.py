@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import baselines
-from baselines.residual import ResidualActionEnv, ResidualPolicy, combine, correction_factor
+from baselines.residual import ResidualActionEnv, ResidualPolicy, combine, correction_factor, error_gate
 
 
 class _Zero:
@@ -17,10 +17,10 @@ class _Zero:
         return np.zeros(2, dtype=np.float32)
 
 
-@pytest.mark.parametrize("reference", ["gradient", "adaptive_jacobian"])
-def test_zero_correction_reproduces_the_reference_bit_for_bit(make_env, reference):
+@pytest.mark.parametrize("reference,gate", [("gradient", False), ("adaptive_jacobian", False), ("adaptive_jacobian", True)])
+def test_zero_correction_reproduces_the_reference_bit_for_bit(make_env, reference, gate):
     plain, wrapped_env = make_env("planar_square", episode_seconds=0.3), make_env("planar_square", episode_seconds=0.3)
-    residual = ResidualActionEnv(wrapped_env, reference=reference, scale=0.3)
+    residual = ResidualActionEnv(wrapped_env, reference=reference, scale=0.3, gate=gate)
     policies = baselines.make_policies(reference, plain)
     observations, _ = plain.reset(seed=4)
     residual_observations, _ = residual.reset(seed=4)
@@ -64,3 +64,24 @@ def test_correction_penalty_scales_the_reward_by_the_correction_only(make_env):
     assert correction_factor(np.array([3.0, -3.0]), 1.0) == 0.0  # the correction is clipped: rewards stay >= 0
     with pytest.raises(ValueError, match="correction_penalty"):
         ResidualActionEnv(make_env("planar_square"), correction_penalty=1.5)
+
+
+@pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement"])
+def test_error_gate_is_the_agents_error_in_tolerances_capped_at_one(make_env, scenario):
+    env = make_env(scenario)
+    observations, _ = env.reset(seed=0)
+    layout = env.observation_layout("arm_0")
+    assert error_gate(layout, observations["arm_0"]) == 1.0  # the start is ~40 tolerances away
+    parts = layout.split(observations["arm_0"])
+    real = parts.mask > 0.5
+    scaled = observations["arm_0"].astype(np.float64).copy()
+    slots = scaled[:layout.n_slots * layout.slot_size].reshape(layout.n_slots, layout.slot_size)
+    errors = slots[:, 1 + layout.dim + layout.error_width:]
+    if layout.error_width == 1:  # every edge at a quarter of its tolerance 2 d delta
+        errors[real, 0] = 0.25 * 2.0 * parts.desired[real, 0] * 0.01
+    else:
+        errors[real] = 0.0
+        errors[real, 0] = 0.25 * 0.01
+    assert error_gate(layout, scaled) == pytest.approx(0.25)
+    errors[:] = 0.0
+    assert error_gate(layout, scaled) == 0.0  # at the goal the correction vanishes
