@@ -58,11 +58,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--reference", default="adaptive_jacobian",
                         choices=baselines.MODEL_BASED_POLICIES,
                         help="reference controller of --mode residual")
-    parser.add_argument("--residual-scale", type=float, default=0.1, help="residual action scale (0, 1]")
+    parser.add_argument("--residual-scale", type=float, default=0.3, help="residual action scale (0, 1]")
     parser.add_argument("--correction-penalty", type=float, default=0.5,
                         help="residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]")
-    parser.add_argument("--residual-gate", action="store_true",
-                        help="residual mode: scale the correction by min(1, the agent's error in tolerances)")
+    parser.add_argument("--residual-gate", action=argparse.BooleanOptionalAction, default=True,
+                        help="residual mode: scale the correction by min(1, the agent's error in tolerances), so "
+                             "that it fades out at the goal (default on)")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--total-timesteps", type=int, default=None,
