@@ -21,12 +21,15 @@ other scenario :func:`derive_gains` computes gains from the agent's nominal mode
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from baselines.controllers import Gains
-from baselines.dynamics import nominal_dynamics
+from baselines.dynamics import NominalDynamics, nominal_dynamics
 from ee_formation_env.env import FormationEnv
+from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.validation import chain_model
 
 # Tuned for the built-in scenarios under their default torque limits (see README, "Reference policies").
@@ -44,7 +47,11 @@ PAPER_GAINS: dict[int, Gains] = {
     3: Gains(kp=120.0, kd=20.0, ki=1.0, alpha=0.01),
 }
 
-K_D_MAX = 20.0  # N m s/rad
+K_D_MAX = 20.0  # N m s/rad, rule 1
+TORQUE_SHARE = 0.5  # rule 2: share of the spare torque the formation force may use (the rest: damping)
+SPARE_TORQUE_FLOOR = 0.2  # rule 2: spare torque never counted below this share of the limit
+KAPPA = 0.25  # rule 3: dt^2 rho(H^-1 K_q) bound (stability needs < 2 (2 - dt rho(H^-1 K_D)) >= 2)
+ADAPTATION_RATE = 1.0  # 1/s, rule 4
 
 
 def default_gains(env: FormationEnv, agent: str) -> Gains:
@@ -55,47 +62,125 @@ def default_gains(env: FormationEnv, agent: str) -> Gains:
 
 
 def derive_gains(env: FormationEnv, agent: str) -> Gains:
-    """Gains from the agent's nominal model, torque limits and control step (rule in the module docstring)."""
+    """Gains of ``agent`` by :func:`formation_gains` (rule in the module docstring), from ``env``'s nominal models.
+
+    A thin caller: it collects each arm's nominal model, limits, mounting and incident edge lengths and
+    returns ``agent``'s entry. The formation gain and the spring force are common to all agents.
+    """
     i = env.possible_agents.index(agent)
-    chain = env.nominal_models[i]
-    dt = env.scenario.control_dt
-    kd = stable_damping(env.scenario.arms[i].urdf, env.scenario.arms[i].ee_link, dt)
+    return formation_gains(_arm_inputs(env), env.scenario.control_dt, env.formation.kind)[i]
 
-    neighbors = env.graph.neighbors[i]
-    lengths = np.linalg.norm(env.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
-    if env.formation.kind == "distance":
-        e_ref = float(np.sum(2.0 * (2.0 * lengths**2 * 0.1) * lengths))
-    else:
-        e_ref = float(np.sum(0.1 * lengths))
-    reach = float(np.max(np.linalg.norm(chain.forward_batch(chain.sample_configurations(
-        256, np.random.default_rng(0))), axis=1)))
-    kp = 0.5 * env.torque_limits[i] / (reach * max(e_ref, 1e-9))
 
-    gravity_acts = np.linalg.norm(env.gravity_in_base_frame(agent)) > 0 and _gravity_loads_joints(env, i)
-    q0 = env.nominal_initial_q(agent)
-    zeta = np.zeros(3)
-    zeta[0] = e_ref
-    regressor = chain.regressor(q0, zeta)
-    alpha = 1.0 / max(float(np.sum(regressor**2)), 1e-9)
-    return Gains(kp=kp, kd=kd, ki=1.0 if gravity_acts else 0.0, alpha=alpha)
+def _arm_inputs(env: FormationEnv) -> list[ArmGainInputs]:
+    arms = []
+    for i, name in enumerate(env.possible_agents):
+        chain = env.nominal_models[i]
+        neighbors = env.graph.neighbors[i]
+        lengths = np.linalg.norm(env.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
+        arms.append(ArmGainInputs(
+            chain=chain, dynamics=nominal_dynamics(env.scenario.arms[i].urdf, chain.joint_names),
+            torque_limits=np.asarray(env.torque_limits[i], dtype=np.float64),
+            gravity_in_base=env.gravity_in_base_frame(name), initial_q=env.nominal_initial_q(name),
+            incident_edge_lengths=lengths, dim=env.dim))
+    return arms
+
+
+@dataclass(frozen=True)
+class ArmGainInputs:
+    """What the gain rule needs to know about one arm (all nominal; SI units)."""
+
+    chain: SerialChain  # nominal kinematics
+    dynamics: NominalDynamics  # nominal mass matrix and gravity torque
+    torque_limits: np.ndarray  # (n,) N m
+    gravity_in_base: np.ndarray  # (3,) m/s^2, world gravity in the arm's base frame
+    initial_q: np.ndarray  # (n,) rad
+    incident_edge_lengths: np.ndarray  # (degree,) m, desired lengths |z*_k| of the arm's edges
+    dim: int  # 2 or 3: the formation's coordinates (rows of the Jacobian that matter)
+
+
+@dataclass(frozen=True)
+class ArmGainLimits:
+    """Per-arm results of rules 1-3 (module docstring), before the team-wide minimum is taken."""
+
+    kd: np.ndarray  # (n,) N m s/rad, rule 1
+    force_limit: float  # N, rule 2: end-effector force the spare torque can deliver
+    kp_limit: float  # rule 3: largest formation gain the control step keeps stable
+    spring_force_limit: float  # N, largest saturation force of one edge's spring
+    gravity_loads_joints: bool
+    worst_regressor_norm2: float  # max |Z(q, u)|^2 over sampled q, unit directions u (per unit |zeta|^2)
+
+
+def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
+                    samples: int = 200) -> ArmGainLimits:
+    """Rules 1-3 of the module docstring for one arm, from sampled configurations (seeded) plus ``initial_q``."""
+    chain, dynamics = arm.chain, arm.dynamics
+    configurations = np.vstack([chain.sample_configurations(samples, np.random.default_rng(0)), arm.initial_q])
+    kd = damping_for_step(chain, dynamics, control_dt, configurations)
+    _, jacobians = chain.forward_and_jacobian_batch(configurations)
+    jacobians = jacobians[:, :arm.dim]  # (k, dim, n): only the formation's coordinates matter
+
+    gravity = np.array([np.abs(dynamics.gravity_torque(q, arm.gravity_in_base)) for q in configurations])
+    gravity_peak = gravity.max(axis=0)  # N m per joint
+    spare = np.maximum(arm.torque_limits - gravity_peak, SPARE_TORQUE_FLOOR * arm.torque_limits)
+    lever = np.linalg.norm(jacobians, axis=1).max(axis=0)  # m: largest |J[:, j]| per joint
+    force_limit = float(TORQUE_SHARE * np.min(spare / np.maximum(lever, 1e-9)))
+
+    # Rule 3: dt^2 rho(H^-1 K_q) <= KAPPA with K_q <= K_P s J^T J, s the formation's local stiffness.
+    lengths = np.asarray(arm.incident_edge_lengths, dtype=np.float64)
+    stiffness = 2.0 * (4.0 * float(np.sum(lengths**2)) if formation_kind == "distance" else float(len(lengths)))
+    mobility = max(float(np.max(np.linalg.eigvalsh(j @ np.linalg.solve(dynamics.mass_matrix(q), j.T))))
+                   for q, j in zip(configurations, jacobians))  # 1 / smallest effective mass, 1/kg
+    kp_limit = KAPPA / (control_dt**2 * stiffness * max(mobility, 1e-12))
+
+    regressor_norm2 = 0.0
+    for q in configurations[:: max(1, len(configurations) // 32)]:
+        for direction in np.eye(arm.dim):
+            regressor_norm2 = max(regressor_norm2, float(np.sum(chain.regressor(q, direction) ** 2)))
+    return ArmGainLimits(kd=kd, force_limit=force_limit, kp_limit=kp_limit,
+                         spring_force_limit=force_limit,
+                         gravity_loads_joints=bool(np.max(gravity_peak) > 1e-6),
+                         worst_regressor_norm2=regressor_norm2)
+
+
+def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_kind: str) -> list[Gains]:
+    """One :class:`Gains` per arm by the rule of the module docstring.
+
+    ``kp`` (scalar) and ``spring_force`` are the same for every arm (the team-wide minimum of the per-arm
+    limits), so ``-K_P J^T e_hat`` stays the gradient of one potential; ``kd``, ``ki`` and ``alpha`` are
+    per arm. ``control_dt`` in s; ``formation_kind`` ``"distance"`` or ``"displacement"``.
+    """
+    if control_dt <= 0 or not np.isfinite(control_dt):
+        raise ValueError(f"control_dt: expected a finite step > 0 s, got {control_dt!r}")
+    if formation_kind not in ("distance", "displacement"):
+        raise ValueError(f"formation_kind: expected 'distance' or 'displacement', got {formation_kind!r}")
+    if not arms:
+        raise ValueError("arms: expected at least one arm")
+    limits = [arm_gain_limits(arm, control_dt, formation_kind) for arm in arms]
+    kp = min(limit.kp_limit for limit in limits)
+    spring_force = min(limit.spring_force_limit for limit in limits)
+    gains = []
+    for limit in limits:
+        # Rule 4: the adaptation rate alpha |Z|^2 is at most 1 1/s at the saturated gradient |e_hat| = F / K_P.
+        saturated_gradient = limit.force_limit / kp
+        alpha = ADAPTATION_RATE / max(limit.worst_regressor_norm2 * saturated_gradient**2, 1e-12)
+        gains.append(Gains(kp=kp, kd=limit.kd, ki=1.0 if limit.gravity_loads_joints else 0.0, alpha=alpha,
+                           spring_force=spring_force))
+    return gains
 
 
 @functools.lru_cache(maxsize=64)
 def stable_damping(urdf: str, ee_link: str, dt: float) -> np.ndarray:
-    """Per-joint damping gains (N m s/rad) by rule 1 of the module docstring."""
+    """Per-joint damping gains (N m s/rad) by rule 1 of the module docstring, for a URDF's chain."""
     chain = chain_model(urdf, ee_link)
     dynamics = nominal_dynamics(urdf, chain.joint_names)
-    inverses = [np.linalg.inv(dynamics.mass_matrix(q))
-                for q in chain.sample_configurations(200, np.random.default_rng(0))]
+    return damping_for_step(chain, dynamics, dt, chain.sample_configurations(200, np.random.default_rng(0)))
+
+
+def damping_for_step(chain: SerialChain, dynamics: NominalDynamics, dt: float,
+                     configurations: np.ndarray) -> np.ndarray:
+    """Rule 1: per-joint K_D (N m s/rad) with ``dt rho(H^-1 K_D) <= 1`` at every given configuration."""
+    inverses = [np.linalg.inv(dynamics.mass_matrix(q)) for q in configurations]
     worst_diagonal = np.max([np.diag(inverse) for inverse in inverses], axis=0)
     kd = np.minimum(K_D_MAX, 1.0 / (dt * worst_diagonal))
     radius = max(float(np.max(np.abs(np.linalg.eigvals(dt * inverse * kd)))) for inverse in inverses)
     return kd / max(radius, 1.0)
-
-
-def _gravity_loads_joints(env: FormationEnv, index: int) -> bool:
-    chain = env.nominal_models[index]
-    dynamics = nominal_dynamics(env.scenario.arms[index].urdf, chain.joint_names)
-    samples = chain.sample_configurations(16, np.random.default_rng(0))
-    gravity = env.gravity_in_base_frame(env.possible_agents[index])
-    return max(float(np.max(np.abs(dynamics.gravity_torque(q, gravity)))) for q in samples) > 1e-6

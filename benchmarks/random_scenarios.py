@@ -16,7 +16,7 @@ rate, the mean and worst settling time of the successes, physics faults and arm 
   ``kuka_iiwa/model.urdf``, end-effector ``lbr_iiwa_link_7``), ``franka_panda`` (``franka_panda/panda.urdf``,
   ``panda_hand``) and the built-in ``pera_arm``, mixed at random (heterogeneous teams), bases on a ring of
   radius 0.45-0.65 m with random yaw; the hanging PERA-like arm is mounted 1 m up so that every arm reaches
-  the shared region. Initial and target end-effector positions are those of random joint configurations
+  the shared region. Initial poses are resampled until every arm is 3 cm clear of the others. Initial and target end-effector positions are those of random joint configurations
   (inside the joint limits, away from singularities) that put the end-effector in a shared region above the
   ring's centre, so every target vertex is reachable by its own arm. Complete graph (rigid in 3D for 3 or
   4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+import pybullet
 import pybullet_data
 
 import ee_formation_env
@@ -67,6 +68,7 @@ SPATIAL_ROBOTS: dict[str, tuple[str, str, float]] = {
 _SPATIAL_REGION_HEIGHT = (0.35, 0.65)  # m, z range of the shared end-effector region
 _SPATIAL_REGION_RADIUS = 0.25  # m, horizontal radius of the shared region around the ring's centre
 _MIN_VERTEX_SPACING = 0.15  # m between any two end-effectors (initial) or target vertices
+_MIN_ARM_CLEARANCE = 0.03  # m between the collision shapes of two arms in their initial poses
 
 
 def planar_scenario(seed: int) -> dict[str, Any]:
@@ -113,6 +115,33 @@ def _sample_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, r
     raise RuntimeError(f"no configuration of {robot} reaches the shared region (seeded generator bug)")
 
 
+class _ClearanceChecker:
+    """Loads arms into a private DIRECT PyBullet client to reject initial poses that touch another arm."""
+
+    def __init__(self) -> None:
+        self.client = pybullet.connect(pybullet.DIRECT)
+        self.bodies: list[int] = []
+
+    def place(self, robot: str, base: np.ndarray, yaw: float, q: np.ndarray) -> int:
+        urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
+        body = pybullet.loadURDF(urdf, base.tolist(), pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
+                                 useFixedBase=True, physicsClientId=self.client)
+        names = chain_model(urdf, ee_link).joint_names
+        for j in range(pybullet.getNumJoints(body, physicsClientId=self.client)):
+            name = pybullet.getJointInfo(body, j, physicsClientId=self.client)[1].decode()
+            if name in names:
+                pybullet.resetJointState(body, j, float(q[names.index(name)]), physicsClientId=self.client)
+        return body
+
+    def clear(self, body: int) -> bool:
+        """True if ``body`` is at least :data:`_MIN_ARM_CLEARANCE` from every arm placed before it."""
+        return all(not pybullet.getClosestPoints(body, other, _MIN_ARM_CLEARANCE, physicsClientId=self.client)
+                   for other in self.bodies)
+
+    def close(self) -> None:
+        pybullet.disconnect(self.client)
+
+
 def spatial_scenario(seed: int) -> dict[str, Any]:
     """One random spatial scenario (see the module docstring); the same ``seed`` gives the same dict."""
     rng = np.random.default_rng([1, seed])
@@ -122,18 +151,28 @@ def spatial_scenario(seed: int) -> dict[str, Any]:
     offset = float(rng.uniform(-math.pi, math.pi))
     centre = np.zeros(3)
     arms, initial_ee, targets = [], [], []
+    checker = _ClearanceChecker()
     for i, robot in enumerate(robots):
         angle = offset + 2 * math.pi * i / n_agents
         urdf, ee_link, height = SPATIAL_ROBOTS[robot]
         base = np.array([radius * math.cos(angle), radius * math.sin(angle), height])
         yaw = float(rng.uniform(-math.pi, math.pi))
-        q0, ee0 = _sample_pose(robot, base, yaw, centre, rng, initial_ee)
+        for _ in range(100):  # resample the initial pose until it clears the arms placed before
+            q0, ee0 = _sample_pose(robot, base, yaw, centre, rng, initial_ee)
+            body = checker.place(robot, base, yaw, q0)
+            if checker.clear(body):
+                checker.bodies.append(body)
+                break
+            pybullet.removeBody(body, physicsClientId=checker.client)
+        else:
+            raise RuntimeError(f"no collision-free initial pose for arm {i} (seeded generator bug)")
         _, target = _sample_pose(robot, base, yaw, centre, rng, targets)
         initial_ee.append(ee0)
         targets.append(target)
         arm = {"base_position": base.tolist(), "base_rpy": [0.0, 0.0, yaw], "initial_q": q0.tolist()}
         arm.update({"robot": robot} if robot in ROBOTS else {"urdf": urdf, "ee_link": ee_link})
         arms.append(arm)
+    checker.close()
     edges = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
     return {"name": f"random_spatial_{seed}", "arms": arms, "edges": edges,
             "shape": [t.tolist() for t in targets], "formation": "distance", "dim": 3, "initial_q_noise": 0.0,
