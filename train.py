@@ -37,7 +37,6 @@ from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
 EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
-REFERENCE_POLICIES = ("gradient", "approx_jacobian", "adaptive_jacobian", "zero", "random")
 
 
 # ------------------------------------------------------------------------------------------ arguments
@@ -46,7 +45,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--scenario", default="planar_square", help="built-in name or YAML/JSON scenario file")
     parser.add_argument("--mode", choices=("torque", "residual"), default="torque")
     parser.add_argument("--reference", default="adaptive_jacobian",
-                        choices=("gradient", "approx_jacobian", "adaptive_jacobian"),
+                        choices=baselines.MODEL_BASED_POLICIES,
                         help="reference controller of --mode residual")
     parser.add_argument("--residual-scale", type=float, default=0.1, help="residual action scale (0, 1]")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
@@ -284,7 +283,7 @@ def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> 
     results: dict[str, Any] = {}
     with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
         candidates = {"learned": lambda: learned_policies(run_dir, env, config)}
-        for name in REFERENCE_POLICIES:
+        for name in baselines.POLICIES:
             candidates[name] = functools.partial(baselines.make_policies, name, env)
         for name, build in candidates.items():
             policies = build()

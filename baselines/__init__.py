@@ -25,30 +25,31 @@ _CONTROLLERS = {
     "approx_jacobian": ApproxJacobianController,
     "adaptive_jacobian": AdaptiveJacobianController,
 }
-POLICIES: tuple[str, ...] = (*_CONTROLLERS, "zero", "random")
+MODEL_BASED_POLICIES: tuple[str, ...] = tuple(_CONTROLLERS)  # the paper's laws I, II, III
+POLICIES: tuple[str, ...] = (*MODEL_BASED_POLICIES, "zero", "random")
 _OPTIONS = {  # controller options make_policy passes through
     "gradient": (),
     "approx_jacobian": ("anti_windup",),
     "adaptive_jacobian": ("projection", "parameter_bounds", "anti_windup"),
 }
 
-__all__ = ["POLICIES", "Gains", "make_policy", "make_policies", "agent_model", "default_gains"]
+__all__ = ["POLICIES", "MODEL_BASED_POLICIES", "Gains", "make_policy", "make_policies", "agent_model",
+           "default_gains"]
 
 
 def agent_model(env: FormationEnv, agent: str) -> AgentModel:
     """What ``agent`` knows about itself in ``env``: nominal models, mounting, limits and control step."""
-    if agent not in env.possible_agents:
-        raise ValueError(f"agent: expected one of {env.possible_agents}, got {agent!r}")
-    i = env.possible_agents.index(agent)
-    chain = env.nominal_models[i]
+    task = env.task
+    i = task.agent_index(agent)
+    chain = task.models[i]
     return AgentModel(
         layout=env.observation_layout(agent),
-        formation_kind=env.formation.kind,
+        formation_kind=task.formation.kind,
         chain=chain,
-        dynamics=nominal_dynamics(env.scenario.arms[i].urdf, chain.joint_names),
-        gravity_in_base=env.gravity_in_base_frame(agent),
-        torque_limits=env.torque_limits[i],
-        control_dt=env.scenario.control_dt,
+        dynamics=nominal_dynamics(task.scenario.arms[i].urdf, chain.joint_names),
+        gravity_in_base=task.gravity_in_base_frame(i),
+        torque_limits=task.torque_limits[i],
+        control_dt=task.scenario.control_dt,
     )
 
 
@@ -68,9 +69,9 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
     if name == "zero":
         return ZeroPolicy(model.chain.n_joints)
     if name == "random":
-        return RandomPolicy(model.chain.n_joints, seed=seed + env.possible_agents.index(agent))
+        return RandomPolicy(model.chain.n_joints, seed=seed + env.task.agent_index(agent))
     if gains is None or isinstance(gains, Mapping):
-        gains = default_gains(env, agent).with_updates(**dict(gains or {}))
+        gains = default_gains(env.task, env.task.agent_index(agent)).with_updates(**dict(gains or {}))
     elif not isinstance(gains, Gains):
         raise TypeError(f"gains: expected a Gains, a dict or None, got {type(gains).__name__}")
     unknown = set(options) - set(_OPTIONS[name])

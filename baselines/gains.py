@@ -1,26 +1,46 @@
-"""Default gains of the reference controllers, and the rule that derives them for any robot.
+"""Default gains of the reference controllers, and the rule that derives them for any scenario.
 
-Built-in scenarios have tuned defaults that respect the scenario's torque limits (:data:`SCENARIO_GAINS`);
-:data:`PAPER_GAINS` are the paper's (they need torque limits lifted and 1 ms control steps). For any
-other scenario :func:`derive_gains` computes gains from the agent's nominal model and control step:
+Built-in scenarios carry gains tuned for their default torque limits and rates (their ``controller_gains``,
+dropped by any override of their physics); :data:`PAPER_GAINS` are the paper's (they need torque limits
+lifted and 1 ms control steps). For any other scenario :func:`derive_gains` computes gains from the task
+(nominal models, torque limits, mounting, graph and control step; no env needed) by
+:func:`formation_gains`. The law it tunes is the paper's with **saturated virtual springs**
+(:mod:`baselines.controllers`, "Saturated springs"): each edge's spring pulls linearly (gain K_P) near its
+desired length and with a bounded force F far from it, so the gain can be high near the target without
+asking far away for torque the actuators do not have. K_P and F are one scalar each for the whole team,
+so ``-K_P J^T e_hat`` stays the gradient of one potential (Theorems 3.1 and 4.2 assume it); damping and
+the internal-model and adaptation gains are per arm. Rules, each from sampled configurations (seeded)
+plus the initial one:
 
-1. Damping, per joint: sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while the
-   spectral radius ``dt rho(H^-1 K_D) < 2`` (FACTS.md: ``dt < 2 lambda_min(H) / K_D`` for a scalar gain).
-   Each joint gets ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the
-   step), then all are scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every
-   sampled configuration; ``K_D_max = 20 N m s/rad``. A robot whose light distal joints leave little damping
-   at the scenario's control step needs a smaller step (``frame_skip``) or reflected rotor inertia.
-2. Formation gain from the torque budget, per joint: ``K_P,j = 0.5 tau_j / (reach * e_ref)``, where
-   ``e_ref`` is the agent gradient |e_hat| produced by a 10 % error on each incident edge
-   (``2 * 2 d^2 0.1 * d`` per edge for distance formations, ``0.1 d`` for displacement ones), so that such
-   an error asks each joint for about half its torque limit ``tau_j``.
-3. Internal model: ``K_I = 1 1/s`` when gravity acts on the joints, else 0; adaptation ``alpha`` is the
-   inverse of the largest ``|Z|^2`` at that reference error (a unit adaptation rate).
+1. **Damping**, per joint: sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while the
+   spectral radius ``dt rho(H^-1 K_D) < 2`` (``dt < 2 lambda_min(H) / K_D`` for a scalar gain). Each joint
+   gets ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the step), then all
+   are scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every sampled
+   configuration; ``K_D_max = 20 N m s/rad``. A robot whose light distal joints leave little damping at the
+   scenario's control step needs a smaller step (``frame_skip``) or reflected rotor inertia.
+2. **Spring force** F from the torque budget: the spare torque of joint j is its limit minus the largest
+   gravity torque it carries (never counted below 20 % of the limit); an end-effector force f asks joint
+   j for at most ``|J[:, j]| |f|``, so arm i can take ``F_i = 0.5 min_j spare_j / max_q |J[:, j](q)|``
+   and keep the other half of its torque for damping (a clipped command loses its damping, which is how
+   unsaturated gains spin arms up to the velocity fault). ``F = min_i F_i``.
+3. **Formation gain** K_P from the control step, consistently with rule 1: near the target the spring adds
+   a joint stiffness ``K_q = K_P J^T S J`` with S the formation's stiffness at the arm (``8 sum_k d_k^2`` for
+   distance formations, ``2 deg`` for displacement ones: the arm's own edges, doubled for the
+   neighbours' coupling). For sampled (symplectic Euler) mass-spring-damper dynamics with
+   ``beta = dt rho(H^-1 K_D)`` and ``kappa = dt^2 rho(H^-1 K_q)`` stability needs ``beta < 2`` and
+   ``kappa < 2 (2 - beta)``; rule 1 gives ``beta <= 1`` and this rule takes ``kappa <= 0.25``:
+   ``K_P,i = 0.25 / (dt^2 S_i max_q lambda_max(J H^-1 J^T))`` (the lightest effective end-effector
+   mass), ``K_P = min_i K_P,i``. The spring is linear for edge-length errors up to about
+   ``F / (4 K_P d^2)`` (distance) and saturated beyond.
+4. **Internal model and adaptation**: ``K_I = 1 1/s`` when gravity loads the joints, else 0; ``alpha`` makes
+   the adaptation rate ``alpha |Z|^2`` of law-III at most 1 1/s at the saturated gradient
+   (``|e_hat| = F_i / K_P``): ``alpha = 1 / (max_q |Z(q, u)|^2 (F_i / K_P)^2)`` over unit directions u.
 """
 
 from __future__ import annotations
 
 import functools
+import weakref
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -28,18 +48,8 @@ import numpy as np
 
 from baselines.controllers import Gains
 from baselines.dynamics import NominalDynamics, nominal_dynamics
-from ee_formation_env.env import FormationEnv
-from ee_formation_env.kinematics import SerialChain
-from ee_formation_env.validation import chain_model
-
-# Tuned for the built-in scenarios under their default torque limits (see README, "Reference policies").
-SCENARIO_GAINS: dict[str, Gains] = {
-    "planar_square": Gains(kp=5.0, kd=20.0, ki=0.0, alpha=0.02),
-    "planar_square_rotated": Gains(kp=5.0, kd=20.0, ki=0.0, alpha=0.02),
-    "planar_square_displacement": Gains(kp=60.0, kd=20.0, ki=0.0, alpha=0.5),
-    "spatial_tetrahedron": Gains(kp=120.0, kd=2.0, ki=1.0, alpha=0.01),
-    "spatial_tetrahedron_displacement": Gains(kp=20.0, kd=2.0, ki=1.0, alpha=1.0),
-}
+from ee_formation_env.kinematics import SerialChain, chain_model
+from ee_formation_env.task import FormationTask
 
 # The paper's gains (Sec. VI): 2D alpha = 0.02, K_P = 800, K_D = 180; 3D alpha = 0.01, K_P = 120, K_I = 1, K_D = 20.
 PAPER_GAINS: dict[int, Gains] = {
@@ -50,38 +60,43 @@ PAPER_GAINS: dict[int, Gains] = {
 K_D_MAX = 20.0  # N m s/rad, rule 1
 TORQUE_SHARE = 0.5  # rule 2: share of the spare torque the formation force may use (the rest: damping)
 SPARE_TORQUE_FLOOR = 0.2  # rule 2: spare torque never counted below this share of the limit
-KAPPA = 0.25  # rule 3: dt^2 rho(H^-1 K_q) bound (stability needs < 2 (2 - dt rho(H^-1 K_D)) >= 2)
+KAPPA = 0.25  # rule 3: bound on dt^2 rho(H^-1 K_q) (stability needs < 2 (2 - dt rho(H^-1 K_D)), >= 2 here)
 ADAPTATION_RATE = 1.0  # 1/s, rule 4
 
-
-def default_gains(env: FormationEnv, agent: str) -> Gains:
-    """Tuned gains for a built-in scenario (by name), else :func:`derive_gains`."""
-    if env.scenario.name in SCENARIO_GAINS:
-        return SCENARIO_GAINS[env.scenario.name]
-    return derive_gains(env, agent)
+_TEAM_GAINS: "weakref.WeakKeyDictionary[FormationTask, list[Gains]]" = weakref.WeakKeyDictionary()
 
 
-def derive_gains(env: FormationEnv, agent: str) -> Gains:
-    """Gains of ``agent`` by :func:`formation_gains` (rule in the module docstring), from ``env``'s nominal models.
+def default_gains(task: FormationTask, index: int) -> Gains:
+    """The scenario's own tuned gains where it carries them (built-ins, unmodified physics), else
+    :func:`derive_gains`."""
+    tuned = task.scenario.controller_gains
+    if tuned is not None:
+        return Gains(kp=tuned.kp, kd=tuned.kd, ki=tuned.ki, alpha=tuned.alpha)
+    return derive_gains(task, index)
 
-    A thin caller: it collects each arm's nominal model, limits, mounting and incident edge lengths and
-    returns ``agent``'s entry. The formation gain and the spring force are common to all agents.
+
+def derive_gains(task: FormationTask, index: int) -> Gains:
+    """Gains for arm ``index`` of ``task`` by :func:`formation_gains` (module docstring); computed once per task.
+
+    A thin caller: it collects each arm's nominal model, limits, mounting and incident edge lengths. K_P and
+    the spring force are common to all arms.
     """
-    i = env.possible_agents.index(agent)
-    return formation_gains(_arm_inputs(env), env.scenario.control_dt, env.formation.kind)[i]
+    if task not in _TEAM_GAINS:
+        _TEAM_GAINS[task] = formation_gains(arm_inputs(task), task.scenario.control_dt, task.formation.kind)
+    return _TEAM_GAINS[task][index]
 
 
-def _arm_inputs(env: FormationEnv) -> list[ArmGainInputs]:
+def arm_inputs(task: FormationTask) -> list["ArmGainInputs"]:
+    """What :func:`formation_gains` needs of each arm of ``task``."""
     arms = []
-    for i, name in enumerate(env.possible_agents):
-        chain = env.nominal_models[i]
-        neighbors = env.graph.neighbors[i]
-        lengths = np.linalg.norm(env.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
+    for i, chain in enumerate(task.models):
+        neighbors = task.graph.neighbors[i]
+        lengths = np.linalg.norm(task.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
         arms.append(ArmGainInputs(
-            chain=chain, dynamics=nominal_dynamics(env.scenario.arms[i].urdf, chain.joint_names),
-            torque_limits=np.asarray(env.torque_limits[i], dtype=np.float64),
-            gravity_in_base=env.gravity_in_base_frame(name), initial_q=env.nominal_initial_q(name),
-            incident_edge_lengths=lengths, dim=env.dim))
+            chain=chain, dynamics=nominal_dynamics(task.scenario.arms[i].urdf, chain.joint_names),
+            torque_limits=np.asarray(task.torque_limits[i], dtype=np.float64),
+            gravity_in_base=task.gravity_in_base_frame(i), initial_q=np.asarray(task.initial_q[i]),
+            incident_edge_lengths=lengths, dim=task.dim))
     return arms
 
 

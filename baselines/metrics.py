@@ -90,7 +90,9 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
         torques = [infos[agent]["applied_torque"] for agent in agents]
         energy += sum(float(tau @ tau) for tau in torques) * dt
         peak = max(peak, max(float(np.max(np.abs(tau))) for tau in torques))
-        clipped += sum(int(round(infos[agent]["torque_saturation"] * len(torques[i]))) for i, agent in enumerate(agents))
+        # Entries the env clips: outside [-1, 1] (its torque_saturation is this count over the arm's joints).
+        clipped += sum(int(np.count_nonzero(np.abs(np.asarray(actions[agent], dtype=np.float64)) > 1.0))
+                       for agent in agents)
         entries += sum(len(tau) for tau in torques)
         contact_steps += int(any(infos[agent]["contacts"] > 0 for agent in agents))
         min_margin = min(min_margin, min(infos[agent]["singularity_margin"] for agent in agents))

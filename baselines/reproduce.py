@@ -9,7 +9,7 @@ controllers' kinematic estimates ``a_hat`` are logged through its ``on_step`` ca
 
 - ``paper``: the paper's gains (:data:`baselines.gains.PAPER_GAINS`), the printed law (no projection),
   1 ms control steps (``frame_skip = 1``) and torque limits lifted;
-- ``project defaults``: the tuned gains of :data:`baselines.gains.SCENARIO_GAINS`, the projected law,
+- ``project defaults``: the tuned gains the built-in scenarios carry (``controller_gains``), the projected law,
   the scenario's control rate and torque limits.
 
 Studies: ``planar`` (3.0 m square, 30 s), ``spatial`` (0.4 m tetrahedron, 50 s) and ``stall`` (4.0 m
@@ -39,7 +39,7 @@ from baselines import make_policies  # noqa: E402
 from baselines.controllers import Gains  # noqa: E402
 from baselines.gains import PAPER_GAINS  # noqa: E402
 from baselines.metrics import EpisodeMetrics, run_episode  # noqa: E402
-from ee_formation_env.scenario import _square  # noqa: E402
+from ee_formation_env.scenario import _square, builtin_scenario  # noqa: E402
 
 STUDIES = ("planar", "spatial", "stall")
 PAPER, DEFAULTS = "paper", "project defaults"
@@ -117,7 +117,8 @@ class RunResult:
 def run_specs(studies: Sequence[str], quick: bool = False) -> list[RunSpec]:
     """The runs of the selected studies (``quick``: horizons capped at :data:`QUICK_SECONDS`)."""
     planar_paper = dict(gains=PAPER_GAINS[2], a_hat0=(2.0, 2.0), projection=False, overrides=_PLANAR_PAPER)
-    stall_shape = {"shape": _square(4.0)}
+    # The 4.0 m square with planar_square's own tuned gains (a shape override alone would derive new ones).
+    stall_shape = {"shape": _square(4.0), "controller_gains": builtin_scenario("planar_square")["controller_gains"]}
     specs = {
         "planar": [
             RunSpec("planar_paper", "planar", PAPER, "planar_square", 30.0, **planar_paper),

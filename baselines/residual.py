@@ -41,7 +41,7 @@ class ResidualActionEnv:
 
     def __init__(self, env: Any, reference: str = "adaptive_jacobian", scale: float = 0.1,
                  reference_kwargs: Mapping[str, Any] | None = None):
-        if reference not in ("gradient", "approx_jacobian", "adaptive_jacobian"):
+        if reference not in baselines.MODEL_BASED_POLICIES:
             raise ValueError(f"reference: expected a model-based controller, got {reference!r}")
         if not 0 < scale <= 1:
             raise ValueError(f"residual_scale: expected a value in (0, 1], got {scale!r}")

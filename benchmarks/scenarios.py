@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ee_formation_env.scenario import SPATIAL_INITIAL_Q, ROBOTS
-from ee_formation_env.validation import chain_model, rpy_matrix
+from ee_formation_env.kinematics import chain_model, rpy_to_matrix
 
 _PLANAR_LINK = 1.5  # m, both links of planar_2link
 _PLANAR_REACH_USED = 2.0  # m, initial base-to-end-effector distance of a planar arm
@@ -78,7 +78,7 @@ def spatial_ring(n_agents: int, **overrides: Any) -> dict[str, Any]:
         rpy = [0.0, 0.0, angle + math.pi]
         q0 = list(SPATIAL_INITIAL_Q[i % 2])
         arms.append({"robot": "pera_arm", "base_position": base.tolist(), "base_rpy": rpy, "initial_q": q0})
-        ee.append(rpy_matrix(rpy) @ chain.forward(np.array(q0)) + base)
+        ee.append(rpy_to_matrix(rpy) @ chain.forward(np.array(q0)) + base)
     scenario = {"arms": arms, "edges": trilateration_edges(n_agents, 3), "shape": _perturbed(np.array(ee), 0.02, 0),
                 "formation": "distance", "dim": 3, "physics_hz": 1000.0, "frame_skip": 5, "episode_seconds": 50.0}
     scenario.update(overrides)

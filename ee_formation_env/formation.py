@@ -14,6 +14,7 @@ Everything here is plain numpy; the environment, the controllers and the metrics
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, Sequence
 
@@ -167,7 +168,13 @@ class Formation:
     def formation_error(self, z: np.ndarray) -> float:
         """RMS over all edges of |e_k| (m^2 for distance formations, m for displacement formations)."""
         errors = self.edge_errors(z).reshape(self.graph.n_edges, -1)
-        return float(np.sqrt(np.mean(np.sum(errors**2, axis=1))))
+        return formation_error_from_squares(np.add.reduce(errors * errors, axis=1))
+
+
+def formation_error_from_squares(edge_squares: np.ndarray) -> float:
+    """The formation error: RMS over all edges of |e_k|, from the squares |e_k|^2 (E,); m^2 for distance
+    formations, m for displacement ones. The one definition, used by the env's infos and the metrics."""
+    return math.sqrt(float(edge_squares.sum()) / len(edge_squares))
 
 
 def agent_gradient(kind: str, relative_positions: np.ndarray, edge_errors: np.ndarray) -> np.ndarray:

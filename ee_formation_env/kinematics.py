@@ -26,11 +26,13 @@ Units: lengths in m, angles in rad, torques in N m, velocities in rad/s.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -267,9 +269,7 @@ class SerialChain:
         # Rotation across movable joint i at angle q: P_i + sin(q) B_i + (1 - cos(q)) C_i
         # (Rodrigues, pre-multiplied by the constant rotations of the fixed joints since the
         # previous movable joint and of joint i's rpy).
-        self._rot_p = np.empty((n, 3, 3))
-        self._rot_b = np.empty((n, 3, 3))
-        self._rot_c = np.empty((n, 3, 3))
+        rot_p, rot_b, rot_c = np.empty((n, 3, 3)), np.empty((n, 3, 3)), np.empty((n, 3, 3))
         self._axes = np.array([j.axis for j in movable]).reshape(n, 3, 1)  # in frame F_{i+1}
 
         names: list[str] = []
@@ -289,9 +289,9 @@ class SerialChain:
             rotation = constant @ rpy_to_matrix(joint.origin_rpy)
             if joint.movable:
                 skew = _skew(joint.axis)
-                self._rot_p[segment] = rotation
-                self._rot_b[segment] = rotation @ skew
-                self._rot_c[segment] = rotation @ skew @ skew
+                rot_p[segment] = rotation
+                rot_b[segment] = rotation @ skew
+                rot_c[segment] = rotation @ skew @ skew
                 segment += 1
                 constant = np.eye(3)
             else:
@@ -313,7 +313,7 @@ class SerialChain:
         # local_i = [1, sin q_i, cos q_i] @ basis_i with basis_i = [P + C, B, -C] (n, 3, 9);
         # the three coefficients are sin(q * [0, 1, 1] + [pi/2, 0, pi/2]) in one ufunc call.
         self._rot_basis = np.stack(
-            [self._rot_p + self._rot_c, self._rot_b, -self._rot_c], axis=1).reshape(n, 3, 9)
+            [rot_p + rot_c, rot_b, -rot_c], axis=1).reshape(n, 3, 9)
         self._trig_scale = np.array([0.0, 1.0, 1.0])
         self._trig_phase = np.array([math.pi / 2, 0.0, math.pi / 2])
         # [lever_0; ...; lever_{n-1}; position] = _lever_sum @ steps, lever_i = sum_{s > i} steps_s.
@@ -362,6 +362,28 @@ class SerialChain:
             raise ValueError(f"params: expected shape ({self.n_params},), got {a.shape}")
         return (self._param_map @ a).reshape(self.n_joints + 1, 3, 1)
 
+    def _frames_batch(self, q_batch: np.ndarray) -> np.ndarray:
+        """Segment frame orientations (n + 1, k, 3, 3) in the base frame for joint angles q_batch (k, n);
+        frames[0] is the identity. The one chain product every kinematic quantity here is built on.
+
+        Segment-major, so that each frames[i] is one contiguous (k, 3, 3) block for the product.
+        """
+        k, n = q_batch.shape
+        trig = np.sin(q_batch[:, :, None] * self._trig_scale + self._trig_phase)  # [1, sin q, cos q], (k, n, 3)
+        local = (trig[:, :, None, :] @ self._rot_basis).reshape(k, n, 3, 3)
+        frames = np.empty((n + 1, k, 3, 3))
+        frames[0] = _IDENTITY
+        frames[1] = local[:, 0]
+        for i in range(1, n):
+            np.matmul(frames[i], local[:, i], out=frames[i + 1])  # distinct buffers: no overlap copy
+        return frames
+
+    def _check_batch(self, q_batch: np.ndarray) -> np.ndarray:
+        q_batch = np.asarray(q_batch, dtype=float)
+        if q_batch.ndim != 2 or q_batch.shape[1] != self.n_joints:
+            raise ValueError(f"q_batch: expected shape (k, {self.n_joints}), got {q_batch.shape}")
+        return q_batch
+
     def _pose(self, q: np.ndarray | list[float]) -> tuple[np.ndarray, np.ndarray]:
         """Segment frame orientations (n + 1, 3, 3) in the base frame (frames[0] = identity) and the joint
         axes (n, 3) in the base frame, both read-only.
@@ -376,14 +398,7 @@ class SerialChain:
         last_key, last_pose = self._last_pose
         if key == last_key:
             return last_pose
-        trig = np.sin(q[:, None] * self._trig_scale + self._trig_phase)  # [1, sin q, cos q]
-        local = (trig.reshape(-1, 1, 3) @ self._rot_basis).reshape(-1, 3, 3)
-        frames = np.empty((self.n_joints + 1, 3, 3))
-        frames[0] = _IDENTITY
-        frames[1] = local[0]
-        matmul = np.matmul
-        for i in range(1, self.n_joints):
-            matmul(frames[i], local[i], frames[i + 1])  # distinct buffers: no overlap copy
+        frames = self._frames_batch(q[None])[:, 0]
         axes = (frames[1:] @ self._axes).reshape(-1, 3)
         frames.flags.writeable = False
         axes.flags.writeable = False
@@ -420,17 +435,9 @@ class SerialChain:
     def forward_and_jacobian_batch(self, q_batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """End-effector positions (k, 3), m, and Jacobians (k, 3, n), m/rad, at joint angles q_batch (k, n),
         with the URDF's parameters: :meth:`forward_and_jacobian` for k configurations (e.g. k arms) at once."""
-        q_batch = np.asarray(q_batch, dtype=float)
-        if q_batch.ndim != 2 or q_batch.shape[1] != self.n_joints:
-            raise ValueError(f"q_batch: expected shape (k, {self.n_joints}), got {q_batch.shape}")
+        q_batch = self._check_batch(q_batch)
         k, n = q_batch.shape
-        trig = np.sin(q_batch[:, :, None] * self._trig_scale + self._trig_phase)  # (k, n, 3)
-        local = (trig[:, :, None, :] @ self._rot_basis).reshape(k, n, 3, 3)
-        frames = np.empty((n + 1, k, 3, 3))  # segment-major: each frames[i] is one contiguous (k, 3, 3) block
-        frames[0] = _IDENTITY
-        frames[1] = local[:, 0]
-        for i in range(1, n):
-            np.matmul(frames[i], local[:, i], out=frames[i + 1])
+        frames = self._frames_batch(q_batch)
         steps = (frames @ self._nominal_translations[:, None]).reshape(n + 1, 3 * k)  # base frame
         levers = (self._lever_sum @ steps).reshape(n + 1, k, 3)  # ee - joint origins, then ee position
         axes = (frames[1:] @ self._axes[:, None]).reshape(n, k, 3)  # joint axes in the base frame
@@ -440,19 +447,9 @@ class SerialChain:
     def forward_batch(self, q_batch: np.ndarray,
                       params: np.ndarray | list[float] | None = None) -> np.ndarray:
         """End-effector positions (k, 3), m, for joint angles q_batch (k, n), vectorized over k."""
-        q_batch = np.asarray(q_batch, dtype=float)
-        if q_batch.ndim != 2 or q_batch.shape[1] != self.n_joints:
-            raise ValueError(f"q_batch: expected shape (k, {self.n_joints}), got {q_batch.shape}")
-        translations = self._translations(params)[:, :, 0]
-        sin_q, vers_q = np.sin(q_batch), 1.0 - np.cos(q_batch)
-        position = np.broadcast_to(translations[0], (q_batch.shape[0], 3)).copy()
-        frame: np.ndarray | None = None
-        for i in range(self.n_joints):
-            local = (self._rot_p[i] + sin_q[:, i, None, None] * self._rot_b[i]
-                     + vers_q[:, i, None, None] * self._rot_c[i])
-            frame = local if frame is None else frame @ local
-            position += frame @ translations[i + 1]
-        return position
+        q_batch = self._check_batch(q_batch)
+        frames = self._frames_batch(q_batch)
+        return (frames @ self._translations(params)[:, None]).sum(axis=0)[:, :, 0]
 
     def regressor(self, q: np.ndarray | list[float], zeta: np.ndarray | list[float]) -> np.ndarray:
         """Kinematic regressor Z(q, zeta) (n, p) with J(q, a)^T zeta = Z(q, zeta) @ a for all a.
@@ -480,3 +477,64 @@ class SerialChain:
 _IDENTITY = np.eye(3)
 # v @ _SKEW_BASIS, reshaped to (3, 3), is the cross-product matrix S(v): S(v) @ w = v x w.
 _SKEW_BASIS = np.stack([_skew(e) for e in np.eye(3)]).reshape(3, 9)
+
+
+@functools.lru_cache(maxsize=32)
+def chain_model(urdf: str, ee_link: str) -> SerialChain:
+    """The (cached, shared) kinematic model of a URDF up to ``ee_link``."""
+    return SerialChain.from_urdf(urdf, ee_link)
+
+
+def smallest_singular_values(matrices: np.ndarray) -> np.ndarray:
+    """Smallest singular value of each matrix of a stack (k, r, c).
+
+    2 x 2 matrices [[a, b], [c, d]] use the closed form sigma_min = |hypot(a + d, b - c) - hypot(a - d, b + c)| / 2
+    (the two hypotenuses are sigma_max + sigma_min and sigma_max - sigma_min), accurate to rounding relative to
+    sigma_max and much cheaper than a LAPACK call at this size; other shapes use ``np.linalg.svd``.
+    """
+    if matrices.shape[1:] == (2, 2):
+        a, b, c, d = matrices[:, 0, 0], matrices[:, 0, 1], matrices[:, 1, 0], matrices[:, 1, 1]
+        return 0.5 * np.abs(np.hypot(a + d, b - c) - np.hypot(a - d, b + c))
+    return np.linalg.svd(matrices, compute_uv=False).min(axis=1)
+
+
+def singularity_margins(jacobians: np.ndarray, dim: int) -> np.ndarray:
+    """Singularity margin (m) of each translational Jacobian of a stack (k, 3, n): the smallest singular
+    value of its first ``dim`` rows (the formation's axes)."""
+    return smallest_singular_values(jacobians[:, :dim])
+
+
+class ChainBatch:
+    """End-effector positions and singularity margins of several arms at once, from one flat joint vector.
+
+    Arms that share one :class:`SerialChain` object are evaluated in one batched call (the cost of a call is
+    mostly per call, not per arm, at these sizes).
+    """
+
+    def __init__(self, models: Sequence[SerialChain]):
+        sizes = [model.n_joints for model in models]
+        bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+        groups: dict[int, list[int]] = {}
+        for i, model in enumerate(models):
+            groups.setdefault(id(model), []).append(i)
+        # (model, member arms, their joints in the flat vector, or None when that is the whole vector in order)
+        self._groups: list[tuple[SerialChain, np.ndarray, np.ndarray | None]] = []
+        for members in groups.values():
+            joints = np.concatenate([np.arange(bounds[i], bounds[i + 1]) for i in members])
+            in_order = len(members) == len(models) and np.array_equal(joints, np.arange(bounds[-1]))
+            self._groups.append((models[members[0]], np.array(members), None if in_order else joints))
+        self.n_arms = len(models)
+
+    def positions_and_margins(self, q: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each arm's end-effector position in its base frame (N, 3), m, and singularity margin (N,), m
+        (smallest singular value of its Jacobian's first ``dim`` rows), at flat joint angles ``q`` (rad)."""
+        if len(self._groups) == 1 and self._groups[0][2] is None:  # one model, every arm, in agent order
+            model = self._groups[0][0]
+            positions, jacobians = model.forward_and_jacobian_batch(q.reshape(self.n_arms, -1))
+            return positions, singularity_margins(jacobians, dim)
+        positions, margins = np.empty((self.n_arms, 3)), np.empty(self.n_arms)
+        for model, members, joints in self._groups:
+            q_group = q if joints is None else q[joints]
+            positions[members], jacobians = model.forward_and_jacobian_batch(q_group.reshape(len(members), -1))
+            margins[members] = singularity_margins(jacobians, dim)
+        return positions, margins

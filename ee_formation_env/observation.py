@@ -1,14 +1,51 @@
-"""The layout of one agent's observation vector: built by the env, parsed by controllers.
+"""Observations: the one definition of their layout, bounds and table, and the env's vectorized builder.
 
-Per neighbour slot: ``[mask, z_ij (dim), desired (w), edge_error (w)]``, ``n_slots`` times, then
-``q (n_joints)`` and ``dq (n_joints)``; ``w`` is 1 for distance and ``dim`` for displacement formations.
+An agent's observation is ``n_slots`` neighbour slots then its own joint state:
+
+{observation_table}
+
+``m`` = scenario ``dim``, ``w`` = 1 (distance) or ``m`` (displacement), ``D`` = the graph's largest degree.
+Slots follow the order of the agent's edges in the scenario; padding slots are zero with mask 0. Bounds
+are finite: |z| by base distances plus reaches, ``q`` by the joint limits, ``dq`` by
+``max_joint_velocity`` (faster is a physics fault). Observations are clipped into them.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import gymnasium
 import numpy as np
+
+from ee_formation_env.task import FormationTask
+
+# (entry, size, meaning (unit)): the slot entries in order, then the joint entries.
+SLOT_ENTRIES = (
+    ("mask", "1", "1 if slot s holds a neighbour j, else 0"),
+    ("z_ij", "m", "x_i - x_j, end-effector displacement (m)"),
+    ("desired", "w", "d*_ij (m), or z*_ij = x*_i - x*_j (m)"),
+    ("edge_error", "w", "|z_ij|^2 - d*_ij^2 (m^2), or z_ij - z*_ij (m)"),
+)
+JOINT_ENTRIES = (
+    ("q", "n_i", "joint positions (rad; continuous joints wrapped to [-pi, pi))"),
+    ("dq", "n_i", "joint velocities (rad/s)"),
+)
+
+
+def observation_table() -> str:
+    """The observation layout as a reStructuredText table (in the env's and this module's docstrings)."""
+    rows = [(f"slot s, ``{name}``", size, meaning) for name, size, meaning in SLOT_ENTRIES]
+    rows.append(("(slot entries repeat)", "", "for s = 0 .. D-1"))
+    rows += [(f"``{name}``", size, meaning) for name, size, meaning in JOINT_ENTRIES]
+    widths = [max(len(row[c]) for row in rows + [("entries", "size", "meaning (unit)")]) for c in range(3)]
+    rule = "  ".join("=" * w for w in widths)
+    header = "  ".join(h.ljust(w) for h, w in zip(("entries", "size", "meaning (unit)"), widths)).rstrip()
+    body = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    return "\n".join([rule, header, rule, *body, rule])
+
+
+__doc__ = __doc__.format(observation_table=observation_table())
 
 
 @dataclass(frozen=True)
@@ -25,7 +62,7 @@ class ObservationParts:
 
 @dataclass(frozen=True)
 class ObservationLayout:
-    """Sizes of an agent's observation; :meth:`split` parses one."""
+    """Sizes of one agent's observation; :meth:`split` parses one."""
 
     n_slots: int
     dim: int
@@ -54,3 +91,126 @@ class ObservationLayout:
             q=observation[-2 * n:-n],
             dq=observation[-n:],
         )
+
+
+class ObservationBuilder:
+    """Every agent's layout, space and observation for one task, built in one gather per step.
+
+    Per step, the real neighbour slots of all agents (agent by agent; padding slots are never computed) get
+    their z_ij and edge errors in their agent's base frame (:meth:`slots_in_own_frames`); then all agents'
+    observations are gathered by one index from one source vector
+    ``[0, 1, desired (S w), z (S m), e (S w), q_observed (T), dq (T)]`` (S real slots, T joints) and clipped
+    into the spaces' bounds (:meth:`observations`).
+    """
+
+    def __init__(self, task: FormationTask, max_joint_velocity: float):
+        formation, graph = task.formation, task.graph
+        m, w, n_slots = task.dim, formation.error_width, graph.max_degree
+        self.kind = formation.kind
+        self.layouts = [ObservationLayout(n_slots, m, w, model.n_joints) for model in task.models]
+        self.spaces, self.state_space = _spaces(task, self.layouts, max_joint_velocity)
+
+        neighbors = graph.neighbors
+        degrees = [len(slots) for slots in neighbors]
+        slot_bounds = np.concatenate([[0], np.cumsum(degrees)]).astype(np.intp)
+        slot_agent = np.array([i for i, slots in enumerate(neighbors) for _ in slots], dtype=np.intp)
+        self.slot_edge = np.array([n.edge for slots in neighbors for n in slots], dtype=np.intp)
+        self.slot_starts = slot_bounds[:-1]  # for np.add.reduceat over slot vectors
+        self.slot_degrees = np.asarray(degrees, dtype=np.float64)
+        self.slot_slices = [slice(int(a), int(b)) for a, b in zip(slot_bounds[:-1], slot_bounds[1:])]
+        self._slot_sign = np.array([[float(n.sign)] for slots in neighbors for n in slots])  # (S, 1)
+        self._slot_rotation = task.base_rotations[slot_agent][:, :m, :m]  # row-vector @ R: world -> own base
+
+        # The desired relations in each agent's own frame are constants.
+        desired = []
+        for i, slots in enumerate(neighbors):
+            edges = np.array([n.edge for n in slots], dtype=np.intp)
+            if formation.kind == "distance":
+                desired.append(formation.desired[edges])
+            else:
+                signs = np.array([n.sign for n in slots], dtype=np.float64)
+                desired.append((signs[:, None] * formation.desired_vectors[edges]) @ task.base_rotations[i][:m, :m])
+        self._constants = np.concatenate([[0.0, 1.0], *(d.ravel() for d in desired)])
+
+        joint_bounds = np.concatenate([[0], np.cumsum([layout.n_joints for layout in self.layouts])])
+        n_real, n_total = int(slot_bounds[-1]), int(joint_bounds[-1])
+        offset_desired, offset_z = 2, 2 + n_real * w
+        offset_e = offset_z + n_real * m
+        offset_q = offset_e + n_real * w
+        offset_dq = offset_q + n_total
+        gather, obs_bounds = [], [0]
+        for i, layout in enumerate(self.layouts):
+            for k in range(n_slots):
+                if k < degrees[i]:
+                    r = int(slot_bounds[i]) + k
+                    gather += [1, *range(offset_z + r * m, offset_z + (r + 1) * m),
+                               *range(offset_desired + r * w, offset_desired + (r + 1) * w),
+                               *range(offset_e + r * w, offset_e + (r + 1) * w)]
+                else:
+                    gather += [0] * layout.slot_size
+            gather += [*range(offset_q + joint_bounds[i], offset_q + joint_bounds[i + 1]),
+                       *range(offset_dq + joint_bounds[i], offset_dq + joint_bounds[i + 1])]
+            obs_bounds.append(len(gather))
+        self._gather = np.array(gather, dtype=np.intp)
+        self._obs_slices = [slice(a, b) for a, b in zip(obs_bounds[:-1], obs_bounds[1:])]
+        self._low = np.concatenate([space.low for space in self.spaces]).astype(np.float64)
+        self._high = np.concatenate([space.high for space in self.spaces]).astype(np.float64)
+        self._state_low = self.state_space.low
+        self._state_high = self.state_space.high
+
+    def slots_in_own_frames(self, z: np.ndarray, edge_errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every real slot's z_ij (S, m) and edge error ((S,) or (S, m)), each in its agent's base frame,
+        from the world-frame edge vectors z_k (E, m) and edge errors."""
+        z_slots = self._slot_sign * z[self.slot_edge]  # z_ij = x_i - x_j, world frame
+        if self.kind == "distance":
+            return (z_slots[:, None, :] @ self._slot_rotation)[:, 0], edge_errors[self.slot_edge]
+        errors = self._slot_sign * edge_errors[self.slot_edge]
+        rotated = np.stack([z_slots, errors], axis=1) @ self._slot_rotation
+        return rotated[:, 0], rotated[:, 1]
+
+    def observations(self, agents: list[str], slot_z: np.ndarray, slot_errors: np.ndarray,
+                     q_observed: np.ndarray, dq: np.ndarray) -> dict[str, np.ndarray]:
+        """Every agent's observation (float32, clipped into its space), keyed by ``agents``."""
+        source = np.concatenate([self._constants, slot_z.ravel(), slot_errors.ravel(), q_observed, dq])
+        observation = source[self._gather]
+        np.minimum(np.maximum(observation, self._low, out=observation), self._high, out=observation)  # clip
+        observation = observation.astype(np.float32)
+        return {agent: observation[part] for agent, part in zip(agents, self._obs_slices)}
+
+    def state(self, ee_world: np.ndarray, q_observed: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The global state: all end-effector positions (world, formation axes, m), all q, all dq."""
+        state = np.concatenate([ee_world[:, :self.layouts[0].dim].ravel(), q_observed, dq])
+        return np.clip(state, self._state_low, self._state_high).astype(np.float32)
+
+
+def _spaces(task: FormationTask, layouts: list[ObservationLayout], max_joint_velocity: float
+            ) -> tuple[list[gymnasium.spaces.Box], gymnasium.spaces.Box]:
+    """Each agent's observation space and the state space, with finite bounds (module docstring)."""
+    formation, m = task.formation, task.dim
+    bases = task.base_positions
+    # One bound on |z_ij| for every agent (the largest base distance plus reaches over all edges), so
+    # that identical arms get identical spaces and can share one policy.
+    z_bound = max(float(np.max(np.abs(formation.desired))), max(
+        float(np.linalg.norm(bases[tail] - bases[head])) + task.reaches[tail] + task.reaches[head]
+        for tail, head in task.graph.edges))
+    if formation.kind == "distance":
+        desired_low, desired_high, error_bound = 0.0, z_bound, z_bound**2
+    else:
+        desired_low, desired_high, error_bound = -z_bound, z_bound, 2 * z_bound
+    w = formation.error_width
+    slot_low = np.concatenate([[0.0], np.full(m, -z_bound), np.full(w, desired_low), np.full(w, -error_bound)])
+    slot_high = np.concatenate([[1.0], np.full(m, z_bound), np.full(w, desired_high), np.full(w, error_bound)])
+    spaces, q_lows, q_highs, speeds = [], [], [], []
+    for layout, model in zip(layouts, task.models):
+        q_lows.append(np.where(model.continuous, -math.pi, model.lower))
+        q_highs.append(np.where(model.continuous, math.pi, model.upper))
+        speeds.append(np.full(model.n_joints, max_joint_velocity))
+        low = np.concatenate([np.tile(slot_low, layout.n_slots), q_lows[-1], -speeds[-1]]).astype(np.float32)
+        high = np.concatenate([np.tile(slot_high, layout.n_slots), q_highs[-1], speeds[-1]]).astype(np.float32)
+        spaces.append(gymnasium.spaces.Box(low, high, dtype=np.float32))
+
+    ee_bound = max(float(np.max(np.abs(bases[:, :m]))) + max(task.reaches), 1.0)
+    n_ee = task.n_agents * m
+    state_low = np.concatenate([np.full(n_ee, -ee_bound), *q_lows, *(-v for v in speeds)]).astype(np.float32)
+    state_high = np.concatenate([np.full(n_ee, ee_bound), *q_highs, *speeds]).astype(np.float32)
+    return spaces, gymnasium.spaces.Box(state_low, state_high, dtype=np.float32)

@@ -1,13 +1,17 @@
-"""One torque-controlled arm in a :class:`~ee_formation_env.world.PhysicsWorld`."""
+"""Torque-controlled arms in a :class:`~ee_formation_env.world.PhysicsWorld`: one :class:`Arm`, and the
+:class:`ArmSet` of every arm of a task, which owns the flat joint vectors the env steps with."""
 
 from __future__ import annotations
+
+import tempfile
 
 import numpy as np
 import pybullet
 
-from ee_formation_env.kinematics import SerialChain
+from ee_formation_env.kinematics import ChainBatch, SerialChain, rpy_to_matrix
+from ee_formation_env.mismatch import write_perturbed_urdf
 from ee_formation_env.scenario import ArmConfig
-from ee_formation_env.validation import rpy_matrix
+from ee_formation_env.task import FormationTask
 from ee_formation_env.world import PhysicsWorld
 
 # PyBullet clamps joint speeds at 100 rad/s by default, which would hide a blow-up; lift it far above
@@ -18,10 +22,10 @@ PYBULLET_MAX_JOINT_VELOCITY = 1.0e4
 class Arm:
     """A fixed-base serial arm whose chain joints are driven by torques.
 
-    Physics set-up (FACTS.md, "PyBullet torque control"): the default velocity motors are disabled,
+    Physics set-up (``docs/physics.md``, "PyBullet torque control"): the default velocity motors are disabled,
     link linear/angular damping is zeroed, URDF joint damping is replaced by ``joint_damping``, and the
     velocity clamp is lifted. Torques last one physics step, so :meth:`apply_torques` is called before
-    every ``stepSimulation``. Movable joints that are not on the chain (e.g. a gripper's fingers) are
+    every ``stepSimulation`` (:meth:`torque_command` is the one definition of that call). Movable joints that are not on the chain (e.g. a gripper's fingers) are
     held where they are by position motors.
     """
 
@@ -34,7 +38,7 @@ class Arm:
         self.model = model
         self.body = world.load_urdf(urdf or config.urdf, config.base_position, config.base_rpy)
         self.base_position = np.asarray(config.base_position, dtype=np.float64)
-        self.base_rotation = rpy_matrix(config.base_rpy)  # base frame -> world frame
+        self.base_rotation = rpy_to_matrix(config.base_rpy)  # base frame -> world frame
         client = world.client
 
         index_by_name: dict[str, int] = {}
@@ -81,7 +85,82 @@ class Arm:
         positions, velocities, _, _ = zip(*states)
         return np.array(positions), np.array(velocities)
 
+    def torque_command(self, torques: list[float]) -> tuple[int, list[int], list[float]]:
+        """``(body, joint indices, torques N m)``: what :meth:`PhysicsWorld.step_with_torques` sends before
+        each physics step for this arm."""
+        return self.body, self.joint_indices, torques
+
     def apply_torques(self, torques: list[float]) -> None:
         """Joint torques (N m) for the next physics step only."""
-        pybullet.setJointMotorControlArray(self.body, self.joint_indices, pybullet.TORQUE_CONTROL,
-                                           forces=torques, physicsClientId=self.world.client)
+        self.world.send_torques([self.torque_command(torques)])
+
+
+class ArmSet:
+    """Every arm of a task in one world, with flat joint vectors (q, dq, torques): arm i's joints are
+    ``joint_slices[i]``. Loaded once; resets only set joint states.
+
+    Under ``model_mismatch`` each arm is a perturbed copy of its URDF (the "true" robot) and ``arm.model``
+    is that robot's kinematic model; the controllers keep the task's nominal models.
+    """
+
+    def __init__(self, world: PhysicsWorld, task: FormationTask):
+        self.world = world
+        self.arms = _load_arms(world, task)
+        sizes = [arm.n_joints for arm in self.arms]
+        bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+        self.n_joints = int(bounds[-1])
+        self.joint_slices = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        self.joint_starts = bounds[:-1]  # for np.add.reduceat over flat joint vectors
+        self.joint_counts = np.asarray(sizes, dtype=np.float64)
+        self.continuous = np.concatenate([arm.model.continuous for arm in self.arms])
+        self.kinematics = ChainBatch([arm.model for arm in self.arms])  # the true (simulated) robots
+        self._body_to_agent = {arm.body: i for i, arm in enumerate(self.arms)}
+
+    def __len__(self) -> int:
+        return len(self.arms)
+
+    def reset(self, q: list[np.ndarray]) -> None:
+        """Place every arm at its joint positions (rad), at rest."""
+        for arm, q_arm in zip(self.arms, q):
+            arm.reset_state(q_arm)
+
+    def step(self, torques: np.ndarray, physics_steps: int) -> None:
+        """Hold every arm's torques (flat, N m) for ``physics_steps`` steps, re-sent before each one."""
+        values = torques.tolist()
+        commands = [arm.torque_command(values[joints]) for arm, joints in zip(self.arms, self.joint_slices)]
+        self.world.step_with_torques(commands, physics_steps)
+
+    def read_states(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each arm's joint positions (rad) and velocities (rad/s)."""
+        return [arm.read_state() for arm in self.arms]
+
+    def contacts_per_arm(self) -> list[int]:
+        """Contact points of each arm with other arms (contacts with itself do not count)."""
+        counts = [0] * len(self.arms)
+        for body_a, body_b in self.world.contact_pairs():
+            a, b = self._body_to_agent.get(body_a), self._body_to_agent.get(body_b)
+            if a is not None and b is not None and a != b:
+                counts[a] += 1
+                counts[b] += 1
+        return counts
+
+
+def _load_arms(world: PhysicsWorld, task: FormationTask) -> list[Arm]:
+    """Load every arm once: the nominal URDF, or a perturbed copy under ``model_mismatch``."""
+    scenario = task.scenario
+    mismatch = scenario.model_mismatch
+    if not mismatch.active:
+        return [Arm(world, arm, model, scenario.joint_damping, scenario.arm_collisions)
+                for arm, model in zip(scenario.arms, task.models)]
+    rng = np.random.default_rng(mismatch.seed)
+    arms = []
+    with tempfile.TemporaryDirectory(prefix="ee_formation_") as directory:
+        for arm, model in zip(scenario.arms, task.models):
+            joints = [joint.name for joint in model.joints]
+            links = [joint.child for joint in model.joints]
+            length_scales = 1.0 + rng.uniform(-mismatch.length, mismatch.length, len(joints))
+            mass_scales = 1.0 + rng.uniform(-mismatch.mass, mismatch.mass, len(links))
+            urdf = write_perturbed_urdf(arm.urdf, joints, links, length_scales, mass_scales, directory)
+            true_model = SerialChain.from_urdf(urdf, arm.ee_link)
+            arms.append(Arm(world, arm, true_model, scenario.joint_damping, scenario.arm_collisions, urdf=urdf))
+    return arms

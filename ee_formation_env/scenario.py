@@ -5,40 +5,9 @@ into a frozen :class:`Scenario` by :func:`load_scenario`, which checks every fie
 the geometric checks that need the robots' kinematic models (links, reachability, singularities,
 rigidity) live in :mod:`ee_formation_env.validation`. Both run before any simulation starts.
 
-Top-level keys (units and defaults; every one can also be passed to ``parallel_env`` as an override):
-
-=======================  =====================================================================
-key                      meaning
-=======================  =====================================================================
-``arms``                 list of arm dicts (below); one agent per arm, ``arm_0 .. arm_{N-1}``
-``edges``                list of ``[tail, head]`` 0-based agent indices (or give ``incidence``)
-``incidence``            alternative to ``edges``: the paper's incidence matrix B (N x |E|)
-``shape``                reference configuration x* (N x dim, m); any translation of it (and for
-                         distance formations any rotation/reflection) is a goal
-``formation``            ``"distance"`` (e_k = |z_k|^2 - d_k^2, m^2) or ``"displacement"``
-                         (e_k = z_k - z*_k, m)
-``dim``                  2 (formation in the arms' base x-y plane; planar arms only) or 3
-``physics_hz``           physics rate, Hz (default 1000)
-``frame_skip``           physics steps per env step (default 10); control rate = physics_hz / frame_skip
-``episode_seconds``      simulated time before truncation, s (default 30)
-``torque_limits``        N m: ``null`` = each URDF joint's effort; a number for every joint; a list per
-                         joint (same for every arm); or a list of such lists, one per arm
-``gravity``              world gravity vector, m/s^2 (default [0, 0, -9.81])
-``initial_q_noise``      half-width of the uniform noise added to each ``initial_q`` at reset, rad
-                         (default 0.05; 0 turns randomization off)
-``arm_collisions``       simulate contacts between arms (default true); contacts are always reported
-``terminate_on_contact`` end the episode when two arms touch (default false)
-``joint_damping``        viscous joint damping, N m s/rad (default 0.0: URDF damping is zeroed);
-                         ``"urdf"`` keeps the URDF values
-``max_joint_velocity``   |dq| above this (rad/s) is a physics fault that terminates the episode
-                         (default 50); PyBullet's own 100 rad/s clamp is lifted so it cannot hide it
-``singularity_threshold`` smallest Jacobian singular value (m) below which an initial configuration
-                         is rejected as singular (default 1e-3)
-``reward``               reward weights, see :class:`RewardConfig`
-``model_mismatch``       ``{"length": L, "mass": M, "seed": s}``: simulate robots whose link lengths
-                         and masses differ from the nominal URDFs by up to +-L and +-M (relative);
-                         default none. See :mod:`ee_formation_env.mismatch`
-=======================  =====================================================================
+Top-level keys: see the table at the end of this docstring (generated from :class:`Scenario`'s fields,
+the one place where their defaults, units and meanings are written). Every one can also be passed to
+``parallel_env`` as an override.
 
 Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ROBOTS`) or ``urdf`` (a path, absolute,
 relative to the scenario file, or inside ``pybullet_data``); ``ee_link`` (required with ``urdf``);
@@ -52,7 +21,7 @@ import copy
 import json
 import math
 import os
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -112,28 +81,69 @@ class RewardConfig:
 
 
 @dataclass(frozen=True)
+class ControllerGains:
+    """Tuned gains of the reference controllers, carried by the scenario they were tuned for.
+
+    ``kp`` formation gain, ``kd`` joint damping (N m s/rad), ``ki`` internal-model gain (1/s), ``alpha``
+    adaptation rate. Used only while the physics they were tuned for is unchanged: :func:`load_scenario`
+    drops them when an override changes a field outside :data:`GAIN_NEUTRAL_FIELDS`.
+    """
+
+    kp: float
+    kd: float
+    ki: float
+    alpha: float
+
+
+def _key(default: Any, meaning: str, unit: str = "", default_factory: Any = None) -> Any:
+    """A scenario field: its default, unit and meaning in one place (the docs table is made from them)."""
+    metadata = {"unit": unit, "meaning": meaning}
+    if default_factory is not None:
+        return field(default_factory=default_factory, metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A validated formation task. Build with :func:`load_scenario`; see the module docstring."""
 
-    name: str
-    arms: tuple[ArmConfig, ...]
-    edges: tuple[tuple[int, int], ...]
-    shape: tuple[tuple[float, ...], ...]
-    formation: str = "distance"
-    dim: int = 3
-    physics_hz: float = 1000.0
-    frame_skip: int = 10
-    episode_seconds: float = 30.0
-    torque_limits: Any = None
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
-    initial_q_noise: float = 0.05
-    arm_collisions: bool = True
-    terminate_on_contact: bool = False
-    joint_damping: float | str = 0.0
-    max_joint_velocity: float = 50.0
-    singularity_threshold: float = 1e-3
-    reward: RewardConfig = field(default_factory=RewardConfig)
-    model_mismatch: MismatchConfig = field(default_factory=MismatchConfig)
+    name: str = field(metadata={"meaning": "scenario name (a built-in name, the file stem, or 'custom')"})
+    arms: tuple[ArmConfig, ...] = field(metadata={"meaning": "list of arm dicts (below); one agent per arm, "
+                                                             "``arm_0 .. arm_{N-1}``"})
+    edges: tuple[tuple[int, int], ...] = field(metadata={"meaning": "list of ``[tail, head]`` 0-based agent "
+                                                                    "indices (or give ``incidence``: the paper's "
+                                                                    "incidence matrix B, N x |E|)"})
+    shape: tuple[tuple[float, ...], ...] = field(metadata={"unit": "m", "meaning": (
+        "reference configuration x* (N x dim); any translation of it (and for distance formations any "
+        "rotation/reflection) is a goal")})
+    formation: str = _key("distance", '``"distance"`` (e_k = |z_k|^2 - d_k^2, m^2) or ``"displacement"`` '
+                                      "(e_k = z_k - z*_k, m)")
+    dim: int = _key(3, "2 (formation in the arms' base x-y plane; planar arms only) or 3")
+    physics_hz: float = _key(1000.0, "physics rate (PyBullet fixed step); at least 60", "Hz")
+    frame_skip: int = _key(10, "physics steps per env step; control rate = physics_hz / frame_skip", "steps")
+    episode_seconds: float = _key(30.0, "simulated time before truncation", "s")
+    torque_limits: Any = _key(None, "``null`` = each URDF joint's effort; a number for every joint; a list "
+                                    "per joint (same for every arm); or a list of such lists, one per arm", "N m")
+    gravity: tuple[float, float, float] = _key((0.0, 0.0, -9.81), "world gravity vector", "m/s^2")
+    initial_q_noise: float = _key(0.05, "half-width of the uniform noise added to each ``initial_q`` at reset; "
+                                        "0 turns randomization off", "rad")
+    arm_collisions: bool = _key(True, "simulate contacts between arms (contacts are always reported)")
+    terminate_on_contact: bool = _key(False, "end the episode when two arms touch")
+    joint_damping: float | str = _key(0.0, 'viscous joint damping (URDF damping is replaced); ``"urdf"`` keeps '
+                                           "the URDF values", "N m s/rad")
+    max_joint_velocity: float = _key(50.0, "|dq| above this is a physics fault that terminates the episode "
+                                           "(PyBullet's own 100 rad/s clamp is lifted so it cannot hide it)", "rad/s")
+    singularity_threshold: float = _key(1e-3, "smallest Jacobian singular value below which an initial "
+                                              "configuration is rejected as singular", "m")
+    reward: RewardConfig = _key(None, "reward weights and scales, see :class:`RewardConfig`",
+                                default_factory=RewardConfig)
+    model_mismatch: MismatchConfig = _key(None, '``{"length": L, "mass": M, "seed": s}``: simulate robots whose '
+                                                "link lengths and masses differ from the nominal URDFs by up to "
+                                                "+-L and +-M; default none (see :mod:`ee_formation_env.mismatch`)",
+                                          "relative", default_factory=MismatchConfig)
+    controller_gains: ControllerGains | None = _key(None, "``{kp, kd, ki, alpha}``: tuned gains of the reference "
+                                                          "controllers (built-in scenarios carry theirs); null = "
+                                                          "derived from the robots, torque limits and rates")
 
     @property
     def n_agents(self) -> int:
@@ -161,7 +171,7 @@ class Scenario:
             value = getattr(self, spec.name)
             if spec.name == "arms":
                 value = [_arm_to_dict(arm) for arm in value]
-            elif spec.name in ("reward", "model_mismatch"):
+            elif spec.name in ("reward", "model_mismatch") or (spec.name == "controller_gains" and value is not None):
                 value = {f.name: getattr(value, f.name) for f in fields(value)}
             data[spec.name] = _plain(value)
         return data
@@ -183,6 +193,39 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _default(name: str) -> Any:
+    """The default of scenario field ``name`` (from :class:`Scenario`, the one place it is written)."""
+    spec = SCENARIO_FIELDS[name]
+    return spec.default_factory() if spec.default_factory is not MISSING else spec.default
+
+
+def scenario_keys_table() -> str:
+    """The reStructuredText table of the scenario's top-level keys (default, unit, meaning)."""
+    rows = []
+    for spec in fields(Scenario):
+        if spec.name == "name":
+            continue
+        default = "required" if spec.default is MISSING and spec.default_factory is MISSING else (
+            "see class" if spec.default_factory is not MISSING else repr(_plain(spec.default)))
+        unit = spec.metadata.get("unit", "")
+        rows.append((f"``{spec.name}``", default + (f" {unit}" if unit and default not in ("required", "see class") else ""),
+                     spec.metadata["meaning"]))
+    widths = [max(len(row[c]) for row in rows + [("key", "default", "meaning")]) for c in range(3)]
+    rule = "  ".join("=" * w for w in widths)
+    lines = [rule, "  ".join(h.ljust(w) for h, w in zip(("key", "default", "meaning"), widths)).rstrip(), rule]
+    lines += ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+    return "\n".join(lines + [rule])
+
+
+SCENARIO_FIELDS = {spec.name: spec for spec in fields(Scenario)}
+# Fields whose change leaves tuned controller gains valid: everything but the physics (robots, bases, shape,
+# graph, rates, torque limits, gravity, damping, contacts).
+GAIN_NEUTRAL_FIELDS = frozenset({"name", "episode_seconds", "initial_q_noise", "terminate_on_contact",
+                                 "max_joint_velocity", "singularity_threshold", "reward", "model_mismatch",
+                                 "controller_gains"})
+__doc__ += "\n" + scenario_keys_table() + "\n"
+
+
 # --------------------------------------------------------------------------------------------------
 # Built-in scenarios
 # --------------------------------------------------------------------------------------------------
@@ -199,6 +242,14 @@ def _square(side: float, centre: tuple[float, float] = (3.0, 3.0)) -> list[list[
     return [[cx - half, cy - half], [cx + half, cy - half], [cx + half, cy + half], [cx - half, cy + half]]
 
 
+# Gains tuned for the built-in scenarios under their default torque limits and rates (README, "Reference
+# policies"); see baselines/gains.py for the rule used everywhere else.
+_PLANAR_GAINS = {"distance": {"kp": 5.0, "kd": 20.0, "ki": 0.0, "alpha": 0.02},
+                 "displacement": {"kp": 60.0, "kd": 20.0, "ki": 0.0, "alpha": 0.5}}
+_SPATIAL_GAINS = {"distance": {"kp": 120.0, "kd": 2.0, "ki": 1.0, "alpha": 0.01},
+                  "displacement": {"kp": 20.0, "kd": 2.0, "ki": 1.0, "alpha": 1.0}}
+
+
 def _planar_square(formation: str, yaws: list[float] | None = None) -> dict[str, Any]:
     yaws = yaws or [0.0] * 4
     arms = []
@@ -208,7 +259,7 @@ def _planar_square(formation: str, yaws: list[float] | None = None) -> dict[str,
                      "initial_q": [q0[0] - yaw, q0[1]]})
     # 3.0 m, not the paper's 0.4 m square, which is out of reach (see README, "Deviations").
     return {"arms": arms, "edges": _PLANAR_EDGES, "shape": _square(3.0), "formation": formation, "dim": 2,
-            "physics_hz": 1000.0, "frame_skip": 10, "episode_seconds": 30.0, "gravity": [0.0, 0.0, -9.81]}
+            "controller_gains": dict(_PLANAR_GAINS[formation])}
 
 
 _SPATIAL_BASES = [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.0]]
@@ -232,7 +283,7 @@ def _spatial_tetrahedron(formation: str) -> dict[str, Any]:
         arms.append({"robot": "pera_arm", "base_position": base, "base_rpy": [0.0, 0.0, yaw],
                      "initial_q": list(SPATIAL_INITIAL_Q[i % 2])})
     return {"arms": arms, "edges": _SPATIAL_EDGES, "shape": _tetrahedron(), "formation": formation, "dim": 3,
-            "physics_hz": 1000.0, "frame_skip": 5, "episode_seconds": 50.0, "gravity": [0.0, 0.0, -9.81]}
+            "frame_skip": 5, "episode_seconds": 50.0, "controller_gains": dict(_SPATIAL_GAINS[formation])}
 
 
 # PERA-like arm starts (rad), elbows bent, away from singularities: the end-effectors start 0.25 m in
@@ -301,11 +352,17 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
     else:
         raise TypeError(f"scenario: expected a name, a path or a dict, got {type(scenario).__name__}")
 
+    physics_changed = any(
+        key not in GAIN_NEUTRAL_FIELDS and _plain(value) != _plain(data.get(key, SCENARIO_FIELDS[key].default
+                                                                        if key in SCENARIO_FIELDS else None))
+        for key, value in overrides.items())
     for key, value in overrides.items():
         if key in ("reward", "model_mismatch") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
             data[key] = {**data[key], **value}
         else:
             data[key] = value
+    if physics_changed and "controller_gains" not in overrides:
+        data.pop("controller_gains", None)  # tuned for other physics: the derived rule applies
     return _parse(name, data, base_dir)
 
 
@@ -323,10 +380,10 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     arms = tuple(_parse_arm(i, arm, base_dir) for i, arm in enumerate(arms_data))
     n_agents = len(arms)
 
-    dim = data.get("dim", 3)
+    dim = data.get("dim", _default("dim"))
     if dim not in (2, 3) or isinstance(dim, bool):
         raise ValueError(f"dim: expected 2 or 3, got {dim!r}")
-    formation = data.get("formation", "distance")
+    formation = data.get("formation", _default("formation"))
     if formation not in FORMATION_KINDS:
         raise ValueError(f"formation: expected one of {list(FORMATION_KINDS)}, got {formation!r}")
 
@@ -339,37 +396,38 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
         )
 
     kwargs: dict[str, Any] = {}
-    kwargs["physics_hz"] = _positive("physics_hz", data.get("physics_hz", 1000.0))
-    frame_skip = data.get("frame_skip", 10)
+    kwargs["physics_hz"] = _positive("physics_hz", data.get("physics_hz", _default("physics_hz")))
+    frame_skip = data.get("frame_skip", _default("frame_skip"))
     if not isinstance(frame_skip, (int, np.integer)) or isinstance(frame_skip, bool) or frame_skip < 1:
         raise ValueError(f"frame_skip: expected an integer >= 1, got {frame_skip!r}")
     kwargs["frame_skip"] = int(frame_skip)
     if kwargs["physics_hz"] < 60.0:
         raise ValueError(f"physics_hz: expected at least 60 Hz for a stable torque-controlled arm, got {kwargs['physics_hz']}")
-    kwargs["episode_seconds"] = _positive("episode_seconds", data.get("episode_seconds", 30.0))
+    kwargs["episode_seconds"] = _positive("episode_seconds", data.get("episode_seconds", _default("episode_seconds")))
     if kwargs["episode_seconds"] * kwargs["physics_hz"] / kwargs["frame_skip"] < 1:
         raise ValueError(
             f"episode_seconds: {kwargs['episode_seconds']} s is shorter than one control step "
             f"({kwargs['frame_skip'] / kwargs['physics_hz']} s)"
         )
     kwargs["torque_limits"] = _parse_torque_limits(data.get("torque_limits"), n_agents)
-    gravity = _float_array("gravity", data.get("gravity", [0.0, 0.0, -9.81]), ndim=1)
+    gravity = _float_array("gravity", data.get("gravity", _default("gravity")), ndim=1)
     if gravity.shape != (3,):
         raise ValueError(f"gravity: expected 3 numbers (m/s^2), got {data.get('gravity')!r}")
     kwargs["gravity"] = tuple(gravity.tolist())
-    noise = data.get("initial_q_noise", 0.05)
+    noise = data.get("initial_q_noise", _default("initial_q_noise"))
     kwargs["initial_q_noise"] = _non_negative("initial_q_noise", noise)
     for flag in ("arm_collisions", "terminate_on_contact"):
-        value = data.get(flag, flag == "arm_collisions")
+        value = data.get(flag, _default(flag))
         if not isinstance(value, bool):
             raise ValueError(f"{flag}: expected true or false, got {value!r}")
         kwargs[flag] = value
-    damping = data.get("joint_damping", 0.0)
+    damping = data.get("joint_damping", _default("joint_damping"))
     kwargs["joint_damping"] = damping if damping == "urdf" else _non_negative("joint_damping", damping)
-    kwargs["max_joint_velocity"] = _positive("max_joint_velocity", data.get("max_joint_velocity", 50.0))
-    kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", 1e-3))
+    kwargs["max_joint_velocity"] = _positive("max_joint_velocity", data.get("max_joint_velocity", _default("max_joint_velocity")))
+    kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", _default("singularity_threshold")))
     kwargs["reward"] = _parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
+    kwargs["controller_gains"] = _parse_controller_gains(data.get("controller_gains"))
 
     return Scenario(
         name=name, arms=arms, edges=tuple((int(t), int(h)) for t, h in edges),
@@ -507,6 +565,15 @@ def _parse_reward(value: Any) -> RewardConfig:
             f"[0, 1]), got {config.formation + config.velocity + config.torque:g}"
         )
     return config
+
+
+def _parse_controller_gains(value: Any) -> ControllerGains | None:
+    if value is None or isinstance(value, ControllerGains):
+        return value
+    names = [f.name for f in fields(ControllerGains)]
+    if not isinstance(value, Mapping) or set(value) != set(names):
+        raise ValueError(f"controller_gains: expected null or a dict with keys {names}, got {value!r}")
+    return ControllerGains(**{key: _non_negative(f"controller_gains.{key}", value[key]) for key in names})
 
 
 def _float_array(name: str, value: Any, ndim: int) -> np.ndarray:

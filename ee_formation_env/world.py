@@ -63,6 +63,12 @@ class PhysicsWorld:
                 set_motors(body, joints, torque_control, forces=torques, physicsClientId=client)
             step(physicsClientId=client)
 
+    def send_torques(self, commands: Sequence[tuple[int, Sequence[int], Sequence[float]]]) -> None:
+        """Send every ``(body, joint indices, torques N m)`` command for the next physics step only."""
+        for body, joints, torques in commands:
+            pybullet.setJointMotorControlArray(body, joints, pybullet.TORQUE_CONTROL, forces=torques,
+                                               physicsClientId=self.client)
+
     def save_snapshot(self) -> None:
         """Remember the current world (including contact caches) for :meth:`restore_snapshot`."""
         self._snapshot = pybullet.saveState(physicsClientId=self.client)

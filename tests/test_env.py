@@ -18,7 +18,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 import ee_formation_env
 from ee_formation_env import BUILTIN_SCENARIOS, FormationEnv
-from ee_formation_env.validation import rpy_matrix
+from ee_formation_env.kinematics import rpy_to_matrix as rpy_matrix
 
 from conftest import CLOSING, random_actions, scenario_dict, two_planar_arms
 
@@ -102,42 +102,42 @@ def test_observation_contents_match_simulator(make_env, name):
     ee = _ee_world(env)
     shape = np.asarray(env.scenario.shape)
     w = 1 if env.scenario.formation == "distance" else m
-    size = 1 + m + 2 * w
     for i, agent in enumerate(env.agents):
         obs = observations[agent].astype(np.float64)
+        parts = env.observation_layout(agent).split(obs)  # the layout itself is tested in test_observation.py
         arm = env.arms[i]
         rotation = rpy_matrix(env.scenario.arms[i].base_rpy)
         neighbours = [(t, h) for t, h in env.scenario.edges if i in (t, h)]
         slot_errors = []
         for s, (tail, head) in enumerate(neighbours):
             j = head if tail == i else tail
-            slot = obs[s * size:(s + 1) * size]
             z_world = ee[i] - ee[j]
             z_local = (rotation.T @ z_world)[:m]
             desired = shape[i] - shape[j]
-            assert slot[0] == 1.0
-            np.testing.assert_allclose(slot[1:1 + m], z_local, atol=2e-5)
+            assert parts.mask[s] == 1.0
+            np.testing.assert_allclose(parts.relative_positions[s], z_local, atol=2e-5)
             if w == 1:
-                np.testing.assert_allclose(slot[1 + m], np.linalg.norm(desired), atol=1e-5)
+                np.testing.assert_allclose(parts.desired[s, 0], np.linalg.norm(desired), atol=1e-5)
                 error = z_world[:m] @ z_world[:m] - desired @ desired
-                np.testing.assert_allclose(slot[2 + m], error, atol=1e-4)
+                np.testing.assert_allclose(parts.edge_errors[s, 0], error, atol=1e-4)
                 slot_errors.append(error)
             else:
                 desired_local = (rotation.T @ np.append(desired, [0.0] * (3 - m)))[:m]
-                np.testing.assert_allclose(slot[1 + m:1 + 2 * m], desired_local, atol=1e-5)
-                np.testing.assert_allclose(slot[1 + 2 * m:], z_local - desired_local, atol=2e-5)
+                np.testing.assert_allclose(parts.desired[s], desired_local, atol=1e-5)
+                np.testing.assert_allclose(parts.edge_errors[s], z_local - desired_local, atol=2e-5)
                 slot_errors.append(z_local - desired_local)
-        padding = obs[len(neighbours) * size:env.graph.max_degree * size]
-        assert np.all(padding == 0.0)
+        padding = len(neighbours)
+        assert np.all(parts.mask[padding:] == 0.0) and np.all(parts.relative_positions[padding:] == 0.0)
+        assert np.all(parts.desired[padding:] == 0.0) and np.all(parts.edge_errors[padding:] == 0.0)
         # info["edge_errors"]: the same slot errors, own frame (PyBullet's link positions carry ~1e-7 m of
         # float rounding, hence the tolerances).
         np.testing.assert_allclose(np.asarray(infos[agent]["edge_errors"]).reshape(len(neighbours), -1),
                                    np.asarray(slot_errors).reshape(len(neighbours), -1), atol=1e-5)
         q, dq = arm.read_state()
         n = arm.n_joints
-        np.testing.assert_allclose(obs[-2 * n:-n], np.where(arm.model.continuous, (q + np.pi) % (2 * np.pi) - np.pi, q),
+        np.testing.assert_allclose(parts.q, np.where(arm.model.continuous, (q + np.pi) % (2 * np.pi) - np.pi, q),
                                    atol=1e-6)
-        np.testing.assert_allclose(obs[-n:], dq, atol=1e-5)
+        np.testing.assert_allclose(parts.dq, dq, atol=1e-5)
         # info["singularity_margin"]: smallest singular value of PyBullet's translational Jacobian (base
         # frame, first m rows).
         link = _ee_link_index(arm.body, arm.config.ee_link, client)
@@ -686,7 +686,7 @@ def test_resets_do_not_reload_urdfs(make_env):
 
 
 def test_smallest_singular_values_match_svd():
-    from ee_formation_env.env import smallest_singular_values
+    from ee_formation_env.kinematics import smallest_singular_values
 
     rng = np.random.default_rng(5)
     for shape in [(200, 2, 2), (200, 3, 7), (200, 3, 2), (200, 2, 3)]:

@@ -8,6 +8,7 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
+import baselines  # noqa: E402
 import train  # noqa: E402
 
 FAST = ["--n-envs", "1", "--n-workers", "0", "--eval-episodes", "2", "--eval-seconds", "0.3",
@@ -31,7 +32,7 @@ def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
     config = json.loads((run_dir / "config.json").read_text())
     assert config["mode"] == mode and config["algo"] == algo and config["scenario_data"]["arms"]
     comparison = _comparison(run_dir)
-    assert set(comparison["results"]) == {"learned", *train.REFERENCE_POLICIES}
+    assert set(comparison["results"]) == {"learned", *baselines.POLICIES}
     for summary in comparison["results"].values():
         assert METRIC_FIELDS <= set(summary)
         assert summary["episodes"] == 2

@@ -11,7 +11,8 @@ import pytest
 import ee_formation_env
 import ee_formation_env.world
 from ee_formation_env.scenario import ROBOTS, load_scenario
-from ee_formation_env.validation import find_reachable_placement, validate_scenario
+from ee_formation_env.task import build_task
+from ee_formation_env.validation import find_reachable_placement
 
 from conftest import scenario_dict
 
@@ -35,9 +36,9 @@ def no_physics(monkeypatch):
 
 
 def _rejects(data, pattern: str) -> str:
-    """The ValueError message, checked against ``pattern``, from both validate_scenario and the env."""
+    """The ValueError message, checked against ``pattern``, from both build_task and the env."""
     with pytest.raises(ValueError, match=pattern) as caught:
-        validate_scenario(load_scenario(data))
+        build_task(load_scenario(data))
     with pytest.raises(ValueError, match=pattern):
         ee_formation_env.parallel_env(data)
     return str(caught.value)
@@ -130,7 +131,7 @@ def test_square_without_diagonal_is_not_rigid(no_physics):
     assert "rank 4 < 5" in message
     # A displacement formation does not need rigidity.
     load = load_scenario(scenario_dict("planar_square_displacement", edges=[[0, 1], [1, 2], [2, 3], [3, 0]]))
-    validate_scenario(load)
+    build_task(load)
 
 
 def test_tetrahedron_missing_an_edge_is_not_rigid(no_physics):
@@ -217,7 +218,7 @@ def test_validation_happens_before_physics(no_physics):
 
 def test_valid_builtins_pass_validation():
     for name in ("planar_square", "planar_square_rotated", "spatial_tetrahedron", "spatial_tetrahedron_displacement"):
-        models = validate_scenario(load_scenario(name))
+        models = build_task(load_scenario(name)).models
         assert len(models) == 4
         assert all(model.n_joints == (2 if name.startswith("planar") else 7) for model in models)
         assert find_reachable_placement(load_scenario(name)) is not None

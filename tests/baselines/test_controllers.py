@@ -7,9 +7,9 @@ import pytest
 
 import baselines
 import ee_formation_env
-from baselines.gains import PAPER_GAINS, SCENARIO_GAINS
+from baselines.gains import PAPER_GAINS, default_gains
 from baselines.metrics import run_episode
-from ee_formation_env.scenario import _square
+from ee_formation_env.scenario import _square, builtin_scenario
 
 PAPER_2D_LIFTED = dict(frame_skip=1, torque_limits=1e7, max_joint_velocity=1000.0)
 
@@ -44,7 +44,8 @@ def test_printed_law_with_paper_gains_converges_on_3m_square():
 
 def test_printed_law_stalls_on_4m_square_and_projection_fixes_it():
     """FACTS.md: far from the target the printed law collapses a_hat to its spurious equilibrium 0."""
-    kwargs = dict(shape=_square(4.0))
+    # planar_square's own tuned gains on the 4.0 m square (a shape override alone would derive new ones)
+    kwargs = dict(shape=_square(4.0), controller_gains=builtin_scenario("planar_square")["controller_gains"])
     printed, printed_errors, _, printed_estimates = _run(
         "planar_square", "adaptive_jacobian", 15.0, **kwargs,
         policy_kwargs=dict(a_hat0=[2.0, 2.0], projection=False))
@@ -132,6 +133,6 @@ def test_action_is_the_law_divided_by_the_torque_limits():
         jacobian = np.array([[-l1 * np.sin(q[0]) - l2 * np.sin(q[0] + q[1]), -l2 * np.sin(q[0] + q[1])],
                              [l1 * np.cos(q[0]) + l2 * np.cos(q[0] + q[1]), l2 * np.cos(q[0] + q[1])]])
         e_hat = 2.0 * (parts.edge_errors[:, 0] * parts.mask) @ parts.relative_positions
-        gains = SCENARIO_GAINS["planar_square"]
+        gains = default_gains(env.task, 0)  # planar_square's own tuned gains
         expected = (-gains.kp * jacobian.T @ e_hat - gains.kd * dq) / 50.0
         np.testing.assert_allclose(policy(observations["arm_0"]), expected, rtol=1e-5, atol=1e-6)

@@ -8,9 +8,10 @@ import pytest
 import baselines
 import ee_formation_env
 from baselines.dynamics import nominal_dynamics
-from baselines.gains import SCENARIO_GAINS, derive_gains
+from baselines.gains import default_gains, derive_gains
 from baselines.metrics import run_episode
-from ee_formation_env.scenario import BUILTIN_SCENARIOS
+from ee_formation_env.scenario import BUILTIN_SCENARIOS, load_scenario
+from ee_formation_env.task import build_task
 
 KUKA_TRIANGLE = {
     "name": "kuka_triangle",
@@ -29,12 +30,35 @@ KUKA_TRIANGLE = {
 
 
 def test_every_builtin_scenario_has_tuned_defaults():
-    assert set(SCENARIO_GAINS) == set(BUILTIN_SCENARIOS)
+    for name in BUILTIN_SCENARIOS:
+        assert load_scenario(name).controller_gains is not None, name
+
+
+def test_tuned_gains_apply_only_to_the_physics_they_were_tuned_for():
+    tuned = load_scenario("planar_square").controller_gains
+    # A gain-neutral override keeps them; an override of the physics (torque limits, rates) drops them.
+    assert load_scenario("planar_square", episode_seconds=5.0, initial_q_noise=0.0).controller_gains == tuned
+    assert load_scenario("planar_square", frame_skip=10).controller_gains == tuned  # the same value: no change
+    for override in ({"torque_limits": 1.0}, {"frame_skip": 1}, {"physics_hz": 500.0}):
+        scenario = load_scenario("planar_square", **override)
+        assert scenario.controller_gains is None, override
+        gains, derived = default_gains(build_task(scenario), 0), derive_gains(build_task(scenario), 0)
+        np.testing.assert_array_equal(gains.kp, derived.kp)
+        np.testing.assert_array_equal(gains.kd, derived.kd)
+        assert not np.allclose(gains.kp, tuned.kp)
+    # Explicit gains with the override are kept.
+    explicit = {"kp": 1.0, "kd": 2.0, "ki": 0.0, "alpha": 0.1}
+    assert load_scenario("planar_square", torque_limits=1.0, controller_gains=explicit).controller_gains.kp == 1.0
+
+
+def test_derived_gains_need_no_env():
+    gains = derive_gains(build_task(load_scenario(KUKA_TRIANGLE)), 1)
+    assert np.all(np.asarray(gains.kp) > 0) and np.all(np.asarray(gains.kd) > 0)
 
 
 def test_derived_damping_respects_the_explicit_step_rule():
     with ee_formation_env.parallel_env(KUKA_TRIANGLE) as env:
-        gains = derive_gains(env, "arm_0")
+        gains = derive_gains(env.task, 0)
         chain = env.nominal_models[0]
         dynamics = nominal_dynamics(env.scenario.arms[0].urdf, chain.joint_names)
         dt = env.scenario.control_dt
@@ -48,7 +72,7 @@ def test_derived_damping_respects_the_explicit_step_rule():
 @pytest.mark.parametrize("policy", ["gradient", "adaptive_jacobian"])
 def test_derived_gains_converge_on_a_robot_without_tuned_defaults(policy):
     with ee_formation_env.parallel_env(KUKA_TRIANGLE, initial_q_noise=0.0) as env:
-        assert env.scenario.name not in SCENARIO_GAINS  # so make_policy uses derive_gains
+        assert env.scenario.controller_gains is None  # so make_policy uses derive_gains
         metrics = run_episode(env, baselines.make_policies(policy, env), seed=0)
         assert metrics.physics_fault == ""
         assert metrics.success, metrics.final_formation_error
