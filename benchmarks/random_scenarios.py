@@ -46,7 +46,7 @@ import pybullet_data
 import ee_formation_env
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.scenario import ROBOTS
-from ee_formation_env.validation import chain_model, rpy_matrix
+from ee_formation_env.kinematics import chain_model, rpy_to_matrix
 
 if __package__ in (None, ""):  # run as a script: python benchmarks/random_scenarios.py
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -100,7 +100,7 @@ def _sample_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, r
     """A configuration (rad) of ``robot`` putting its end-effector (world, m) in the shared region."""
     urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
     chain = chain_model(urdf, ee_link)
-    rotation = rpy_matrix((0.0, 0.0, yaw))
+    rotation = rpy_to_matrix(np.array([0.0, 0.0, yaw]))
     # Keep away from the joint limits (10 % margin) and from singular configurations.
     span = chain.upper - chain.lower
     for _ in range(50):
