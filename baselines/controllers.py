@@ -60,14 +60,15 @@ class Gains:
     field); ``kd``: joint damping, N m s/rad, scalar or per joint; ``ki``: internal-model gain, 1/s, scalar or
     per joint; ``alpha``: adaptation gain of law-III (1 / (m^4 s) for distance formations);
     ``spring_force``: saturation force (N) of each edge's virtual spring at its desired length
-    (module docstring, "Saturated springs"); ``inf`` (default) is the paper's unsaturated law.
+    (module docstring, "Saturated springs"), one number for every edge or one per neighbour slot (the
+    agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law.
     """
 
     kp: Any = 5.0
     kd: Any = 20.0
     ki: Any = 0.0
     alpha: float = 0.02
-    spring_force: float = math.inf
+    spring_force: Any = math.inf
 
     def with_updates(self, **changes: Any) -> "Gains":
         allowed = sorted(field.name for field in fields(self))
@@ -86,10 +87,15 @@ class Gains:
                 raise ValueError(f"gains.{name}: expected finite values >= 0, got {getattr(self, name)!r}")
         if not np.isfinite(self.alpha) or self.alpha < 0:
             raise ValueError(f"gains.alpha: expected a finite value >= 0, got {self.alpha!r}")
-        if isinstance(self.spring_force, bool) or not isinstance(self.spring_force, (int, float)) \
-                or not self.spring_force > 0:
-            raise ValueError(f"gains.spring_force: expected a force > 0 N (inf: no saturation), got {self.spring_force!r}")
-        if math.isfinite(self.spring_force) and np.ndim(self.kp) != 0:
+        try:
+            forces = np.asarray(self.spring_force, dtype=np.float64)
+        except (TypeError, ValueError):
+            forces = np.array(np.nan)
+        if isinstance(self.spring_force, bool) or forces.ndim > 1 or forces.size == 0 or np.any(np.isnan(forces)) \
+                or np.any(forces <= 0):
+            raise ValueError("gains.spring_force: expected forces > 0 N (inf: no saturation), one number or one "
+                             f"per neighbour slot, got {self.spring_force!r}")
+        if np.any(np.isfinite(forces)) and np.ndim(self.kp) != 0:
             raise ValueError("gains.kp: a saturated spring (finite spring_force) needs a scalar formation gain, "
                              f"got {self.kp!r}")
         return self
@@ -125,6 +131,15 @@ class FormationController:
         self._kp = np.asarray(gains.kp, dtype=np.float64)
         self._kd = np.asarray(gains.kd, dtype=np.float64)
         self._ki = np.asarray(gains.ki, dtype=np.float64)
+        forces = np.asarray(gains.spring_force, dtype=np.float64)
+        n_slots = agent.layout.n_slots
+        if forces.ndim == 1 and len(forces) > n_slots:
+            raise ValueError(f"gains.spring_force: expected at most {n_slots} per-slot forces, got {len(forces)}")
+        self._spring_force = np.full(n_slots, np.inf)  # N per neighbour slot; padding slots never matter
+        if forces.ndim == 0:
+            self._spring_force[:] = float(forces)
+        else:
+            self._spring_force[:len(forces)] = forces
         self.reset()
 
     def reset(self) -> None:
@@ -146,8 +161,8 @@ class FormationController:
         Distance: ``clip(e_k, -c_k, c_k)`` with ``c_k = F / (2 K_P d_k)``; displacement: ``e_k`` scaled to
         length at most ``F / K_P``. Padding slots (``d_k = 0``) carry zero errors and stay zero.
         """
-        force = self.gains.spring_force
-        if not math.isfinite(force) or float(self._kp) == 0.0:
+        force = self._spring_force[:, None]  # (slots, 1), N
+        if not np.any(np.isfinite(force)) or float(self._kp) == 0.0:
             return edge_errors
         if self.agent.formation_kind == "distance":
             lengths = np.abs(desired)

@@ -48,6 +48,7 @@ import numpy as np
 
 from baselines.controllers import Gains
 from baselines.dynamics import NominalDynamics, nominal_dynamics
+from ee_formation_env.formation import rigidity_matrix
 from ee_formation_env.kinematics import SerialChain, chain_model
 from ee_formation_env.task import FormationTask
 
@@ -60,8 +61,9 @@ PAPER_GAINS: dict[int, Gains] = {
 K_D_MAX = 20.0  # N m s/rad, rule 1
 TORQUE_SHARE = 0.5  # rule 2: share of the spare torque the formation force may use (the rest: damping)
 SPARE_TORQUE_FLOOR = 0.2  # rule 2: spare torque never counted below this share of the limit
-KAPPA = 0.25  # rule 3: bound on dt^2 rho(H^-1 K_q) (stability needs < 2 (2 - dt rho(H^-1 K_D)), >= 2 here)
+KAPPA = 0.5  # rule 3: bound on dt^2 rho(H^-1 K_q); the limit 2 (2 - dt rho(H^-1 K_D)) is >= 2 under rule 1
 ADAPTATION_RATE = 1.0  # 1/s, rule 4
+JOINT_SPEED = 0.5  # rad/s, rule 1: joint speed the formation's torque share reaches against the damping
 
 _TEAM_GAINS: "weakref.WeakKeyDictionary[FormationTask, list[Gains]]" = weakref.WeakKeyDictionary()
 
@@ -82,21 +84,32 @@ def derive_gains(task: FormationTask, index: int) -> Gains:
     the spring force are common to all arms.
     """
     if task not in _TEAM_GAINS:
-        _TEAM_GAINS[task] = formation_gains(arm_inputs(task), task.scenario.control_dt, task.formation.kind)
+        incident = [[neighbor.edge for neighbor in neighbors] for neighbors in task.graph.neighbors]
+        _TEAM_GAINS[task] = formation_gains(arm_inputs(task), task.scenario.control_dt, task.formation.kind, incident,
+                                            formation_stiffness(task))
     return _TEAM_GAINS[task][index]
+
+
+def formation_stiffness(task: FormationTask) -> float:
+    """Largest eigenvalue of ``d(e_hat)/dx`` at the target shape: ``4 R^T R`` (R the rigidity matrix) for
+    distance formations, ``B B^T`` (the graph Laplacian) for displacement ones; per unit K_P (m^2 or 1)."""
+    shape = np.asarray(task.scenario.shape, dtype=np.float64)[:, :task.dim]
+    if task.formation.kind == "distance":
+        rigidity = rigidity_matrix(task.graph, shape)
+        return float(np.max(np.linalg.eigvalsh(4.0 * rigidity.T @ rigidity)))
+    incidence = task.graph.incidence
+    return float(np.max(np.linalg.eigvalsh(incidence @ incidence.T)))
 
 
 def arm_inputs(task: FormationTask) -> list["ArmGainInputs"]:
     """What :func:`formation_gains` needs of each arm of ``task``."""
     arms = []
     for i, chain in enumerate(task.models):
-        neighbors = task.graph.neighbors[i]
-        lengths = np.linalg.norm(task.formation.desired_vectors[[n.edge for n in neighbors]], axis=1)
         arms.append(ArmGainInputs(
             chain=chain, dynamics=nominal_dynamics(task.scenario.arms[i].urdf, chain.joint_names),
             torque_limits=np.asarray(task.torque_limits[i], dtype=np.float64),
             gravity_in_base=task.gravity_in_base_frame(i), initial_q=np.asarray(task.initial_q[i]),
-            incident_edge_lengths=lengths, dim=task.dim))
+            dim=task.dim))
     return arms
 
 
@@ -109,7 +122,6 @@ class ArmGainInputs:
     torque_limits: np.ndarray  # (n,) N m
     gravity_in_base: np.ndarray  # (3,) m/s^2, world gravity in the arm's base frame
     initial_q: np.ndarray  # (n,) rad
-    incident_edge_lengths: np.ndarray  # (degree,) m, desired lengths |z*_k| of the arm's edges
     dim: int  # 2 or 3: the formation's coordinates (rows of the Jacobian that matter)
 
 
@@ -119,7 +131,7 @@ class ArmGainLimits:
 
     kd: np.ndarray  # (n,) N m s/rad, rule 1
     force_limit: float  # N, rule 2: end-effector force the spare torque can deliver
-    kp_limit: float  # rule 3: largest formation gain the control step keeps stable
+    mobility: float  # 1/kg, max_q lambda_max(J H^-1 J^T): the lightest effective end-effector mass, inverted
     spring_force_limit: float  # N, largest saturation force of one edge's spring
     gravity_loads_joints: bool
     worst_regressor_norm2: float  # max |Z(q, u)|^2 over sampled q, unit directions u (per unit |zeta|^2)
@@ -130,7 +142,7 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
     """Rules 1-3 of the module docstring for one arm, from sampled configurations (seeded) plus ``initial_q``."""
     chain, dynamics = arm.chain, arm.dynamics
     configurations = np.vstack([chain.sample_configurations(samples, np.random.default_rng(0)), arm.initial_q])
-    kd = damping_for_step(chain, dynamics, control_dt, configurations)
+    kd_step = damping_for_step(chain, dynamics, control_dt, configurations)
     _, jacobians = chain.forward_and_jacobian_batch(configurations)
     jacobians = jacobians[:, :arm.dim]  # (k, dim, n): only the formation's coordinates matter
 
@@ -139,47 +151,57 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
     spare = np.maximum(arm.torque_limits - gravity_peak, SPARE_TORQUE_FLOOR * arm.torque_limits)
     lever = np.linalg.norm(jacobians, axis=1).max(axis=0)  # m: largest |J[:, j]| per joint
     force_limit = float(TORQUE_SHARE * np.min(spare / np.maximum(lever, 1e-9)))
+    # Rule 1, second bound: the formation's torque share must drive each joint at JOINT_SPEED against K_D.
+    kd = np.minimum(kd_step, TORQUE_SHARE * spare / JOINT_SPEED)
 
-    # Rule 3: dt^2 rho(H^-1 K_q) <= KAPPA with K_q <= K_P s J^T J, s the formation's local stiffness.
-    lengths = np.asarray(arm.incident_edge_lengths, dtype=np.float64)
-    stiffness = 2.0 * (4.0 * float(np.sum(lengths**2)) if formation_kind == "distance" else float(len(lengths)))
     mobility = max(float(np.max(np.linalg.eigvalsh(j @ np.linalg.solve(dynamics.mass_matrix(q), j.T))))
-                   for q, j in zip(configurations, jacobians))  # 1 / smallest effective mass, 1/kg
-    kp_limit = KAPPA / (control_dt**2 * stiffness * max(mobility, 1e-12))
+                   for q, j in zip(configurations, jacobians))  # rule 3
 
     regressor_norm2 = 0.0
     for q in configurations[:: max(1, len(configurations) // 32)]:
         for direction in np.eye(arm.dim):
             regressor_norm2 = max(regressor_norm2, float(np.sum(chain.regressor(q, direction) ** 2)))
-    return ArmGainLimits(kd=kd, force_limit=force_limit, kp_limit=kp_limit,
+    return ArmGainLimits(kd=kd, force_limit=force_limit, mobility=mobility,
                          spring_force_limit=force_limit,
                          gravity_loads_joints=bool(np.max(gravity_peak) > 1e-6),
                          worst_regressor_norm2=regressor_norm2)
 
 
-def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_kind: str) -> list[Gains]:
+def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_kind: str,
+                    incident_edges: Sequence[Sequence[int]], formation_stiffness: float) -> list[Gains]:
     """One :class:`Gains` per arm by the rule of the module docstring.
 
-    ``kp`` (scalar) and ``spring_force`` are the same for every arm (the team-wide minimum of the per-arm
-    limits), so ``-K_P J^T e_hat`` stays the gradient of one potential; ``kd``, ``ki`` and ``alpha`` are
-    per arm. ``control_dt`` in s; ``formation_kind`` ``"distance"`` or ``"displacement"``.
+    ``kp`` (a scalar) is the same for every arm (the team-wide minimum of the per-arm limits), and each
+    edge's spring force is the smaller of its two ends' limits, so ``-K_P J^T e_hat`` stays the gradient
+    of one potential; ``spring_force`` holds, per arm, the forces of its edges in its neighbour-slot order
+    (``incident_edges[i]``: arm i's edge indices in that order). ``kd``, ``ki`` and ``alpha`` are per arm.
+    ``control_dt`` in s; ``formation_kind`` ``"distance"`` or ``"displacement"``; ``formation_stiffness``:
+    the largest eigenvalue of the formation's stiffness ``d(e_hat)/dx`` at the target (:func:`formation_stiffness`).
     """
-    if control_dt <= 0 or not np.isfinite(control_dt):
+    if not (formation_stiffness > 0 and np.isfinite(formation_stiffness)):
+        raise ValueError(f"formation_stiffness: expected a finite value > 0, got {formation_stiffness!r}")
+    if not isinstance(control_dt, (int, float)) or not (control_dt > 0 and np.isfinite(control_dt)):
         raise ValueError(f"control_dt: expected a finite step > 0 s, got {control_dt!r}")
     if formation_kind not in ("distance", "displacement"):
         raise ValueError(f"formation_kind: expected 'distance' or 'displacement', got {formation_kind!r}")
-    if not arms:
-        raise ValueError("arms: expected at least one arm")
+    if not arms or len(incident_edges) != len(arms):
+        raise ValueError(f"incident_edges: expected one list of edge indices per arm ({len(arms)}), "
+                         f"got {len(incident_edges)}")
     limits = [arm_gain_limits(arm, control_dt, formation_kind) for arm in arms]
-    kp = min(limit.kp_limit for limit in limits)
-    spring_force = min(limit.spring_force_limit for limit in limits)
+    # Rule 3: dt^2 rho(H^-1 K_q) <= KAPPA with K_q = K_P J^T S J over the team (block-diagonal J, H).
+    kp = KAPPA / (control_dt**2 * formation_stiffness * max(limit.mobility for limit in limits))
+    edge_force: dict[int, float] = {}
+    for limit, edges in zip(limits, incident_edges):
+        for edge in edges:
+            edge_force[edge] = min(edge_force.get(edge, np.inf), limit.spring_force_limit)
     gains = []
-    for limit in limits:
+    for limit, edges in zip(limits, incident_edges):
+        ki = 1.0 if limit.gravity_loads_joints else 0.0
         # Rule 4: the adaptation rate alpha |Z|^2 is at most 1 1/s at the saturated gradient |e_hat| = F / K_P.
         saturated_gradient = limit.force_limit / kp
         alpha = ADAPTATION_RATE / max(limit.worst_regressor_norm2 * saturated_gradient**2, 1e-12)
-        gains.append(Gains(kp=kp, kd=limit.kd, ki=1.0 if limit.gravity_loads_joints else 0.0, alpha=alpha,
-                           spring_force=spring_force))
+        gains.append(Gains(kp=kp, kd=limit.kd, ki=ki, alpha=alpha,
+                           spring_force=tuple(edge_force[edge] for edge in edges)))
     return gains
 
 

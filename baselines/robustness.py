@@ -191,3 +191,214 @@ def mismatch_study(seconds: float) -> list[dict[str, Any]]:
                         print(f"mismatch {kind} s={size} seed={seed} {law}: final max|e| {row['final_max_abs_e']:.3g} m^2, "
                               f"delta {row['delta']:.3g}, delta* {row['delta_star']:.3g}", flush=True)
     return rows
+
+
+def separating_study(seconds: float) -> list[dict[str, Any]]:
+    """a_hat(0) = [2.7, 0.3] against the true [1.5, 1.5]: law-II, projected and printed law-III, 3 seeds."""
+    rows = []
+    variants = [("law-II", {}), ("law-III", {"parameter_bounds": (0.25, 3.0)}), ("law-III", {"projection": False})]
+    for seed in SEEDS:
+        for law, options in variants:
+            row = run_planar({"name": "planar_square", **_planar_square_data()}, law, seconds, PLANAR_GAINS,
+                             seed=seed, a_hat0=(2.7, 0.3), **options)
+            row["variant"] = law + (" printed" if options.get("projection") is False else
+                                    " projected" if law == "law-III" else "")
+            rows.append(row)
+            print(f"separating seed={seed} {row['variant']}: final max|e| {row['final_max_abs_e']:.3g} m^2, "
+                  f"boundary fraction {row['boundary_fraction']:.2f}, delta {row['delta']:.3g}, "
+                  f"delta* {row['delta_star']:.3g}", flush=True)
+    return rows
+
+
+def _planar_square_data() -> dict[str, Any]:
+    """The built-in planar square's data with reset noise (the separating study's seeds draw it)."""
+    data = load_scenario("planar_square").to_dict()
+    data.pop("name", None)
+    return data
+
+
+def stall_study(seconds: float, sides: Sequence[float], alphas: Sequence[float],
+                gains_kp: Sequence[float]) -> list[dict[str, Any]]:
+    """Printed law-III from a_hat(0) = [2, 2]: final max |e_k| over side x alpha x K_P."""
+    rows = []
+    for kp in gains_kp:
+        for side in sides:
+            for alpha in alphas:
+                scenario = {**_planar_square_data(), "shape": _square(side), "initial_q_noise": 0.0}
+                scenario.pop("controller_gains", None)
+                row = run_planar(scenario, "law-III", seconds, replace(PLANAR_GAINS, kp=kp, alpha=alpha),
+                                 a_hat0=(2.0, 2.0), projection=False)
+                row.update(side=side, alpha=alpha, kp=kp)
+                for key in ("t", "max_abs_e"):
+                    row.pop(key)
+                rows.append(row)
+                print(f"stall K_P={kp:g} side={side:g} alpha={alpha:g}: final max|e| {row['final_max_abs_e']:.3g} m^2, "
+                      f"min a_hat {np.min(row['final_a_hat']):.3g}", flush=True)
+    return rows
+
+
+def windup_study(seconds: float) -> list[dict[str, Any]]:
+    """Law-II on the spatial tetrahedron with halved torque limits, internal model with and without anti-windup."""
+    rows = []
+    base = load_scenario("spatial_tetrahedron")
+    limits = [(np.asarray(limit) * 0.5).tolist() for limit in ee_formation_env.parallel_env("spatial_tetrahedron").task.torque_limits]
+    gains = Gains(kp=base.controller_gains.kp, kd=base.controller_gains.kd, ki=base.controller_gains.ki,
+                  alpha=base.controller_gains.alpha)
+    for anti_windup in (False, True):
+        env = ee_formation_env.parallel_env("spatial_tetrahedron", torque_limits=limits, episode_seconds=seconds,
+                                            initial_q_noise=0.0)
+        try:
+            policies = {agent: _CONTROLLERS["approx_jacobian"](agent_model(env, agent), gains, anti_windup=anti_windup)
+                        for agent in env.possible_agents}
+            integral = []
+
+            def log(_: Any) -> None:
+                integral.append(max(float(np.max(np.abs(p._ki * p.eta) / p.agent.torque_limits))
+                                    for p in policies.values()))
+
+            metrics = run_episode(env, policies, seed=0, record=True, on_step=log)
+            errors = np.max(np.abs(metrics.trajectory["edge_errors"]), axis=1)
+            rows.append({"anti_windup": anti_windup, "t": metrics.trajectory["t"][1:].tolist(),
+                         "max_abs_e": errors[1:].tolist(), "integral_over_limit": integral,
+                         "final_max_abs_e": float(errors[-1]), "settling_time": metrics.settling_time,
+                         "saturation_fraction": metrics.saturation_fraction, "fault": metrics.physics_fault})
+            print(f"windup anti_windup={anti_windup}: final max|e| {errors[-1]:.3g} m^2, settle {metrics.settling_time:.2f} s, "
+                  f"peak |K_I eta|/limit {max(integral):.2f}, saturated {metrics.saturation_fraction:.1%}", flush=True)
+        finally:
+            env.close()
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------ figures
+def _save(fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def mismatch_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
+    """Top: final max |e_k| vs size per kind (median and range over seeds) per law; bottom: delta vs delta*."""
+    fig, axes = plt.subplots(2, len(KINDS), figsize=(4.2 * len(KINDS), 7.5), sharex=True, squeeze=False)
+    for c, kind in enumerate(KINDS):
+        for n, law in enumerate(LAWS):
+            values = np.array([[r["final_max_abs_e"] for r in rows if r["kind"] == kind and r["size"] == size
+                                and r["law"] == law] for size in SIZES]) + 1e-16
+            offset = (n - 1) * 0.008
+            axes[0, c].errorbar(np.array(SIZES) + offset, np.median(values, axis=1),
+                                yerr=[np.median(values, axis=1) - values.min(axis=1),
+                                      values.max(axis=1) - np.median(values, axis=1)],
+                                marker="os^"[n], capsize=3, label=law)
+        axes[0, c].set_yscale("log")
+        axes[0, c].set_title(kind.replace("_", " "))
+        axes[0, c].axhline(2 * 3.0 * 0.01, color="grey", ls=":", lw=1)
+        law2 = [r for r in rows if r["kind"] == kind and r["law"] == "law-II"]
+        axes[1, c].plot([r["size"] for r in law2], [r["delta"] for r in law2], "o", label="delta (law-II)")
+        axes[1, c].plot([r["size"] for r in law2], [r["delta_star"] for r in law2], "x", label="delta* (Prop. 4.1)")
+        axes[1, c].set_yscale("log")
+        axes[1, c].set_xlabel("mismatch size s")
+    axes[0, 0].set_ylabel("final max |e_k| at the horizon (m^2, log)")
+    axes[1, 0].set_ylabel("m (log)")
+    axes[0, 0].legend(fontsize=8)
+    axes[1, 0].legend(fontsize=8)
+    fig.suptitle("Model mismatch (planar square, 3 seeds per point; dotted: 1 cm edge-length error)")
+    return _save(fig, out / "robustness_mismatch.png")
+
+
+def separating_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
+    """max |e_k|(t) for the three variants, each seed a line (log axes)."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for n, variant in enumerate(dict.fromkeys(r["variant"] for r in rows)):
+        for k, row in enumerate(r for r in rows if r["variant"] == variant):
+            ax.loglog(np.array(row["t"][1:]), np.array(row["max_abs_e"][1:]) + 1e-16, color=f"C{n}", lw=1,
+                      label=variant if k == 0 else None)
+    ax.set_xlabel("t (s, log)")
+    ax.set_ylabel("max |e_k| (m^2, log)")
+    ax.set_title("a_hat(0) = [2.7, 0.3], true [1.5, 1.5]: law-II vs law-III (3 seeds each)")
+    ax.legend()
+    return _save(fig, out / "robustness_separating.png")
+
+
+def stall_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
+    """Heat maps of the printed law-III's final max |e_k| over side x alpha, one panel per K_P."""
+    kps = sorted({r["kp"] for r in rows})
+    sides = sorted({r["side"] for r in rows})
+    alphas = sorted({r["alpha"] for r in rows})
+    fig, axes = plt.subplots(1, len(kps), figsize=(4.8 * len(kps), 4.2), squeeze=False)
+    for c, kp in enumerate(kps):
+        grid = np.array([[next(r["final_max_abs_e"] for r in rows if r["kp"] == kp and r["side"] == side
+                               and r["alpha"] == alpha) for side in sides] for alpha in alphas])
+        image = axes[0, c].imshow(np.log10(grid + 1e-16), origin="lower", cmap="viridis", vmin=-15, vmax=2,
+                                  aspect="auto")
+        for a in range(len(alphas)):
+            for s in range(len(sides)):
+                axes[0, c].text(s, a, f"{grid[a, s]:.1g}", ha="center", va="center", fontsize=7,
+                                color="white" if grid[a, s] < 1e-3 else "black")
+        axes[0, c].set_xticks(range(len(sides)), [f"{s:g}" for s in sides])
+        axes[0, c].set_yticks(range(len(alphas)), [f"{a:g}" for a in alphas])
+        axes[0, c].set_xlabel("square side (m)")
+        axes[0, c].set_ylabel("alpha")
+        axes[0, c].set_title(f"K_P = {kp:g}")
+        fig.colorbar(image, ax=axes[0, c], label="log10 final max |e_k| (m^2)")
+    fig.suptitle("Printed law-III (no projection), a_hat(0) = [2, 2]: final max |e_k|")
+    return _save(fig, out / "robustness_stall_map.png")
+
+
+def windup_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
+    """max |e_k|(t) and max |K_I eta| / limit, with and without anti-windup."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for n, row in enumerate(rows):
+        label = "anti-windup" if row["anti_windup"] else "printed internal model"
+        axes[0].semilogy(row["t"], np.array(row["max_abs_e"]) + 1e-16, color=f"C{n}", label=label)
+        axes[1].plot(row["t"], row["integral_over_limit"], color=f"C{n}", label=label)
+    axes[0].set_ylabel("max |e_k| (m^2, log)")
+    axes[1].set_ylabel("max_j |K_I eta_j| / torque limit_j")
+    for ax in axes:
+        ax.set_xlabel("t (s)")
+        ax.legend()
+    fig.suptitle("Law-II, spatial tetrahedron, torque limits halved (K_I = 1)")
+    return _save(fig, out / "robustness_windup.png")
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Command-line entry: run the selected studies, write robustness.json and the figures."""
+    parser = argparse.ArgumentParser(prog="python -m baselines.robustness", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("results/robustness"))
+    parser.add_argument("--figures-dir", type=Path, default=None, help="also copy the PNGs here")
+    parser.add_argument("--only", action="append", choices=STUDIES, help="run only this study (repeatable)")
+    parser.add_argument("--quick", action="store_true", help="1 s horizons and a 2 x 2 stall map (tests)")
+    args = parser.parse_args(argv)
+    studies = args.only or list(STUDIES)
+    args.out.mkdir(parents=True, exist_ok=True)
+    seconds = 1.0 if args.quick else 15.0
+    results: dict[str, Any] = {}
+    figures = []
+    if "mismatch" in studies:
+        results["mismatch"] = mismatch_study(seconds)
+        figures.append(mismatch_figure(results["mismatch"], args.out))
+    if "separating" in studies:
+        results["separating"] = separating_study(seconds)
+        figures.append(separating_figure(results["separating"], args.out))
+    if "stall" in studies:
+        grid = ((3.0, 4.0), (0.02, 0.002), (5.0,)) if args.quick else \
+            ((2.5, 3.0, 3.5, 4.0), (0.0002, 0.002, 0.02, 0.2), (5.0, 50.0))
+        results["stall"] = stall_study(1.0 if args.quick else 10.0, *grid)
+        figures.append(stall_figure(results["stall"], args.out))
+    if "windup" in studies:
+        results["windup"] = windup_study(1.0 if args.quick else 20.0)
+        figures.append(windup_figure(results["windup"], args.out))
+    for rows in results.values():  # keep the JSON small: time series only where a figure needs them
+        for row in rows:
+            if "mismatch_seed" in row:
+                row.pop("t", None)
+                row.pop("max_abs_e", None)
+    (args.out / "robustness.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
+    if args.figures_dir is not None:
+        args.figures_dir.mkdir(parents=True, exist_ok=True)
+        for path in figures:
+            shutil.copy2(path, args.figures_dir / path.name)
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -16,7 +16,8 @@ rate, the mean and worst settling time of the successes, physics faults and arm 
   ``kuka_iiwa/model.urdf``, end-effector ``lbr_iiwa_link_7``), ``franka_panda`` (``franka_panda/panda.urdf``,
   ``panda_hand``) and the built-in ``pera_arm``, mixed at random (heterogeneous teams), bases on a ring of
   radius 0.45-0.65 m with random yaw; the hanging PERA-like arm is mounted 1 m up so that every arm reaches
-  the shared region. Initial poses are resampled until every arm is 3 cm clear of the others. Initial and target end-effector positions are those of random joint configurations
+  the shared region. Initial poses, and the poses that define the target vertices, are resampled until
+  every arm is 3 cm clear of the others (so the target is reachable without the arms intersecting). Initial and target end-effector positions are those of random joint configurations
   (inside the joint limits, away from singularities) that put the end-effector in a shared region above the
   ring's centre, so every target vertex is reachable by its own arm. Complete graph (rigid in 3D for 3 or
   4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
@@ -112,7 +113,7 @@ def _sample_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, r
             if all(np.linalg.norm(ee[k] - other) >= _MIN_VERTEX_SPACING for other in taken):
                 if np.linalg.svd(chain.jacobian(q[k]), compute_uv=False).min() >= 0.05:
                     return q[k], ee[k]
-    raise RuntimeError(f"no configuration of {robot} reaches the shared region (seeded generator bug)")
+    raise LookupError(f"no configuration of {robot} reaches the shared region")
 
 
 class _ClearanceChecker:
@@ -142,41 +143,70 @@ class _ClearanceChecker:
         pybullet.disconnect(self.client)
 
 
+def _clear_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, rng: np.random.Generator,
+                taken: list[np.ndarray], checker: _ClearanceChecker) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_sample_pose`, resampled until the arm clears every arm already placed in ``checker``."""
+    for _ in range(100):
+        q, ee = _sample_pose(robot, base, yaw, centre, rng, taken)
+        body = checker.place(robot, base, yaw, q)
+        if checker.clear(body):
+            checker.bodies.append(body)
+            return q, ee
+        pybullet.removeBody(body, physicsClientId=checker.client)
+    raise LookupError(f"no collision-free pose of {robot}")
+
+
 def spatial_scenario(seed: int) -> dict[str, Any]:
-    """One random spatial scenario (see the module docstring); the same ``seed`` gives the same dict."""
-    rng = np.random.default_rng([1, seed])
+    """One random spatial scenario (see the module docstring); the same ``seed`` gives the same dict.
+
+    A draw whose arms cannot all be posed clear of each other is redrawn (a seeded sequence of attempts).
+    """
+    for attempt in range(50):
+        try:
+            return _spatial_attempt(seed, np.random.default_rng([1, seed, attempt]))
+        except LookupError:
+            continue
+    raise RuntimeError(f"spatial_scenario({seed}): no valid draw in 50 attempts")
+
+
+def _spatial_attempt(seed: int, rng: np.random.Generator) -> dict[str, Any]:
+    """One draw of :func:`spatial_scenario` (LookupError if its arms cannot be posed)."""
     n_agents = int(rng.integers(3, 5))
     robots = [str(name) for name in rng.choice(list(SPATIAL_ROBOTS), size=n_agents)]
     radius = float(rng.uniform(0.45, 0.65))
     offset = float(rng.uniform(-math.pi, math.pi))
+    initial_checker, target_checker = _ClearanceChecker(), _ClearanceChecker()
+    try:
+        arms, targets = _pose_arms(robots, radius, offset, rng, initial_checker, target_checker)
+    finally:
+        initial_checker.close()
+        target_checker.close()
+    n_agents = len(robots)
+    edges = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
+    return {"name": f"random_spatial_{seed}", "arms": arms, "edges": edges,
+            "shape": [t.tolist() for t in targets], "formation": "distance", "dim": 3, "initial_q_noise": 0.0,
+            "frame_skip": 5, "episode_seconds": SPATIAL_SECONDS}
+
+
+def _pose_arms(robots: list[str], radius: float, offset: float, rng: np.random.Generator,
+               initial_checker: _ClearanceChecker, target_checker: _ClearanceChecker) -> tuple[list[dict], list]:
+    """Bases on the ring, collision-free initial poses and target vertices (LookupError if none found)."""
+    n_agents = len(robots)
     centre = np.zeros(3)
     arms, initial_ee, targets = [], [], []
-    checker = _ClearanceChecker()
     for i, robot in enumerate(robots):
         angle = offset + 2 * math.pi * i / n_agents
         urdf, ee_link, height = SPATIAL_ROBOTS[robot]
         base = np.array([radius * math.cos(angle), radius * math.sin(angle), height])
         yaw = float(rng.uniform(-math.pi, math.pi))
-        for _ in range(100):  # resample the initial pose until it clears the arms placed before
-            q0, ee0 = _sample_pose(robot, base, yaw, centre, rng, initial_ee)
-            body = checker.place(robot, base, yaw, q0)
-            if checker.clear(body):
-                checker.bodies.append(body)
-                break
-            pybullet.removeBody(body, physicsClientId=checker.client)
-        else:
-            raise RuntimeError(f"no collision-free initial pose for arm {i} (seeded generator bug)")
-        _, target = _sample_pose(robot, base, yaw, centre, rng, targets)
+        q0, ee0 = _clear_pose(robot, base, yaw, centre, rng, initial_ee, initial_checker)
+        _, target = _clear_pose(robot, base, yaw, centre, rng, targets, target_checker)
         initial_ee.append(ee0)
         targets.append(target)
         arm = {"base_position": base.tolist(), "base_rpy": [0.0, 0.0, yaw], "initial_q": q0.tolist()}
         arm.update({"robot": robot} if robot in ROBOTS else {"urdf": urdf, "ee_link": ee_link})
         arms.append(arm)
-    checker.close()
-    edges = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
-    return {"name": f"random_spatial_{seed}", "arms": arms, "edges": edges,
-            "shape": [t.tolist() for t in targets], "formation": "distance", "dim": 3, "initial_q_noise": 0.0,
-            "frame_skip": 5, "episode_seconds": SPATIAL_SECONDS}
+    return arms, targets
 
 
 @dataclass

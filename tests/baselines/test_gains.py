@@ -76,3 +76,41 @@ def test_derived_gains_converge_on_a_robot_without_tuned_defaults(policy):
         metrics = run_episode(env, baselines.make_policies(policy, env), seed=0)
         assert metrics.physics_fault == ""
         assert metrics.success, metrics.final_formation_error
+
+
+def test_derived_formation_gain_is_one_scalar_within_the_step_rule():
+    """K_P and the spring force are shared by every arm (one potential), and the stiffness they add keeps
+    dt^2 rho(H^-1 K_q) <= KAPPA at sampled configurations (rule 3 of baselines.gains)."""
+    from baselines.gains import KAPPA, arm_inputs, formation_gains
+
+    task = build_task(load_scenario(KUKA_TRIANGLE))
+    incident = [[n.edge for n in neighbors] for neighbors in task.graph.neighbors]
+    gains = formation_gains(arm_inputs(task), task.scenario.control_dt, task.formation.kind, incident)
+    assert len({float(g.kp) for g in gains}) == 1 and np.ndim(gains[0].kp) == 0
+    assert float(derive_gains(task, 0).kp) == float(gains[0].kp)
+    # Each edge's spring force is the same at both of its ends.
+    for k in range(task.graph.n_edges):
+        forces = {gains[i].spring_force[incident[i].index(k)] for i in range(len(gains)) if k in incident[i]}
+        assert len(forces) == 1 and 0 < forces.pop() < np.inf
+    chain = task.models[0]
+    dynamics = nominal_dynamics(task.scenario.arms[0].urdf, chain.joint_names)
+    lengths = np.linalg.norm(task.formation.desired_vectors[[n.edge for n in task.graph.neighbors[0]]], axis=1)
+    stiffness = 8.0 * np.sum(lengths**2)
+    dt = task.scenario.control_dt
+    for q in chain.sample_configurations(50, np.random.default_rng(2)):
+        jacobian = chain.jacobian(q)
+        k_q = gains[0].kp * stiffness * jacobian.T @ jacobian
+        radius = np.max(np.abs(np.linalg.eigvals(dt**2 * np.linalg.solve(dynamics.mass_matrix(q), k_q))))
+        assert radius <= KAPPA * 1.05  # sampled: a little above the rule's own samples is possible
+
+
+def test_formation_gains_reject_bad_input():
+    from baselines.gains import arm_inputs, formation_gains
+
+    task = build_task(load_scenario(KUKA_TRIANGLE))
+    with pytest.raises(ValueError, match="control_dt"):
+        formation_gains(arm_inputs(task), 0.0, "distance", [[0, 2], [0, 1], [1, 2]])
+    with pytest.raises(ValueError, match="formation_kind"):
+        formation_gains(arm_inputs(task), 0.01, "bearing", [[0, 2], [0, 1], [1, 2]])
+    with pytest.raises(ValueError, match="incident_edges"):
+        formation_gains(arm_inputs(task), 0.01, "distance", [[0, 2]])
