@@ -3,38 +3,45 @@
 Built-in scenarios carry gains tuned for their default torque limits and rates (their ``controller_gains``,
 dropped by any override of their physics); :data:`PAPER_GAINS` are the paper's (they need torque limits
 lifted and 1 ms control steps). For any other scenario :func:`derive_gains` computes gains from the task
-(nominal models, torque limits, mounting, graph and control step; no env needed) by
+(nominal models, torque limits, mounting, graph, shape and control step; no env needed) by
 :func:`formation_gains`. The law it tunes is the paper's with **saturated virtual springs**
 (:mod:`baselines.controllers`, "Saturated springs"): each edge's spring pulls linearly (gain K_P) near its
-desired length and with a bounded force F far from it, so the gain can be high near the target without
-asking far away for torque the actuators do not have. K_P and F are one scalar each for the whole team,
-so ``-K_P J^T e_hat`` stays the gradient of one potential (Theorems 3.1 and 4.2 assume it); damping and
-the internal-model and adaptation gains are per arm. Rules, each from sampled configurations (seeded)
-plus the initial one:
+desired length and with a bounded force far from it, so the gain can be high near the target without
+asking far away for torque the actuators do not have (clipped, such a command also loses its damping:
+that is how unsaturated gains spin arms up to the velocity fault). K_P is one scalar for the whole team
+and each edge's force limit is the same at both its ends, so ``-K_P J^T e_hat`` stays the gradient of
+one potential (Theorems 3.1 and 4.2 assume it); damping, internal-model and adaptation gains are per arm.
+Rules, each evaluated at sampled configurations (seeded) plus the initial one:
 
-1. **Damping**, per joint: sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while the
-   spectral radius ``dt rho(H^-1 K_D) < 2`` (``dt < 2 lambda_min(H) / K_D`` for a scalar gain). Each joint
-   gets ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the step), then all
-   are scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every sampled
-   configuration; ``K_D_max = 20 N m s/rad``. A robot whose light distal joints leave little damping at the
-   scenario's control step needs a smaller step (``frame_skip``) or reflected rotor inertia.
-2. **Spring force** F from the torque budget: the spare torque of joint j is its limit minus the largest
+1. **Damping**, per joint. Sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while
+   ``dt rho(H^-1 K_D) < 2`` (``dt < 2 lambda_min(H) / K_D`` for a scalar gain). Each joint gets
+   ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the step), then all are
+   scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every sampled configuration;
+   ``K_D_max = 20 N m s/rad``. Then ``K_D,j <= 0.5 spare_j / (0.5 rad/s)`` (spare torque: rule 2): the
+   formation's torque share must still move the joint at 0.5 rad/s against the damping (without this the
+   PERA-like arm, whose shoulder spends most of its 13.4 N m on gravity, crawls). A robot whose light
+   distal joints leave little damping at the scenario's control step needs a smaller step
+   (``frame_skip``) or reflected rotor inertia.
+2. **Spring forces** from the torque budget. The spare torque of joint j is its limit minus the largest
    gravity torque it carries (never counted below 20 % of the limit); an end-effector force f asks joint
-   j for at most ``|J[:, j]| |f|``, so arm i can take ``F_i = 0.5 min_j spare_j / max_q |J[:, j](q)|``
-   and keep the other half of its torque for damping (a clipped command loses its damping, which is how
-   unsaturated gains spin arms up to the velocity fault). ``F = min_i F_i``.
-3. **Formation gain** K_P from the control step, consistently with rule 1: near the target the spring adds
-   a joint stiffness ``K_q = K_P J^T S J`` with S the formation's stiffness at the arm (``8 sum_k d_k^2`` for
-   distance formations, ``2 deg`` for displacement ones: the arm's own edges, doubled for the
-   neighbours' coupling). For sampled (symplectic Euler) mass-spring-damper dynamics with
-   ``beta = dt rho(H^-1 K_D)`` and ``kappa = dt^2 rho(H^-1 K_q)`` stability needs ``beta < 2`` and
-   ``kappa < 2 (2 - beta)``; rule 1 gives ``beta <= 1`` and this rule takes ``kappa <= 0.25``:
-   ``K_P,i = 0.25 / (dt^2 S_i max_q lambda_max(J H^-1 J^T))`` (the lightest effective end-effector
-   mass), ``K_P = min_i K_P,i``. The spring is linear for edge-length errors up to about
-   ``F / (4 K_P d^2)`` (distance) and saturated beyond.
-4. **Internal model and adaptation**: ``K_I = 1 1/s`` when gravity loads the joints, else 0; ``alpha`` makes
-   the adaptation rate ``alpha |Z|^2`` of law-III at most 1 1/s at the saturated gradient
-   (``|e_hat| = F_i / K_P``): ``alpha = 1 / (max_q |Z(q, u)|^2 (F_i / K_P)^2)`` over unit directions u.
+   j for at most ``|J[:, j]| |f|``, so arm i can take ``F_i = 0.5 min_j spare_j / max_q |J[:, j](q)|``,
+   keeping the other half for damping. Edge k's spring saturates at ``F_k = min(F_tail, F_head)`` (N, at
+   its desired length).
+3. **Formation gain** K_P from the control step, consistently with rule 1. Near the target the springs
+   add the joint stiffness ``K_q = K_P J^T S J`` (block-diagonal J over the arms), with S = d(e_hat)/dx at
+   the target shape: ``4 R^T R`` (R the rigidity matrix) for distance formations, ``B B^T`` for
+   displacement ones. A sampled (semi-implicit Euler) mass-spring-damper with ``beta = dt rho(H^-1 K_D)``
+   and ``kappa = dt^2 rho(H^-1 K_q)`` is stable for ``beta < 2`` and ``kappa < 2 (2 - beta)``; rule 1
+   gives ``beta <= 1`` and this rule takes ``kappa <= 0.5``:
+   ``K_P = 0.5 / (dt^2 lambda_max(S) max_i max_q lambda_max(J_i H_i^-1 J_i^T))`` (the lightest effective
+   end-effector mass of the team). The largest stable gain is the fastest near the target; 0.5 is the
+   value that measured best on the random planar scenarios (``benchmarks/random_scenarios.py``: 0.25 and
+   0.1 are slower, 1.0 shrinks the springs' linear range, ``F / (4 K_P d^2)`` in edge-length error, so
+   far that the saturated springs, which pull with constant force whatever the error, dominate).
+4. **Internal model and adaptation**: ``K_I = 1 1/s`` when gravity loads the joints, else 0 (a larger
+   K_I, meant to learn gravity faster from the weak saturated springs, made the stiff spatial loops
+   oscillate); ``alpha`` makes law-III's adaptation rate ``alpha |Z|^2`` at most 1 1/s at the saturated
+   gradient ``|e_hat| = F_i / K_P``: ``alpha = 1 / (max_q |Z(q, u)|^2 (F_i / K_P)^2)`` over unit directions u.
 """
 
 from __future__ import annotations

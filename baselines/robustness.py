@@ -55,14 +55,14 @@ from baselines.dynamics import nominal_dynamics  # noqa: E402
 from baselines.metrics import run_episode  # noqa: E402
 from ee_formation_env.formation import rigidity_matrix  # noqa: E402
 from ee_formation_env.kinematics import chain_model  # noqa: E402
-from ee_formation_env.scenario import ROBOTS, _square, load_scenario  # noqa: E402
+from ee_formation_env.scenario import ROBOTS, _square, builtin_scenario, load_scenario  # noqa: E402
 
 STUDIES = ("mismatch", "separating", "stall", "windup")
 KINDS = ("uniform", "lengths", "offsets", "zero_component")
 SIZES = (0.1, 0.3, 0.5)
 SEEDS = (0, 1, 2)
 LAWS = {"law-I": "gradient", "law-II": "approx_jacobian", "law-III": "adaptive_jacobian"}
-PLANAR_GAINS = Gains(kp=5.0, kd=20.0, ki=0.0, alpha=0.02)  # the built-in planar square's tuned gains
+PLANAR_GAINS = Gains(**builtin_scenario("planar_square")["controller_gains"])  # its tuned gains (K_P 5, K_D 20)
 LINK = 1.5  # m, both links of the nominal planar_2link
 DPI = 100
 
@@ -240,10 +240,9 @@ def stall_study(seconds: float, sides: Sequence[float], alphas: Sequence[float],
 def windup_study(seconds: float) -> list[dict[str, Any]]:
     """Law-II on the spatial tetrahedron with halved torque limits, internal model with and without anti-windup."""
     rows = []
-    base = load_scenario("spatial_tetrahedron")
-    limits = [(np.asarray(limit) * 0.5).tolist() for limit in ee_formation_env.parallel_env("spatial_tetrahedron").task.torque_limits]
-    gains = Gains(kp=base.controller_gains.kp, kd=base.controller_gains.kd, ki=base.controller_gains.ki,
-                  alpha=base.controller_gains.alpha)
+    with ee_formation_env.parallel_env("spatial_tetrahedron") as env:
+        limits = [(np.asarray(limit) * 0.5).tolist() for limit in env.task.torque_limits]
+    gains = Gains(**builtin_scenario("spatial_tetrahedron")["controller_gains"])
     for anti_windup in (False, True):
         env = ee_formation_env.parallel_env("spatial_tetrahedron", torque_limits=limits, episode_seconds=seconds,
                                             initial_q_noise=0.0)
