@@ -12,7 +12,13 @@ agent's base frame (paper Sec. V):
 - ``approx_jacobian`` (Proposition 4.1, law-II): ``u = -K_P J^T(q, a_hat) e_hat - K_D dq + K_I eta`` with
   the fixed estimate ``a_hat`` and the internal model ``d(eta)/dt = -K_I eta + u``.
 - ``adaptive_jacobian`` (Theorem 4.2, law-III): law-II plus
-  ``d(a_hat)/dt = -Z^T(q, e_hat) [alpha Z(q, e_hat) a_hat - dq]``, projected onto a parameter box.
+  ``d(a_hat)/dt = -Gamma Z^T(q, e_hat) [alpha Z(q, e_hat) a_hat - dq]``, projected onto a parameter box;
+  the printed law has ``Gamma = 1`` (``Gains.adaptation_gain``, the default). A scalar Gamma > 0 only
+  rescales the estimate's term ``|a_tilde|^2 / Gamma`` of the Lyapunov function, as usual in adaptive
+  control. Why it is there: along any descent of the formation potential ``e_hat^T dx < 0``, and the
+  ``Z^T dq`` term moves a_hat by ``a_hat^T Z^T dq = e_hat^T J(q, a_hat) dq``, so the estimate shrinks in
+  proportion to the potential released (m^3 of e_hat times metres travelled): with Gamma = 1 a far
+  start drives it to the lower bound of its box within a second whatever alpha is.
 
 Saturated springs (``Gains.spring_force`` = F finite; ``inf``, the default, is the paper's law): every
 edge is a virtual spring whose force saturates. Distance formations replace the potential
@@ -32,7 +38,7 @@ regressor ``Z(q, e_hat)``). Why this form:
   the law stays distributed.
 
 Internal states are integrated once per env step (the control step ``dt``): ``eta`` by explicit Euler,
-``a_hat`` by a linearly implicit Euler step, ``(I + dt alpha Z^T Z) a_hat+ = a_hat + dt Z^T dq``, because
+``a_hat`` by a linearly implicit Euler step, ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq``, because
 ``alpha Z^T Z`` is stiff (rates of ~2000 1/s on the paper's planar arms, unstable for explicit Euler at
 any control step above 1 ms) while the implicit step has the same fixed points and is stable for all dt.
 """
@@ -59,6 +65,7 @@ class Gains:
     (a per-joint array is accepted only without saturation, and then ``-K_P J^T e_hat`` is no gradient
     field); ``kd``: joint damping, N m s/rad, scalar or per joint; ``ki``: internal-model gain, 1/s, scalar or
     per joint; ``alpha``: adaptation gain of law-III (1 / (m^4 s) for distance formations);
+    ``adaptation_gain``: Gamma of law-III (module docstring; 1, the default, is the printed law);
     ``spring_force``: saturation force (N) of each edge's virtual spring at its desired length
     (module docstring, "Saturated springs"), one number for every edge or one per neighbour slot (the
     agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law.
@@ -69,6 +76,7 @@ class Gains:
     ki: Any = 0.0
     alpha: float = 0.02
     spring_force: Any = math.inf
+    adaptation_gain: float = 1.0
 
     def with_updates(self, **changes: Any) -> "Gains":
         allowed = sorted(field.name for field in fields(self))
@@ -87,6 +95,9 @@ class Gains:
                 raise ValueError(f"gains.{name}: expected finite values >= 0, got {getattr(self, name)!r}")
         if not np.isfinite(self.alpha) or self.alpha < 0:
             raise ValueError(f"gains.alpha: expected a finite value >= 0, got {self.alpha!r}")
+        if isinstance(self.adaptation_gain, bool) or not isinstance(self.adaptation_gain, (int, float)) \
+                or not (self.adaptation_gain > 0 and math.isfinite(self.adaptation_gain)):
+            raise ValueError(f"gains.adaptation_gain: expected a finite value > 0, got {self.adaptation_gain!r}")
         try:
             forces = np.asarray(self.spring_force, dtype=np.float64)
         except (TypeError, ValueError):
@@ -299,9 +310,9 @@ class AdaptiveJacobianController(ApproxJacobianController):
 
     def _adapt(self, parts: ObservationParts, e_hat: np.ndarray) -> None:
         regressor = self.agent.chain.regressor(parts.q, e_hat)  # (n, p): J^T e_hat = Z a
-        dt, alpha = self.agent.control_dt, self.gains.alpha
-        system = self._identity + dt * alpha * (regressor.T @ regressor)
-        self.a_hat = np.linalg.solve(system, self.a_hat + dt * (regressor.T @ parts.dq))
+        dt, alpha, gamma = self.agent.control_dt, self.gains.alpha, self.gains.adaptation_gain
+        system = self._identity + dt * gamma * alpha * (regressor.T @ regressor)
+        self.a_hat = np.linalg.solve(system, self.a_hat + dt * gamma * (regressor.T @ parts.dq))
         self.adaptation_steps += 1
         if self.projection:
             np.clip(self.a_hat, self.param_low, self.param_high, out=self.a_hat)

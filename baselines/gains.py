@@ -69,7 +69,8 @@ K_D_MAX = 20.0  # N m s/rad, rule 1
 TORQUE_SHARE = 0.5  # rule 2: share of the spare torque the formation force may use (the rest: damping)
 SPARE_TORQUE_FLOOR = 0.2  # rule 2: spare torque never counted below this share of the limit
 KAPPA = 0.5  # rule 3: bound on dt^2 rho(H^-1 K_q); the limit 2 (2 - dt rho(H^-1 K_D)) is >= 2 under rule 1
-ADAPTATION_RATE = 1.0  # 1/s, rule 4
+ADAPTATION_RATE = 0.1  # 1/s, rule 4: largest decay rate of a_hat at the saturated gradient
+ESTIMATE_CHANGE = 0.1  # rule 4: largest relative change of a_hat by the Z^T dq term over one reach of travel
 JOINT_SPEED = 0.5  # rad/s, rule 1: joint speed the formation's torque share reaches against the damping
 
 _TEAM_GAINS: "weakref.WeakKeyDictionary[FormationTask, list[Gains]]" = weakref.WeakKeyDictionary()
@@ -138,6 +139,8 @@ class ArmGainLimits:
 
     kd: np.ndarray  # (n,) N m s/rad, rule 1
     force_limit: float  # N, rule 2: end-effector force the spare torque can deliver
+    param_norm: float  # m, |a| of the nominal kinematic parameters
+    reach: float  # m, farthest sampled end-effector position from the base, in the formation's axes
     mobility: float  # 1/kg, max_q lambda_max(J H^-1 J^T): the lightest effective end-effector mass, inverted
     spring_force_limit: float  # N, largest saturation force of one edge's spring
     gravity_loads_joints: bool
@@ -150,7 +153,7 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
     chain, dynamics = arm.chain, arm.dynamics
     configurations = np.vstack([chain.sample_configurations(samples, np.random.default_rng(0)), arm.initial_q])
     kd_step = damping_for_step(chain, dynamics, control_dt, configurations)
-    _, jacobians = chain.forward_and_jacobian_batch(configurations)
+    positions, jacobians = chain.forward_and_jacobian_batch(configurations)
     jacobians = jacobians[:, :arm.dim]  # (k, dim, n): only the formation's coordinates matter
 
     gravity = np.array([np.abs(dynamics.gravity_torque(q, arm.gravity_in_base)) for q in configurations])
@@ -168,7 +171,9 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
     for q in configurations[:: max(1, len(configurations) // 32)]:
         for direction in np.eye(arm.dim):
             regressor_norm2 = max(regressor_norm2, float(np.sum(chain.regressor(q, direction) ** 2)))
-    return ArmGainLimits(kd=kd, force_limit=force_limit, mobility=mobility,
+    reach = float(np.max(np.linalg.norm(positions[:, :arm.dim], axis=1)))
+    return ArmGainLimits(kd=kd, force_limit=force_limit, param_norm=float(np.linalg.norm(chain.nominal_params)),
+                         reach=reach, mobility=mobility,
                          spring_force_limit=force_limit,
                          gravity_loads_joints=bool(np.max(gravity_peak) > 1e-6),
                          worst_regressor_norm2=regressor_norm2)
@@ -204,10 +209,13 @@ def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_
     gains = []
     for limit, edges in zip(limits, incident_edges):
         ki = 1.0 if limit.gravity_loads_joints else 0.0
-        # Rule 4: the adaptation rate alpha |Z|^2 is at most 1 1/s at the saturated gradient |e_hat| = F / K_P.
-        saturated_gradient = limit.force_limit / kp
-        alpha = ADAPTATION_RATE / max(limit.worst_regressor_norm2 * saturated_gradient**2, 1e-12)
-        gains.append(Gains(kp=kp, kd=limit.kd, ki=ki, alpha=alpha,
+        # Rule 4: while every spring of the arm pulls at its saturation force, |e_hat| <= sum_k F_k / K_P.
+        # Gamma: the Z^T dq term moves a_hat by at most ESTIMATE_CHANGE |a| over one reach of travel;
+        # alpha: the rate Gamma alpha |Z|^2 of its decay term stays below ADAPTATION_RATE.
+        saturated_gradient = sum(edge_force[edge] for edge in edges) / kp
+        gamma = ESTIMATE_CHANGE * limit.param_norm**2 / max(saturated_gradient * limit.reach, 1e-12)
+        alpha = ADAPTATION_RATE / max(gamma * limit.worst_regressor_norm2 * saturated_gradient**2, 1e-12)
+        gains.append(Gains(kp=kp, kd=limit.kd, ki=ki, alpha=alpha, adaptation_gain=gamma,
                            spring_force=tuple(edge_force[edge] for edge in edges)))
     return gains
 
