@@ -69,6 +69,7 @@ K_D_MAX = 20.0  # N m s/rad, rule 1
 TORQUE_SHARE = 0.5  # rule 2: share of the spare torque the formation force may use (the rest: damping)
 SPARE_TORQUE_FLOOR = 0.2  # rule 2: spare torque never counted below this share of the limit
 KAPPA = 0.5  # rule 3: bound on dt^2 rho(H^-1 K_q); the limit 2 (2 - dt rho(H^-1 K_D)) is >= 2 under rule 1
+INTERNAL_MODEL_GAIN = 5.0  # 1/s, rule 4: K_I where gravity loads the joints (at most 0.1 / dt)
 ADAPTATION_RATE = 0.1  # 1/s, rule 4: largest decay rate of a_hat at the saturated gradient
 ESTIMATE_CHANGE = 0.1  # rule 4: largest relative change of a_hat by the Z^T dq term over one reach of travel
 JOINT_SPEED = 0.5  # rad/s, rule 1: joint speed the formation's torque share reaches against the damping
@@ -208,7 +209,7 @@ def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_
             edge_force[edge] = min(edge_force.get(edge, np.inf), limit.spring_force_limit)
     gains = []
     for limit, edges in zip(limits, incident_edges):
-        ki = 1.0 if limit.gravity_loads_joints else 0.0
+        ki = min(INTERNAL_MODEL_GAIN, 0.1 / control_dt) if limit.gravity_loads_joints else 0.0
         # Rule 4: while every spring of the arm pulls at its saturation force, |e_hat| <= sum_k F_k / K_P.
         # Gamma: the Z^T dq term moves a_hat by at most ESTIMATE_CHANGE |a| over one reach of travel;
         # alpha: the rate Gamma alpha |Z|^2 of its decay term stays below ADAPTATION_RATE.

@@ -59,6 +59,8 @@ PLANAR_SECONDS = 20.0
 SPATIAL_SECONDS = 30.0
 POLICIES = ("gradient", "approx_jacobian", "adaptive_jacobian")
 TARGETS = {"planar": 0.9, "spatial": 1.0}  # required success rate per family and policy
+SINGULAR_MARGIN = 0.02  # m: a final smallest Jacobian singular value below this counts as singular
+EQUILIBRIUM_RATIO = 0.05  # final gradient ratio below this (and arms at rest) counts as an equilibrium
 
 # Spatial robots: (urdf, end-effector link, base height in m). The PERA-like arm hangs from its base.
 SPATIAL_ROBOTS: dict[str, tuple[str, str, float]] = {
@@ -223,14 +225,41 @@ class RunRecord:
     final_max_edge_error: float  # m, largest |edge length - target| at the end
     physics_fault: str
     contact_steps: int
-    min_singularity_margin: float  # m
+    min_singularity_margin: float  # m, over the episode
+    final_singularity_margin: float  # m, smallest Jacobian singular value at the end
+    final_gradient_ratio: float  # max_i |e_hat_i| / (2 max_k |e_k| max_k |z_k|) at the end (0: an equilibrium)
+    final_max_joint_speed: float  # rad/s at the end
     wall_s: float
+
+    @property
+    def failure_kind(self) -> str:
+        """Why a failed run failed, from its final state ("" for a success)."""
+        if self.success:
+            return ""
+        if self.physics_fault:
+            return "physics fault"
+        if self.final_singularity_margin < SINGULAR_MARGIN:
+            return "an arm at a singularity (workspace boundary or folded)"
+        if self.final_gradient_ratio < EQUILIBRIUM_RATIO and self.final_max_joint_speed < 1e-2:
+            return "undesired equilibrium of the distance formation (e_hat = 0, e != 0)"
+        return "still converging at the horizon"
 
 
 def max_edge_length_error(env: FormationEnv) -> float:
     """Largest |edge length - target length| over the edges (m), distance formations."""
     z = env.graph.edge_vectors(env.end_effector_positions()[:, :env.dim])
     return float(np.max(np.abs(np.linalg.norm(z, axis=1) - env.formation.desired)))
+
+
+def gradient_ratio(env: FormationEnv) -> float:
+    """``max_i |e_hat_i| / (2 max_k |e_k| max_k |z_k|)`` with the paper's (unsaturated) e_hat: near 0 when the
+    formation sits at an equilibrium of its gradient flow with nonzero edge errors."""
+    positions = env.end_effector_positions()[:, :env.dim]
+    z = env.graph.edge_vectors(positions)
+    errors = np.einsum("kd,kd->k", z, z) - env.formation.desired**2
+    e_hat = 2.0 * env.graph.incidence @ (errors[:, None] * z)  # (N, dim): sum over incident edges, signed
+    scale = 2.0 * np.max(np.abs(errors)) * np.max(np.linalg.norm(z, axis=1))
+    return float(np.max(np.linalg.norm(e_hat, axis=1)) / max(scale, 1e-300))
 
 
 def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs: Any) -> RunRecord:
@@ -259,9 +288,11 @@ def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs:
         settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
         success = settle_index < len(series) and not fault
         robots = ",".join(arm.robot or Path(arm.urdf).parent.name for arm in env.scenario.arms)
+        final_margin = min(info["singularity_margin"] for info in infos.values())
+        speed = max(float(np.max(np.abs(dq))) for dq in env.joint_velocities())
         return RunRecord(family, scenario["name"], env.scenario.n_agents, robots, policy, bool(success),
                          settle_index * dt if success else math.nan, float(series[-1]), fault, contacts,
-                         float(margin), wall)
+                         float(margin), float(final_margin), gradient_ratio(env), speed, wall)
     finally:
         env.close()
 
@@ -306,9 +337,11 @@ def format_failures(records: Sequence[RunRecord]) -> str:
     lines = []
     for r in records:
         if not r.success:
-            lines.append(f"- {r.scenario} ({r.n_agents} arms: {r.robots}) {r.policy}: final max edge error "
-                         f"{r.final_max_edge_error:.3g} m, min singular value {r.min_singularity_margin:.3g} m, "
-                         f"contact steps {r.contact_steps}" + (f", FAULT: {r.physics_fault}" if r.physics_fault else ""))
+            lines.append(f"- {r.scenario} ({r.n_agents} arms: {r.robots}) {r.policy}: {r.failure_kind}; final max edge "
+                         f"error {r.final_max_edge_error:.3g} m, final smallest singular value "
+                         f"{r.final_singularity_margin:.3g} m, gradient ratio {r.final_gradient_ratio:.2g}, "
+                         f"joint speed {r.final_max_joint_speed:.2g} rad/s, contact steps {r.contact_steps}"
+                         + (f", FAULT: {r.physics_fault}" if r.physics_fault else ""))
     return "\n".join(lines) if lines else "(none)"
 
 
@@ -336,7 +369,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     rows = summarize(records)
     print(format_rows(rows))
     print("\nFailed runs:\n" + format_failures(records))
-    results = {"rows": rows, "runs": [asdict(r) for r in records]}
+    results = {"rows": rows, "runs": [{**asdict(r), "failure_kind": r.failure_kind} for r in records]}
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
