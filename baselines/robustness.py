@@ -323,7 +323,7 @@ def stall_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
     kps = sorted({r["kp"] for r in rows})
     sides = sorted({r["side"] for r in rows})
     alphas = sorted({r["alpha"] for r in rows})
-    fig, axes = plt.subplots(1, len(kps), figsize=(4.8 * len(kps), 4.2), squeeze=False)
+    fig, axes = plt.subplots(1, len(kps), figsize=(max(7.0, 5.2 * len(kps)), 4.4), squeeze=False)
     for c, kp in enumerate(kps):
         grid = np.array([[next(r["final_max_abs_e"] for r in rows if r["kp"] == kp and r["side"] == side
                                and r["alpha"] == alpha) for side in sides] for alpha in alphas])
@@ -339,7 +339,7 @@ def stall_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
         axes[0, c].set_ylabel("alpha")
         axes[0, c].set_title(f"K_P = {kp:g}")
         fig.colorbar(image, ax=axes[0, c], label="log10 final max |e_k| (m^2)")
-    fig.suptitle("Printed law-III (no projection), a_hat(0) = [2, 2]: final max |e_k|")
+    fig.suptitle("Printed law-III (no projection), a_hat(0) = [2, 2], 10 s: final max |e_k| (m^2)", fontsize=11)
     return _save(fig, out / "robustness_stall_map.png")
 
 
