@@ -127,7 +127,7 @@ def proposition_bounds(env: Any, q_series: np.ndarray, a_hat_series: np.ndarray,
             jacobian[i * dim:(i + 1) * dim, i * n:(i + 1) * n] = block
         product = rigidity @ jacobian
         lambda_4 = min(lambda_4, float(np.min(np.linalg.eigvalsh(product @ product.T))))
-    delta_star = lambda_4 / (4.0 * lambda_jhat * lambda_3)
+    delta_star = max(lambda_4, 0.0) / (4.0 * lambda_jhat * lambda_3)  # lambda_4 ~ -1e-19 when a_hat collapsed
     return {"delta": delta, "delta_star": delta_star, "lambda_3": lambda_3, "lambda_4": lambda_4,
             "lambda_jhat": lambda_jhat}
 
