@@ -46,7 +46,9 @@ PAPER, DEFAULTS = "paper", "project defaults"
 QUICK_SECONDS = 2.0  # horizon cap of --quick
 CSV_PERIOD = 0.01  # s between CSV rows (the figures use every step)
 PLOT_POINTS = 4000  # at most this many samples per plotted line
+LOG_POINTS = 800  # samples per line on a log time axis
 DPI = 100
+JOINTS_DPI = 75  # the joint figures have 16 panels: a lower resolution keeps them under 200 kB
 
 # The paper's 2D preset needs 1 ms steps and unbounded torque (peaks of ~1e5 N m).
 _PLANAR_PAPER = {"frame_skip": 1, "torque_limits": 1e7, "max_joint_velocity": 1000.0}
@@ -227,9 +229,9 @@ def _plot_trajectories(ax: Any, result: RunResult) -> None:
         ax.set_aspect("equal", adjustable="datalim")
 
 
-def _save(fig: Any, path: Path) -> Path:
+def _save(fig: Any, path: Path, dpi: int = DPI) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI, pil_kwargs={"optimize": True})
+    fig.savefig(path, dpi=dpi, pil_kwargs={"optimize": True})
     plt.close(fig)
     return path
 
@@ -240,9 +242,14 @@ PAPER_FIGURES = {"planar": {"trajectories": 4, "edge_errors": 5, "estimates": 6,
 
 
 def _log_time(t: np.ndarray, every: slice) -> np.ndarray:
-    """Sample indices with t > 0 (for a log time axis, where the transients of 0.1-2 s stay visible)."""
-    indices = np.arange(len(t))[every]
-    return indices[t[indices] > 0]
+    """Indices of samples with t > 0, log-spaced in time (for a log time axis, where the 0.1-2 s
+    transients stay visible; :data:`LOG_POINTS` per line keeps the PNGs small)."""
+    positive = np.arange(len(t))[every]
+    positive = positive[t[positive] > 0]
+    if len(positive) <= LOG_POINTS:
+        return positive
+    wanted = np.geomspace(t[positive[0]], t[positive[-1]], LOG_POINTS)
+    return np.unique(positive[np.clip(np.searchsorted(t[positive], wanted), 0, len(positive) - 1)])
 
 
 def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
@@ -302,7 +309,7 @@ def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
     fig.suptitle(f"{label}: kinematic parameter estimates - paper Fig. {numbers['estimates']}")
     paths.append(_save(fig, out / f"{study}_estimates.png"))
 
-    fig, axes = plt.subplots(n_agents, 2 * cols, figsize=(4.2 * 2 * cols, 2.1 * n_agents + 1.2), sharex="col",
+    fig, axes = plt.subplots(n_agents, 2 * cols, figsize=(3.7 * 2 * cols, 1.9 * n_agents + 1.2), sharex="col",
                              squeeze=False)
     for c, result in enumerate(results):
         t = result.trajectory["t"]
@@ -322,7 +329,7 @@ def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
         axes[-1, 2 * c].set_xlabel("t (s, log)")
         axes[-1, 2 * c + 1].set_xlabel("t (s, log)")
     fig.suptitle(f"{label}: joint positions and velocities, one row per arm - paper Fig. {numbers['joints']}")
-    paths.append(_save(fig, out / f"{study}_joints.png"))
+    paths.append(_save(fig, out / f"{study}_joints.png", dpi=JOINTS_DPI))
     return paths
 
 
