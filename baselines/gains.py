@@ -46,7 +46,6 @@ Rules, each evaluated at sampled configurations (seeded) plus the initial one:
 
 from __future__ import annotations
 
-import functools
 import weakref
 from dataclasses import dataclass
 from typing import Sequence
@@ -56,7 +55,7 @@ import numpy as np
 from baselines.controllers import Gains
 from baselines.dynamics import NominalDynamics, nominal_dynamics
 from ee_formation_env.formation import rigidity_matrix
-from ee_formation_env.kinematics import SerialChain, chain_model
+from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.task import FormationTask
 
 # The paper's gains (Sec. VI): 2D alpha = 0.02, K_P = 800, K_D = 180; 3D alpha = 0.01, K_P = 120, K_I = 1, K_D = 20.
@@ -89,8 +88,8 @@ def default_gains(task: FormationTask, index: int) -> Gains:
 def derive_gains(task: FormationTask, index: int) -> Gains:
     """Gains for arm ``index`` of ``task`` by :func:`formation_gains` (module docstring); computed once per task.
 
-    A thin caller: it collects each arm's nominal model, limits, mounting and incident edge lengths. K_P and
-    the spring force are common to all arms.
+    A thin caller: it collects each arm's nominal model, limits and mounting, the arms' edges and the
+    formation's stiffness at the target. K_P is common to all arms, each edge's spring force to both its ends.
     """
     if task not in _TEAM_GAINS:
         incident = [[neighbor.edge for neighbor in neighbors] for neighbors in task.graph.neighbors]
@@ -139,17 +138,15 @@ class ArmGainLimits:
     """Per-arm results of rules 1-3 (module docstring), before the team-wide minimum is taken."""
 
     kd: np.ndarray  # (n,) N m s/rad, rule 1
-    force_limit: float  # N, rule 2: end-effector force the spare torque can deliver
+    force_limit: float  # N, rule 2: end-effector force the spare torque can deliver (F_i)
     param_norm: float  # m, |a| of the nominal kinematic parameters
     reach: float  # m, farthest sampled end-effector position from the base, in the formation's axes
     mobility: float  # 1/kg, max_q lambda_max(J H^-1 J^T): the lightest effective end-effector mass, inverted
-    spring_force_limit: float  # N, largest saturation force of one edge's spring
     gravity_loads_joints: bool
     worst_regressor_norm2: float  # max |Z(q, u)|^2 over sampled q, unit directions u (per unit |zeta|^2)
 
 
-def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
-                    samples: int = 200) -> ArmGainLimits:
+def arm_gain_limits(arm: ArmGainInputs, control_dt: float, samples: int = 200) -> ArmGainLimits:
     """Rules 1-3 of the module docstring for one arm, from sampled configurations (seeded) plus ``initial_q``."""
     chain, dynamics = arm.chain, arm.dynamics
     configurations = np.vstack([chain.sample_configurations(samples, np.random.default_rng(0)), arm.initial_q])
@@ -175,7 +172,6 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, formation_kind: str,
     reach = float(np.max(np.linalg.norm(positions[:, :arm.dim], axis=1)))
     return ArmGainLimits(kd=kd, force_limit=force_limit, param_norm=float(np.linalg.norm(chain.nominal_params)),
                          reach=reach, mobility=mobility,
-                         spring_force_limit=force_limit,
                          gravity_loads_joints=bool(np.max(gravity_peak) > 1e-6),
                          worst_regressor_norm2=regressor_norm2)
 
@@ -200,13 +196,13 @@ def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_
     if not arms or len(incident_edges) != len(arms):
         raise ValueError(f"incident_edges: expected one list of edge indices per arm ({len(arms)}), "
                          f"got {len(incident_edges)}")
-    limits = [arm_gain_limits(arm, control_dt, formation_kind) for arm in arms]
+    limits = [arm_gain_limits(arm, control_dt) for arm in arms]
     # Rule 3: dt^2 rho(H^-1 K_q) <= KAPPA with K_q = K_P J^T S J over the team (block-diagonal J, H).
     kp = KAPPA / (control_dt**2 * formation_stiffness * max(limit.mobility for limit in limits))
     edge_force: dict[int, float] = {}
     for limit, edges in zip(limits, incident_edges):
         for edge in edges:
-            edge_force[edge] = min(edge_force.get(edge, np.inf), limit.spring_force_limit)
+            edge_force[edge] = min(edge_force.get(edge, np.inf), limit.force_limit)
     gains = []
     for limit, edges in zip(limits, incident_edges):
         ki = min(INTERNAL_MODEL_GAIN, 0.1 / control_dt) if limit.gravity_loads_joints else 0.0
@@ -219,14 +215,6 @@ def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_
         gains.append(Gains(kp=kp, kd=limit.kd, ki=ki, alpha=alpha, adaptation_gain=gamma,
                            spring_force=tuple(edge_force[edge] for edge in edges)))
     return gains
-
-
-@functools.lru_cache(maxsize=64)
-def stable_damping(urdf: str, ee_link: str, dt: float) -> np.ndarray:
-    """Per-joint damping gains (N m s/rad) by rule 1 of the module docstring, for a URDF's chain."""
-    chain = chain_model(urdf, ee_link)
-    dynamics = nominal_dynamics(urdf, chain.joint_names)
-    return damping_for_step(chain, dynamics, dt, chain.sample_configurations(200, np.random.default_rng(0)))
 
 
 def damping_for_step(chain: SerialChain, dynamics: NominalDynamics, dt: float,

@@ -145,8 +145,8 @@ def run_planar(scenario: dict[str, Any] | str, law: str, seconds: float, gains: 
         for agent in env.possible_agents:
             model = replace(agent_model(env, agent), chain=nominal_chain,
                             dynamics=nominal_dynamics(nominal_urdf, nominal_chain.joint_names))
-            policies[agent] = _CONTROLLERS[LAWS[law]](model, gains, None if a_hat0 is None else np.asarray(a_hat0, float),
-                                                      **options)
+            estimate = None if a_hat0 is None else np.asarray(a_hat0, dtype=np.float64)
+            policies[agent] = _CONTROLLERS[LAWS[law]](model, gains, estimate, **options)
         estimates = [np.stack([getattr(p, "a_hat", p.a_hat0) for p in policies.values()])]
 
         def log(_: Any) -> None:
@@ -188,8 +188,9 @@ def mismatch_study(seconds: float) -> list[dict[str, Any]]:
                         row = run_planar(scenario, law, seconds, PLANAR_GAINS)
                         row.update(kind=kind, size=size, mismatch_seed=seed)
                         rows.append(row)
-                        print(f"mismatch {kind} s={size} seed={seed} {law}: final max|e| {row['final_max_abs_e']:.3g} m^2, "
-                              f"delta {row['delta']:.3g}, delta* {row['delta_star']:.3g}", flush=True)
+                        print(f"mismatch {kind} s={size} seed={seed} {law}: final max|e| "
+                              f"{row['final_max_abs_e']:.3g} m^2, delta {row['delta']:.3g}, "
+                              f"delta* {row['delta_star']:.3g}", flush=True)
     return rows
 
 
@@ -261,8 +262,8 @@ def windup_study(seconds: float) -> list[dict[str, Any]]:
                          "max_abs_e": errors[1:].tolist(), "integral_over_limit": integral,
                          "final_max_abs_e": float(errors[-1]), "settling_time": metrics.settling_time,
                          "saturation_fraction": metrics.saturation_fraction, "fault": metrics.physics_fault})
-            print(f"windup anti_windup={anti_windup}: final max|e| {errors[-1]:.3g} m^2, settle {metrics.settling_time:.2f} s, "
-                  f"peak |K_I eta|/limit {max(integral):.2f}, saturated {metrics.saturation_fraction:.1%}", flush=True)
+            print(f"windup anti_windup={anti_windup}: final max|e| {errors[-1]:.3g} m^2, "
+                  f"settle {metrics.settling_time:.2f} s, peak |K_I eta|/limit {max(integral):.2f}, saturated {metrics.saturation_fraction:.1%}", flush=True)
         finally:
             env.close()
     return rows

@@ -1,6 +1,6 @@
 """Random scenarios: do the reference policies work out of the box on a scenario nobody tuned them for?
 
-    python -m benchmarks.random_scenarios                      # 10 planar + 6 spatial scenarios, ~5 min
+    python -m benchmarks.random_scenarios                      # 10 planar + 6 spatial scenarios, ~6 min
     python -m benchmarks.random_scenarios --planar 20 --spatial 0 --seed 1 --json out.json
 
 A seeded generator writes scenarios the way a new user would (plain scenario dicts, default physics and
@@ -16,11 +16,15 @@ rate, the mean and worst settling time of the successes, physics faults and arm 
   ``kuka_iiwa/model.urdf``, end-effector ``lbr_iiwa_link_7``), ``franka_panda`` (``franka_panda/panda.urdf``,
   ``panda_hand``) and the built-in ``pera_arm``, mixed at random (heterogeneous teams), bases on a ring of
   radius 0.45-0.65 m with random yaw; the hanging PERA-like arm is mounted 1 m up so that every arm reaches
-  the shared region. Initial poses, and the poses that define the target vertices, are resampled until
-  every arm is 3 cm clear of the others (so the target is reachable without the arms intersecting). Initial and target end-effector positions are those of random joint configurations
+  the shared region. Initial and target end-effector positions are those of random joint configurations
   (inside the joint limits, away from singularities) that put the end-effector in a shared region above the
-  ring's centre, so every target vertex is reachable by its own arm. Complete graph (rigid in 3D for 3 or
-  4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
+  ring's centre, so every target vertex is reachable by its own arm; both sets of poses are resampled until
+  every arm is 3 cm clear of the others (a draw that cannot be is redrawn, seeded). Complete graph (rigid in
+  3D for 3 or 4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
+
+A failed run is classified from its final state (:attr:`RunRecord.failure_kind`): an arm at a
+singularity, at or near an undesired equilibrium of the distance formation (the paper's gradient e_hat
+small while edges are off), or still converging.
 
 **Success** means every edge length within :data:`EDGE_TOLERANCE` (1 cm) of its target at the end of the
 episode, with no physics fault; the **settling time** is the first time after which every edge stays
@@ -326,9 +330,10 @@ def format_rows(rows: Sequence[dict[str, Any]]) -> str:
     for row in rows:
         def seconds(value: float) -> str:
             return "n/a" if math.isnan(value) else f"{value:.2f}"
+        met = "yes" if row["target_met"] else "NO"
         lines.append(f"| {row['family']} | {row['policy']} | {row['scenarios']} | {row['success_rate']:.0%} "
-                     f"| {seconds(row['mean_settling_s'])} | {seconds(row['max_settling_s'])} | {row['physics_faults']} "
-                     f"| {row['runs_with_contacts']} | >= {row['target']:.0%} | {'yes' if row['target_met'] else 'NO'} |")
+                     f"| {seconds(row['mean_settling_s'])} | {seconds(row['max_settling_s'])} "
+                     f"| {row['physics_faults']} | {row['runs_with_contacts']} | >= {row['target']:.0%} | {met} |")
     return "\n".join(lines)
 
 
