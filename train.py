@@ -33,6 +33,7 @@ import numpy as np
 
 import baselines
 import ee_formation_env
+from baselines.extras import require
 from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
@@ -72,7 +73,27 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--residual-scale: expected a value in (0, 1]")
     if args.n_workers < 0:
         parser.error("--n-workers must be >= 0")
+    if args.backend == "rllib" and args.algo != "ppo":
+        parser.error("--backend rllib supports --algo ppo only")
     return args
+
+
+def require_training_extras(args: argparse.Namespace, config: dict[str, Any] | None = None) -> None:
+    """Fail in one line naming the pip extra, before anything is created, if a needed package is missing.
+
+    ``config``: a saved run's (``--eval-only``), whose backend decides what reloading its model needs.
+    """
+    backend = config["backend"] if config else args.backend
+    modules = ["torch", "matplotlib"]  # the model, comparison.png
+    if backend == "sb3":
+        modules += ["stable_baselines3", "tensorboard"]  # SB3 logs to TensorBoard
+        if not args.no_progress and not config:
+            modules += ["tqdm", "rich"]  # SB3's progress bar
+        extras = "train"
+    else:
+        modules.append("ray.rllib")
+        extras = "train,distributed"
+    require(modules, extras, f"train.py (--backend {backend})")
 
 
 def run_name(args: argparse.Namespace) -> str:
@@ -176,14 +197,43 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
                     learning_starts=2_000, gamma=0.99, train_freq=1, gradient_steps=1, **common)
     checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
                                      save_path=str(out_dir / "checkpoints"), name_prefix="model")
+    callbacks = [checkpoints]
+    if not args.no_progress:
+        callbacks.append(_progress_callback(_collected_steps(args.total_timesteps, model, venv.num_envs)))
     started = time.time()
-    model.learn(total_timesteps=args.total_timesteps, callback=checkpoints, progress_bar=not args.no_progress)
+    model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
     (out_dir / "timing.json").write_text(json.dumps({"train_seconds": time.time() - started}))
     model.save(out_dir / "model.zip")
     ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
         out_dir / "obs_normalizer.pkl")
     venv.close()
     _write_learning_curve_from_monitor(out_dir)
+
+
+def _collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:
+    """Agent steps SB3 actually collects for ``total_timesteps``: PPO collects whole rollouts of
+    ``n_steps * num_envs``, SAC whole vec-env steps of ``num_envs``, so it stops at or after the total."""
+    chunk = getattr(model, "n_steps", 1) * num_envs
+    return math.ceil(total_timesteps / chunk) * chunk
+
+
+def _progress_callback(total: int) -> Any:
+    """A tqdm bar over the agent steps of training, ``total`` being what will be collected (no overshoot)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm.auto import tqdm
+
+    class TrainingProgress(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, desc="training", unit=" agent steps", unit_scale=True)
+
+        def _on_step(self) -> bool:
+            self.bar.update(min(self.training_env.num_envs, total - self.bar.n))
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TrainingProgress()
 
 
 def _write_learning_curve_from_monitor(out_dir: Path) -> None:
@@ -204,17 +254,13 @@ def _write_learning_curve_from_monitor(out_dir: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ rllib
 def train_rllib(args: argparse.Namespace, out_dir: Path) -> None:
-    try:
-        import ray
-        from ray.rllib.algorithms.ppo import PPOConfig
-        from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
-        from ray.rllib.core.rl_module.rl_module import RLModuleSpec
-        from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
-        from ray.tune.registry import register_env
-    except ImportError as error:
-        raise SystemExit(f"--backend rllib needs the 'distributed' extra: pip install -e '.[distributed]' ({error})")
-    if args.algo != "ppo":
-        raise SystemExit("--backend rllib supports --algo ppo")
+    import ray
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
+    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
+    from ray.tune.registry import register_env
+
     ray.init(address=args.address, ignore_reinit_error=True, include_dashboard=False, log_to_driver=False,
              num_cpus=None if args.address else max(os.cpu_count() or 1, 1))
     factory = env_factory(args, training_overrides(args))
@@ -282,49 +328,98 @@ def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> 
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
     results: dict[str, Any] = {}
     with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
+        error_unit = "m²" if env.formation.kind == "distance" else "m"
         candidates = {"learned": lambda: learned_policies(run_dir, env, config)}
         for name in baselines.POLICIES:
             candidates[name] = functools.partial(baselines.make_policies, name, env)
+        bar = _evaluation_progress(len(candidates) * len(seeds), args.no_progress)
         for name, build in candidates.items():
             policies = build()
-            episodes = [run_episode(env, policies, seed=seed) for seed in seeds]
+            episodes = []
+            for seed in seeds:
+                if bar is not None:
+                    bar.set_postfix_str(name)
+                episodes.append(run_episode(env, policies, seed=seed))
+                if bar is not None:
+                    bar.update(1)
+            if bar is None:
+                print(f"evaluated {name} on {len(seeds)} seeds", flush=True)
             results[name] = summarize(episodes)
             results[name]["per_episode"] = [e.as_dict() for e in episodes]
+        if bar is not None:
+            bar.close()
     label = f"learned ({config['mode']})"
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results}
     (run_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
     (run_dir / "comparison.md").write_text(
         f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
-    _plot(run_dir, results, label)
+    _plot(run_dir, results, label, error_unit)
     print(table)
     return comparison
 
 
-def _plot(run_dir: Path, results: dict[str, Any], label: str) -> None:
+def _evaluation_progress(total: int, disabled: bool) -> Any:
+    """A tqdm bar over the comparison's episodes, or None (``--no-progress``, or tqdm not installed)."""
+    if disabled:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=total, desc="evaluating", unit=" episodes")
+
+
+def _plot(run_dir: Path, results: dict[str, Any], label: str, error_unit: str) -> None:
+    """``comparison.png``: the learning curve, then the final formation error and the success rate per
+    policy as labelled horizontal bars (policy names stay readable; a 0 % bar shows as its empty track)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, axes = plt.subplots(1, 3, figsize=(14, 3.8))
-    curve = np.loadtxt(run_dir / "learning_curve.csv", delimiter=",", skiprows=1, ndmin=2)
-    if curve.size:
-        axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.4)
-        if len(curve) >= 10:
-            window = max(len(curve) // 20, 5)
-            axes[0].plot(curve[window - 1:, 0], np.convolve(curve[:, 1], np.ones(window) / window, mode="valid"))
-    axes[0].set(title="learning curve", xlabel="agent steps", ylabel="episode return (per agent)")
     names = list(results)
     ticks = [label if n == "learned" else n for n in names]
-    axes[1].bar(ticks, [results[n]["final_formation_error"] for n in names])
-    axes[1].set(title="final formation error (mean)", yscale="log")
-    axes[2].bar(ticks, [results[n]["success_rate"] for n in names])
-    axes[2].set(title="success rate", ylim=(0, 1))
+    rows = np.arange(len(names))
+    figure, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1.2, 1, 1]})
+    curve = np.loadtxt(run_dir / "learning_curve.csv", delimiter=",", skiprows=1, ndmin=2)
+    if curve.size:
+        axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.4, label="episode")
+        if len(curve) >= 10:
+            window = max(len(curve) // 20, 5)
+            axes[0].plot(curve[window - 1:, 0], np.convolve(curve[:, 1], np.ones(window) / window, mode="valid"),
+                         label=f"mean of {window}")
+            axes[0].legend(loc="lower right", fontsize=8)
+    axes[0].set(title="learning curve", xlabel="agent steps",
+                ylabel="episode return per agent\n(sum of step rewards, each in [0, 1])")
+    axes[0].ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
+
+    errors = np.array([results[n]["final_formation_error"] for n in names], dtype=np.float64)
+    shown = np.where(np.isfinite(errors) & (errors > 0), errors, np.nan)
+    axes[1].barh(rows, shown, color="tab:blue")
+    axes[1].set_xscale("log")
+    axes[1].set(title="final formation error (mean)", xlabel=f"formation error ({error_unit}, log scale)")
+    if np.isfinite(shown).any():
+        low, high = np.nanmin(shown), np.nanmax(shown)
+        axes[1].set_xlim(low / 10, high * 1e3)  # room for the value labels right of the bars
+    for row, value in zip(rows, errors):
+        axes[1].annotate(f"{value:.2g}", (shown[row] if np.isfinite(shown[row]) else axes[1].get_xlim()[0], row),
+                         xytext=(3, 0), textcoords="offset points", va="center", fontsize=8)
+
+    success = 100.0 * np.array([results[n]["success_rate"] for n in names], dtype=np.float64)
+    axes[2].barh(rows, np.full(len(rows), 100.0), color="0.92", edgecolor="0.75")  # the empty track
+    axes[2].barh(rows, success, color="tab:green")
+    axes[2].set(title="success rate", xlabel="episodes that succeeded (%)", xlim=(0, 118))
+    axes[2].set_xticks([0, 25, 50, 75, 100])
+    for row, value in zip(rows, success):
+        axes[2].annotate(f"{value:.0f} %", (value, row), xytext=(3, 0), textcoords="offset points", va="center",
+                         fontsize=8)
     for axis in axes[1:]:
-        axis.tick_params(axis="x", rotation=35)
+        axis.set_yticks(rows, ticks)
+        axis.invert_yaxis()  # first policy on top, as in the table
+    axes[2].set_yticklabels([])  # same rows as the middle panel
     figure.tight_layout()
-    figure.savefig(run_dir / "comparison.png", dpi=90)
+    figure.savefig(run_dir / "comparison.png", dpi=110)
     plt.close(figure)
 
 
@@ -337,10 +432,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not config_path.is_file():
             raise SystemExit(f"--eval-only: {config_path} not found")
         config = json.loads(config_path.read_text())
+        require_training_extras(args, config)
         compare(args, config, run_dir)
         return 0
 
     ee_formation_env.load_scenario(args.scenario)  # fail fast on a bad scenario, before any process starts
+    require_training_extras(args)
     run_dir = Path(args.out) if args.out else Path("runs") / run_name(args)
     run_dir.mkdir(parents=True, exist_ok=True)
     config = {key: value for key, value in vars(args).items() if key not in ("out", "eval_only")}

@@ -278,7 +278,8 @@ class AdaptiveJacobianController(ApproxJacobianController):
     ``parameter_bounds`` = (lower, upper), m, one value per kinematic parameter (or a number for all);
     default ``[0.5, 2] x`` the nominal URDF parameters. The paper assumes the true parameters lie in a
     known compact set; without the projection the printed law has a spurious equilibrium at ``a_hat = 0``
-    that captures it far from the target (see REPRODUCTION.md). ``projection=False`` is the printed law.
+    that captures it far from the target (``docs/physics.md``, "The printed adaptive law stalls far from
+    the target"). ``projection=False`` is the printed law.
     ``a_hat0`` must lie in the box. :attr:`boundary_fraction` is the fraction of control steps (since the
     last reset) after which some component of a_hat sat on the boundary of the box.
     """

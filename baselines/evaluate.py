@@ -2,6 +2,7 @@
 
     python -m baselines.evaluate --scenario planar_square --policy adaptive_jacobian --episodes 10 --seed 0
     python -m baselines.evaluate --scenario spatial_tetrahedron --policy all --json results.json
+    python -m baselines.evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
 
 Episode ``k`` uses reset seed ``seed + k``, so every policy sees the same initial states. Metrics are
 defined in :mod:`baselines.metrics` (the same module ``train.py`` uses).
@@ -11,22 +12,84 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
-from typing import Any, Sequence
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
 
 import ee_formation_env
 from baselines import POLICIES, make_policies
-from baselines.metrics import DEFAULT_POSITION_TOLERANCE, format_table, run_episode, summarize
+from baselines.extras import require
+from baselines.metrics import (DEFAULT_POSITION_TOLERANCE, EpisodeMetrics, format_table, metric_definitions,
+                               run_episode, summarize)
+from ee_formation_env.env import FormationEnv
+
+
+class EpisodeVideo:
+    """Frames of one episode, rendered every ``stride`` env steps so that the video plays at simulated speed.
+
+    Use :meth:`capture` as :func:`baselines.metrics.run_episode`'s ``on_step`` (plus once after the reset),
+    then :meth:`write`.
+    """
+
+    def __init__(self, env: FormationEnv):
+        self.env = env
+        self.fps = float(env.metadata["render_fps"])
+        self.stride = max(1, round(env.scenario.control_hz / self.fps))
+        self.fps = env.scenario.control_hz / self.stride  # the exact playback rate of simulated time
+        self.frames: list[np.ndarray] = []
+        self._steps = 0
+
+    def capture(self, env: FormationEnv | None = None) -> None:
+        if self._steps % self.stride == 0:
+            self.frames.append(self.env.render())
+        self._steps += 1
+
+    def write(self, path: Path) -> Path:
+        """Write an MP4 (imageio-ffmpeg installed) or else a GIF; returns the path written."""
+        import imageio
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            import imageio_ffmpeg  # noqa: F401  (imageio's MP4 writer)
+        except ImportError:
+            path = path.with_suffix(".gif")
+            imageio.mimwrite(path, self.frames, duration=1000.0 / self.fps, loop=0)
+        else:
+            path = path.with_suffix(".mp4")
+            # H.264 wants sides divisible by 16: pad by repeating the edge instead of letting imageio resize.
+            height, width = self.frames[0].shape[:2]
+            padding = ((0, -height % 16), (0, -width % 16), (0, 0))
+            imageio.mimwrite(path, [np.pad(frame, padding, mode="edge") for frame in self.frames], fps=self.fps)
+        return path
 
 
 def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
                     position_tolerance: float = DEFAULT_POSITION_TOLERANCE, overrides: dict | None = None,
-                    policy_kwargs: dict | None = None) -> dict[str, Any]:
-    """Summary (see :func:`baselines.metrics.summarize`) of ``policy`` over seeded episodes."""
-    with ee_formation_env.parallel_env(scenario, **(overrides or {})) as env:
+                    policy_kwargs: dict | None = None, video_dir: Path | None = None,
+                    on_episode: Callable[[str, int, EpisodeMetrics], None] | None = None) -> dict[str, Any]:
+    """Summary (see :func:`baselines.metrics.summarize`) of ``policy`` over seeded episodes.
+
+    ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``),
+    rendered as ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode.
+    """
+    render_mode = None if video_dir is None else "rgb_array"
+    results = []
+    with ee_formation_env.parallel_env(scenario, render_mode=render_mode, **(overrides or {})) as env:
         policies = make_policies(policy, env, **(policy_kwargs or {}))
-        results = [run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance)
-                   for k in range(episodes)]
+        for k in range(episodes):
+            if video_dir is None:
+                metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance)
+            else:
+                video = EpisodeVideo(env)
+                metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance,
+                                      on_reset=video.capture, on_step=video.capture)
+                video.write(Path(video_dir) / f"{env.scenario.name}-{policy}-seed{seed + k}")
+            results.append(metrics)
+            if on_episode is not None:
+                on_episode(policy, seed + k, metrics)
     summary = summarize(results)
     summary["per_episode"] = [r.as_dict() for r in results]
     return summary
@@ -46,7 +109,10 @@ def _overrides(pairs: Sequence[str]) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m baselines.evaluate", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m baselines.evaluate", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="table columns (mean over episodes unless said otherwise):\n"
+                                            + metric_definitions())
     parser.add_argument("--scenario", default="planar_square", help="built-in name or YAML/JSON file")
     parser.add_argument("--policy", default="all", help=f"one of {list(POLICIES)} or 'all'")
     parser.add_argument("--episodes", type=int, default=10)
@@ -56,6 +122,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="scenario overrides, VALUE in JSON, e.g. --set torque_limits=1e6 frame_skip=1")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    parser.add_argument("--video", metavar="DIR", type=Path,
+                        help="also write one video per episode into DIR (MP4, or GIF without imageio-ffmpeg; "
+                             "needs the 'video' extra)")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error("--episodes: expected an integer >= 1")
@@ -63,10 +132,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name in names:
         if name not in POLICIES:
             parser.error(f"--policy: unknown policy {name!r}; available: {list(POLICIES)} or 'all'")
+    if args.video is not None:
+        require(["imageio"], "video", "--video")
     try:
         overrides = _overrides(args.set)
-        results = {name: evaluate_policy(args.scenario, name, args.episodes, args.seed, args.tolerance, overrides)
-                   for name in names}
+        results = {name: evaluate_policy(args.scenario, name, args.episodes, args.seed, args.tolerance, overrides,
+                                         video_dir=args.video) for name in names}
     except ValueError as error:
         parser.error(str(error))
     print(f"scenario {args.scenario}, {args.episodes} episodes from seed {args.seed}, tolerance {args.tolerance} m")

@@ -7,6 +7,7 @@ one per agent. :func:`run_episode` rolls one seeded episode and returns :class:`
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Mapping, Protocol, Sequence
 
@@ -52,7 +53,7 @@ class EpisodeMetrics:
     centroid_drift: float  # m, displacement of the end-effectors' centroid from start to end
     mean_return: float  # mean over agents of the summed reward
     sim_time: float  # s
-    physics_fault: str = ""
+    physics_fault: str = ""  # "" or why the env ended the episode (its physics_fault_reason)
     trajectory: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
@@ -63,16 +64,19 @@ class EpisodeMetrics:
 
 def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
-                record: bool = False, on_step: Callable[[FormationEnv], None] | None = None) -> EpisodeMetrics:
+                record: bool = False, on_step: Callable[[FormationEnv], None] | None = None,
+                on_reset: Callable[[FormationEnv], None] | None = None) -> EpisodeMetrics:
     """Roll one episode from ``reset(seed=seed)`` to its end with one policy per agent.
 
     ``record=True`` keeps time series (``t``, ``formation_error``, ``edge_errors`` per edge, ``ee`` world
     positions, ``q``, ``dq``, ``torque``) in ``metrics.trajectory``; ``on_step(env)`` is called after
-    each step (e.g. to log a controller's internal state).
+    each step (e.g. to log a controller's internal state), ``on_reset(env)`` once after the reset.
     """
     observations, infos = env.reset(seed=seed)
     for policy in policies.values():
         policy.reset()
+    if on_reset is not None:
+        on_reset(env)
     agents = list(env.possible_agents)
     dt = env.scenario.control_dt
     tolerance = formation_tolerance(env, position_tolerance)
@@ -100,7 +104,8 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
             returns[agent] += rewards[agent]
         first = infos[agents[0]]
         errors.append(first["formation_error"])
-        fault = fault or first["physics_fault"]
+        if first["physics_fault"] and not fault:
+            fault = env.physics_fault_reason
         if record:
             _record(series, env, infos, first["sim_time"], torques)
         if on_step is not None:
@@ -161,21 +166,63 @@ def summarize(episodes: Sequence[EpisodeMetrics]) -> dict[str, Any]:
     return summary
 
 
-_COLUMNS = [("success_rate", "success", "{:.0%}"), ("final_formation_error", "final err", "{:.2e}"),
-            ("settling_time", "settle s", "{:.2f}"), ("control_energy", "energy", "{:.3g}"),
-            ("peak_torque", "peak N m", "{:.3g}"), ("saturation_fraction", "saturated", "{:.1%}"),
-            ("min_singularity_margin", "min sigma", "{:.3f}"), ("contact_steps", "contacts", "{:.1f}"),
-            ("centroid_drift", "drift m", "{:.3f}")]
+@dataclass(frozen=True)
+class MetricColumn:
+    """One column of the metrics tables: the :func:`summarize` key it shows, its title, unit and meaning."""
+
+    key: str
+    title: str
+    unit: str  # "" when dimensionless
+    meaning: str
+    format: str  # str.format spec of a cell
+
+    @property
+    def header(self) -> str:
+        return f"{self.title} ({self.unit})" if self.unit else self.title
+
+
+#: The metrics tables' columns, defined once: used by :func:`format_table`, ``python -m baselines.evaluate
+#: --help`` and the README. Each cell is a mean over episodes unless its meaning says otherwise.
+METRIC_COLUMNS: tuple[MetricColumn, ...] = (
+    MetricColumn("success_rate", "success", "%", "share of episodes whose formation error fell below the tolerance "
+                 "(the error of edges --tolerance m off their lengths) and stayed below to the end, for at least 1 s",
+                 "{:.0%}"),
+    MetricColumn("final_formation_error", "final err", "m² or m", "formation error at the last step: RMS over edges "
+                 "of |e_k|, e_k = |z_k|² − d_k² (m², distance formations) or z_k − z*_k (m, displacement)", "{:.2e}"),
+    MetricColumn("settling_time", "settle", "s", "time after which the formation error stays within the tolerance; "
+                 "mean over successful episodes only (n/a: none succeeded)", "{:.2f}"),
+    MetricColumn("control_energy", "energy", "N² m² s", "sum over arms of the integral of |τ|² dt, τ the applied "
+                 "joint torques", "{:.3g}"),
+    MetricColumn("peak_torque", "peak", "N m", "largest |τ| of any joint at any step", "{:.3g}"),
+    MetricColumn("saturation_fraction", "saturated", "%", "share of (step, joint) actions clipped at the torque "
+                 "limit", "{:.1%}"),
+    MetricColumn("min_singularity_margin", "min sigma", "m", "smallest singular value of any arm's Jacobian "
+                 "(formation axes) seen in any episode: near 0 means near a singularity", "{:.3f}"),
+    MetricColumn("contact_steps", "contacts", "steps", "env steps with any contact between arms", "{:.1f}"),
+    MetricColumn("centroid_drift", "drift", "m", "distance the end-effectors' centroid moved from start to end "
+                 "(a formation goal allows any translation; large drift means wandering)", "{:.3f}"),
+)
 
 
 def format_table(rows: Mapping[str, Mapping[str, Any]]) -> str:
-    """A markdown table, one row per policy, from :func:`summarize` outputs."""
-    header = "| policy | " + " | ".join(title for _, title, _ in _COLUMNS) + " |"
-    lines = [header, "|" + "---|" * (len(_COLUMNS) + 1)]
+    """A markdown table, one row per policy, from :func:`summarize` outputs (columns: :data:`METRIC_COLUMNS`)."""
+    header = "| policy | " + " | ".join(column.header for column in METRIC_COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (len(METRIC_COLUMNS) + 1)]
     for name, summary in rows.items():
         cells = []
-        for key, _, fmt in _COLUMNS:
-            value = summary.get(key, math.nan)
-            cells.append("n/a" if isinstance(value, float) and math.isnan(value) else fmt.format(value))
+        for column in METRIC_COLUMNS:
+            value = summary.get(column.key, math.nan)
+            cells.append("n/a" if isinstance(value, float) and math.isnan(value) else column.format.format(value))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def metric_definitions(markdown: bool = False) -> str:
+    """The columns' units and meanings: plain text (for ``--help``) or a markdown table (for the README)."""
+    if markdown:
+        lines = ["| column | unit | meaning |", "|---|---|---|"]
+        lines += [f"| {c.title} | {c.unit or '-'} | {c.meaning.replace('|', chr(92) + '|')} |" for c in METRIC_COLUMNS]
+        return "\n".join(lines)
+    width = max(len(c.header) for c in METRIC_COLUMNS)
+    return "\n".join(textwrap.fill(c.meaning, 110, initial_indent=f"  {c.header:<{width}}  ",
+                                   subsequent_indent=" " * (width + 4)) for c in METRIC_COLUMNS)

@@ -28,18 +28,23 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import ee_formation_env
+from baselines import make_policies
+from baselines.controllers import Gains
+from baselines.extras import require
+from baselines.gains import PAPER_GAINS
+from baselines.metrics import EpisodeMetrics, run_episode
+from ee_formation_env.scenario import _square, builtin_scenario
 
-import ee_formation_env  # noqa: E402
-from baselines import make_policies  # noqa: E402
-from baselines.controllers import Gains  # noqa: E402
-from baselines.gains import PAPER_GAINS  # noqa: E402
-from baselines.metrics import EpisodeMetrics, run_episode  # noqa: E402
-from ee_formation_env.scenario import _square, builtin_scenario  # noqa: E402
+try:
+    import matplotlib
+except ImportError:  # the "figures" extra is missing: main() says so in one line before creating anything
+    matplotlib = None
+else:
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
 STUDIES = ("planar", "spatial", "stall")
 PAPER, DEFAULTS = "paper", "project defaults"
@@ -390,6 +395,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--quick", action="store_true", help=f"cap every horizon at {QUICK_SECONDS:g} s (tests)")
     args = parser.parse_args(argv)
     studies = args.only or list(STUDIES)
+    require(["matplotlib"], "figures", "python -m baselines.reproduce")
     args.out.mkdir(parents=True, exist_ok=True)
 
     results: list[RunResult] = []

@@ -282,7 +282,8 @@ def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs:
             actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
             observations, _, _, _, infos = env.step(actions)
             first = next(iter(infos.values()))
-            fault = fault or first["physics_fault"]
+            if first["physics_fault"] and not fault:  # an int code; the env keeps the reason
+                fault = env.physics_fault_reason
             contacts += int(any(info["contacts"] > 0 for info in infos.values()))
             margin = min(margin, min(info["singularity_margin"] for info in infos.values()))
             errors.append(max_edge_length_error(env))

@@ -9,7 +9,7 @@ it), so the ratios between rows are meaningful even on a loaded machine; absolut
 measurement is repeated (``--repeats``) with the cases of one scenario interleaved round by round, and the
 fastest repeat is reported (the one least disturbed by other processes); every repeat is in the JSON.
 
-Sections (issue 5):
+Sections:
 
 - ``raw_floor``: the env's own bodies, torques set with ``setJointMotorControlArray`` and
   ``stepSimulation`` only; and, for reference, a naive per-arm ``getJointStates`` + ``getLinkState`` +
@@ -103,7 +103,8 @@ def _ee_link_index(body: int, name: str, client: int) -> int:
 
 def time_naive_loop(env: FormationEnv, steps: int) -> float:
     """Seconds for ``steps`` physics steps with a naive per-arm query loop: joint states, end-effector link
-    state and torques, one PyBullet call each per arm and step (the FACTS.md reference, 0.21x the floor)."""
+    state and torques, one PyBullet call each per arm and step (a reference point: ``docs/physics.md``, "Raw
+    PyBullet speed")."""
     env.reset(seed=0)
     client = env.world.client
     arms = [(arm.body, arm.joint_indices, _ee_link_index(arm.body, arm.config.ee_link, client), [0.0] * arm.n_joints)
@@ -331,7 +332,7 @@ def linear_fit(counts: Sequence[int], values: Sequence[float]) -> dict[str, floa
 
 
 def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """The issue's targets, each with the measured value and whether it is met."""
+    """The speed targets (``benchmarks/README.md``), each with the measured value and whether it is met."""
     def find(section: str, scenario: str, frame_skip: int | None = None) -> dict[str, Any] | None:
         return next((r for r in results["rows"] if r["section"] == section and r.get("scenario") == scenario
                      and frame_skip in (None, r.get("frame_skip"))), None)

@@ -23,23 +23,43 @@ __all__ = ["FormationEnv", "Scenario", "load_scenario", "parallel_env", "env", "
 __version__ = "0.1.0"
 
 
-def parallel_env(scenario: Any = "planar_square", render_mode: str | None = None, **overrides: Any) -> FormationEnv:
-    """Build the parallel env from a built-in name, a YAML/JSON path or a dict, plus key overrides."""
-    return FormationEnv(scenario, render_mode=render_mode, **overrides)
+def _with_max_cycles(scenario: Any, max_cycles: int | None, overrides: dict[str, Any]) -> dict[str, Any]:
+    """``overrides`` plus the ``episode_seconds`` that truncates the episode after ``max_cycles`` env steps."""
+    if max_cycles is None:
+        return overrides
+    if isinstance(max_cycles, bool) or not isinstance(max_cycles, int) or max_cycles < 1:
+        raise ValueError(f"max_cycles: expected an integer >= 1 (env steps per episode), got {max_cycles!r}")
+    if "episode_seconds" in overrides:
+        raise ValueError("max_cycles: give either max_cycles (env steps) or episode_seconds (s), not both")
+    control_dt = load_scenario(scenario, **overrides).control_dt
+    return {**overrides, "episode_seconds": max_cycles * control_dt}
 
 
-def raw_env(scenario: Any = "planar_square", render_mode: str | None = None, **overrides: Any):
+def parallel_env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,
+                 **overrides: Any) -> FormationEnv:
+    """Build the parallel env from a built-in name, a YAML/JSON path or a dict, plus key overrides.
+
+    ``max_cycles`` (PettingZoo's name): truncate episodes after this many env steps, i.e. set
+    ``episode_seconds = max_cycles * control_dt``.
+    """
+    return FormationEnv(scenario, render_mode=render_mode, **_with_max_cycles(scenario, max_cycles, overrides))
+
+
+def raw_env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,
+            **overrides: Any):
     """The AEC form of the env (PettingZoo's ``parallel_to_aec`` conversion)."""
     from pettingzoo.utils.conversions import parallel_to_aec
 
-    return parallel_to_aec(parallel_env(scenario, render_mode=render_mode, **overrides))
+    return parallel_to_aec(parallel_env(scenario, render_mode=render_mode, max_cycles=max_cycles, **overrides))
 
 
-def env(scenario: Any = "planar_square", render_mode: str | None = None, **overrides: Any):
+def env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,
+        **overrides: Any):
     """The AEC env wrapped with PettingZoo's order-enforcing wrapper (the classic ``env()`` entry)."""
     from pettingzoo.utils import wrappers
 
-    return wrappers.OrderEnforcingWrapper(raw_env(scenario, render_mode=render_mode, **overrides))
+    return wrappers.OrderEnforcingWrapper(raw_env(scenario, render_mode=render_mode, max_cycles=max_cycles,
+                                                  **overrides))
 
 
 from ee_formation_env import registration as _registration  # noqa: E402  (registers the ids)

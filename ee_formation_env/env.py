@@ -15,12 +15,14 @@ from pettingzoo import ParallelEnv
 from ee_formation_env.formation import Formation, FormationGraph, formation_error_from_squares
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
+from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.task import FormationTask, build_task
-from ee_formation_env.world import PhysicsWorld, draw_segment, project_points
+from ee_formation_env.world import PhysicsWorld
 
-_EDGE_COLOR = (220, 30, 30)
+# ``info["physics_fault"]`` codes (0: none). The last fault's full reason (arm, speed) is ``env.physics_fault_reason``.
+PHYSICS_FAULTS: dict[int, str] = {0: "none", 1: "non-finite joint state", 2: "joint speed above max_joint_velocity"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,7 +38,8 @@ class Measurement:
     slot_z: np.ndarray  # (S, dim) every real neighbour slot's z_ij in its agent's base frame, m
     slot_errors: np.ndarray  # (S,) or (S, dim) the slots' edge errors in their agents' base frames
     singularity_margins: np.ndarray  # (N,) m
-    fault: str  # "" or why the episode must end
+    fault: int  # a PHYSICS_FAULTS code, 0 if none
+    fault_reason: str  # "" or why the episode must end
 
 
 class FormationEnv(ParallelEnv):
@@ -61,13 +64,14 @@ class FormationEnv(ParallelEnv):
     - torque * mean(a_i^2)`` over its incident edges (``s_k = d*_k^2`` or ``|z*_k|``: relative edge errors),
     or the team mean with ``team = True``. Never negative, so ending an episode early never pays.
 
-    **Info** of agent ``i``: ``formation_error`` (RMS over all edges of |e_k|, m^2 or m),
-    ``edge_errors`` (its slots' errors, own frame), ``singularity_margin`` (smallest singular value of its
-    Jacobian's first m rows, m), ``torque_saturation`` (fraction of its joints clipped this step),
-    ``clipped_actions`` (count of its action entries outside [-1, 1] so far this episode),
-    ``applied_torque`` (the joint torques applied during the step, N m), ``contacts``
-    (contact points with other arms), ``physics_fault`` ("" or the reason the episode was terminated),
-    ``sim_time`` (s).
+    **Info** of agent ``i``, numeric and of fixed shape (so that TorchRL and RLlib can stack it):
+    ``formation_error`` (RMS over all edges of |e_k|, m^2 or m), ``edge_errors`` (its slots' errors, own
+    frame, padded with zeros to ``D`` slots: (D,) m^2 or (D, m) m), ``edge_mask`` ((D,) bool, True for a real
+    slot), ``singularity_margin`` (smallest singular value of its Jacobian's first m rows, m),
+    ``torque_saturation`` (fraction of its joints clipped this step), ``clipped_actions`` (count of its
+    action entries outside [-1, 1] so far this episode), ``applied_torque`` (the joint torques applied during
+    the step, N m), ``contacts`` (contact points with other arms), ``physics_fault`` (int code, 0 for none,
+    see :data:`PHYSICS_FAULTS`; the full reason is :attr:`physics_fault_reason`), ``sim_time`` (s).
 
     **Episode end**: truncation after ``episode_seconds``; termination on a physics fault (non-finite
     state or |dq| > ``max_joint_velocity``) or, if ``terminate_on_contact``, on contact between arms.
@@ -85,13 +89,15 @@ class FormationEnv(ParallelEnv):
         "is_parallelizable": True,
     }
 
-    render_width = 480
-    render_height = 360
-
     def __init__(self, scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "planar_square",
-                 render_mode: str | None = None, **overrides: Any):
+                 render_mode: str | None = None, render_width: int = 480, render_height: int = 360,
+                 real_time: bool = False, **overrides: Any):
+        """``render_width`` x ``render_height``: pixels of ``rgb_array`` frames (16 to 4096 each).
+        ``real_time``: in ``human`` mode, ``render()`` waits so that the GUI plays at simulated speed."""
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode: expected None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_width, self.render_height, real_time = validate_render_options(render_width, render_height,
+                                                                                    real_time)
         self.scenario = load_scenario(scenario, **overrides)
         self.task = build_task(self.scenario)  # validates: raises before any physics starts
         self.render_mode = render_mode
@@ -102,6 +108,8 @@ class FormationEnv(ParallelEnv):
         self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (model.n_joints,), dtype=np.float32)
                                for agent, model in zip(self.possible_agents, self.task.models)}
         self.state_space = self._observer.state_space
+        self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
+        self.action_spaces = dict(self._action_spaces)
 
         self.world = PhysicsWorld(self.scenario.physics_hz, self.scenario.gravity, render_mode)
         self.arm_set = ArmSet(self.world, self.task)
@@ -112,7 +120,8 @@ class FormationEnv(ParallelEnv):
         # Continuous joints are observed wrapped to [-pi, pi): None (no joint), True (every joint) or a mask.
         self._wrap = None if not continuous.any() else True if continuous.all() else continuous
         self.np_random, _ = seeding.np_random(None)
-        self._debug_lines = [-1] * self.task.graph.n_edges
+        self._renderer = SceneRenderer(self.world, self.task.formation, self.task.dim, self.render_width,
+                                       self.render_height, real_time)
         self._step_count = 0
         self._clipped_actions = np.zeros(self.task.n_agents, dtype=np.int64)
         self._measurement: Measurement | None = None
@@ -202,7 +211,7 @@ class FormationEnv(ParallelEnv):
                                                    measured.q_observed, measured.dq)
         rewards = self._rewards(measured, normalized)
         infos = self._infos(measured, clipped, contacts, torques)
-        ended = bool(measured.fault) or (self.scenario.terminate_on_contact and any(contacts))
+        ended = measured.fault != 0 or (self.scenario.terminate_on_contact and any(contacts))
         truncated = not ended and self._step_count >= self.scenario.max_steps
         terminations = dict.fromkeys(self.agents, ended)
         truncations = dict.fromkeys(self.agents, truncated)
@@ -210,6 +219,11 @@ class FormationEnv(ParallelEnv):
             self.agents = []
             self._needs_reset = True
         return observations, rewards, terminations, truncations, infos
+
+    @property
+    def physics_fault_reason(self) -> str:
+        """Why the last step ended the episode ("" if it did not): the arm and the fault, in words."""
+        return self._last().fault_reason
 
     def end_effector_positions(self) -> np.ndarray:
         """World-frame end-effector positions (N, 3), m, at the last reset/step."""
@@ -243,22 +257,20 @@ class FormationEnv(ParallelEnv):
         return self._observer.state(measured.ee_world, measured.q_observed, measured.dq)
 
     def render(self) -> np.ndarray | None:
-        """``rgb_array``: an RGB frame (H, W, 3) uint8 framing every arm, formation edges in red.
-        ``human``: the PyBullet GUI, with the formation edges drawn as debug lines."""
+        """``rgb_array``: an RGB frame (render_height, render_width, 3) uint8 of every arm, the current
+        formation's edges in red and the target formation (placed at the best fit) as a light blue ghost.
+        ``human``: the PyBullet GUI with the same camera and lines; returns None. Without a display, a
+        ``human`` env simulates headless (warning once) and this does nothing. See ``rendering.py``."""
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode to parallel_env")
             return None
         ee = self._last().ee_world
+        if self._renderer.camera is None or self._step_count == 0:  # one camera per episode: no shaking
+            self._renderer.frame([arm.body for arm in self.arms], ee)
         if self.render_mode == "human":
-            for k, (tail, head) in enumerate(self.graph.edges):
-                self._debug_lines[k] = self.world.draw_line(ee[tail], ee[head], (0.9, 0.1, 0.1), self._debug_lines[k])
+            self._renderer.render_human(ee, self._step_count * self.scenario.control_dt)
             return None
-        target, distance, yaw, pitch = self._camera()
-        image, world_to_clip = self.world.render(target, distance, yaw, pitch, self.render_width, self.render_height)
-        pixels = project_points(world_to_clip, ee, self.render_width, self.render_height)
-        for tail, head in self.graph.edges:
-            draw_segment(image, pixels[tail], pixels[head], _EDGE_COLOR)
-        return image
+        return self._renderer.render_rgb(ee)
 
     def close(self) -> None:
         """Disconnect the physics client; safe to call more than once."""
@@ -273,14 +285,15 @@ class FormationEnv(ParallelEnv):
         self.close()
 
     def __del__(self) -> None:
-        self.close()
+        self.close()  # PhysicsWorld.close stays safe at interpreter exit
 
     # Copies (pickle, deepcopy, subprocess workers) rebuild the env from its scenario in a new world.
     def __getstate__(self) -> dict[str, Any]:
-        return {"scenario": self.scenario, "render_mode": self.render_mode}
+        return {"scenario": self.scenario, "render_mode": self.render_mode, "render_width": self.render_width,
+                "render_height": self.render_height, "real_time": self._renderer.real_time}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["scenario"], render_mode=state["render_mode"])
+        self.__init__(state.pop("scenario"), **state)
 
     # ------------------------------------------------------------------------------------------ internals
     def _last(self) -> Measurement:
@@ -298,25 +311,37 @@ class FormationEnv(ParallelEnv):
             missing = [a for a in self.agents if a not in actions]
             unknown = [a for a in actions if a not in self.agents]
             raise ValueError(f"actions: missing agents {missing}, unknown agents {unknown}; expected keys {self.agents}")
-        parts = []
-        for agent in self.agents:
-            shape = self._action_spaces[agent].shape
+        parts = [actions[agent] for agent in self.agents]
+        # The common case in one call: numpy arrays of the right shapes; anything else gets the detailed check.
+        if all(getattr(part, "shape", None) == space.shape for part, space in zip(parts, self._action_spaces.values())):
             try:
-                action = np.asarray(actions[agent], dtype=np.float64)
+                normalized = np.concatenate(parts, dtype=np.float64)
             except (TypeError, ValueError):
-                self._raise_if_not_finite(parts)
-                raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}") from None
-            if action.shape != shape:
-                self._raise_if_not_finite(parts)
-                raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
-            parts.append(action)
-        normalized = np.concatenate(parts)
+                normalized = self._checked_concatenation(parts)
+        else:
+            normalized = self._checked_concatenation(parts)
         if not np.isfinite(normalized).all():
-            self._raise_if_not_finite(parts)
+            self._raise_if_not_finite([np.asarray(part, dtype=np.float64) for part in parts])
         clipped = np.add.reduceat(np.abs(normalized) > 1.0, self.arm_set.joint_starts, dtype=np.int64)
         np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)  # np.clip, without its overhead
         self._clipped_actions += clipped
         return normalized, clipped
+
+    def _checked_concatenation(self, parts: list[Any]) -> np.ndarray:
+        """The agents' actions as one float64 vector, or the error of the first bad one (in agent order)."""
+        checked = []
+        for agent, part in zip(self.agents, parts):
+            shape = self._action_spaces[agent].shape
+            try:
+                action = np.asarray(part, dtype=np.float64)
+            except (TypeError, ValueError):
+                self._raise_if_not_finite(checked)
+                raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}") from None
+            if action.shape != shape:
+                self._raise_if_not_finite(checked)
+                raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
+            checked.append(action)
+        return np.concatenate(checked)
 
     def _raise_if_not_finite(self, parts: list[np.ndarray]) -> None:
         """The error of the first of the (agent-ordered) actions with a non-finite entry, if any."""
@@ -327,13 +352,11 @@ class FormationEnv(ParallelEnv):
 
     def _measure(self) -> Measurement:
         """Read the joint states and compute everything derived from them (a physics fault included)."""
-        states = self.arm_set.read_states()
-        joint_state = np.concatenate([state[0] for state in states] + [state[1] for state in states])
-        n_total = self.arm_set.n_joints
-        q, dq = joint_state[:n_total], joint_state[n_total:]
-        fault = ""
-        if not np.isfinite(joint_state).all() or np.abs(dq).max() > self.scenario.max_joint_velocity:
-            q, dq, fault = self._physics_fault(states)
+        q, dq = self.arm_set.read_states()
+        fault, reason = 0, ""
+        # One test for both faults: NaN fails the comparison, and a non-finite q makes its sum non-finite.
+        if not (np.abs(dq).max() <= self.scenario.max_joint_velocity and math.isfinite(q.sum())):
+            q, dq, fault, reason = self._physics_fault(q, dq)
 
         ee_base, margins = self.arm_set.kinematics.positions_and_margins(q, self.task.dim)
         ee_world = (self.task.base_rotations @ ee_base[:, :, None])[:, :, 0] + self.task.base_positions
@@ -348,25 +371,23 @@ class FormationEnv(ParallelEnv):
         slot_z, slot_errors = self._observer.slots_in_own_frames(z, edge_errors)
         return Measurement(q=q, dq=dq, q_observed=q_observed, ee_world=ee_world, edge_errors=edge_errors,
                            edge_squares=np.add.reduce(errors * errors, axis=1), slot_z=slot_z,
-                           slot_errors=slot_errors, singularity_margins=margins, fault=fault)
+                           slot_errors=slot_errors, singularity_margins=margins, fault=fault,
+                           fault_reason=reason)
 
-    def _physics_fault(self, states: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, str]:
-        """The first arm's fault (non-finite state, or a joint speed over ``max_joint_velocity``) and the
-        joint states with non-finite values replaced by finite ones."""
-        fault, qs, dqs = "", [], []
+    def _physics_fault(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, str]:
+        """The joint states with non-finite values replaced by finite ones, and the first arm's fault
+        (non-finite state, or a joint speed over ``max_joint_velocity``): its code and reason."""
         limit = self.scenario.max_joint_velocity
-        for i, (q, dq) in enumerate(states):
-            if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
-                fault = fault or f"arm_{i}: non-finite joint state"
-                q, dq = np.nan_to_num(q), np.nan_to_num(dq)
-            elif np.max(np.abs(dq)) > limit:
-                speed = float(np.max(np.abs(dq)))
+        for i, joints in enumerate(self.arm_set.joint_slices):
+            if not (np.all(np.isfinite(q[joints])) and np.all(np.isfinite(dq[joints]))):
+                return np.nan_to_num(q), np.nan_to_num(dq), 1, f"arm_{i}: non-finite joint state"
+            if np.max(np.abs(dq[joints])) > limit:
+                speed = float(np.max(np.abs(dq[joints])))
                 # At PyBullet's own clamp the true speed is unknown, only that it is at least that.
                 shown = f"at least {speed:.0f}" if speed >= 0.999 * PYBULLET_MAX_JOINT_VELOCITY else f"{speed:.1f}"
-                fault = fault or f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s"
-            qs.append(q)
-            dqs.append(dq)
-        return np.concatenate(qs), np.concatenate(dqs), fault
+                return (np.nan_to_num(q), np.nan_to_num(dq), 2,
+                        f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s")
+        raise AssertionError("_physics_fault called without a fault")
 
     def _rewards(self, measured: Measurement, normalized: np.ndarray) -> dict[str, float]:
         weights = self.scenario.reward
@@ -388,13 +409,18 @@ class FormationEnv(ParallelEnv):
         margins = measured.singularity_margins.tolist()
         saturation = (clipped / self.arm_set.joint_counts).tolist()
         clipped_so_far = self._clipped_actions.tolist()
-        errors, slot_slices, joint_slices = measured.slot_errors, self._observer.slot_slices, self.arm_set.joint_slices
+        errors = self._observer.padded_slot_errors(measured.slot_errors)
+        # A fresh (N, D) copy of the constant masks: infos of different calls must share no object (gymnasium
+        # 1.4's check_env tests it, 1.2's does not).
+        masks, joint_slices = np.array(self._observer.slot_masks), self.arm_set.joint_slices
         infos = {}
-        # edge_errors and applied_torque are views of arrays made for this step only, one disjoint slice per agent.
+        # edge_errors, edge_mask and applied_torque are views of arrays made for this step only, one disjoint
+        # slice per agent.
         for i, agent in enumerate(self.agents):
             infos[agent] = {
                 "formation_error": formation_error,
-                "edge_errors": errors[slot_slices[i]],
+                "edge_errors": errors[i],
+                "edge_mask": masks[i],
                 "singularity_margin": margins[i],
                 "torque_saturation": saturation[i],
                 "applied_torque": torques[joint_slices[i]],
@@ -404,17 +430,6 @@ class FormationEnv(ParallelEnv):
                 "sim_time": sim_time,
             }
         return infos
-
-    def _camera(self) -> tuple[np.ndarray, float, float, float]:
-        bases = np.asarray([arm.base_position for arm in self.arms])
-        target = bases.mean(axis=0)
-        if self.dim == 3:
-            target = target + np.array([0.0, 0.0, -0.5 * max(self.task.reaches)])
-        radius = max(float(np.linalg.norm(b - target)) + r for b, r in zip(bases, self.task.reaches))
-        distance = 1.15 * radius / math.tan(math.radians(25.0))
-        if self.dim == 2:
-            return target, distance, 0.0, -89.9  # top view of the formation plane
-        return target, distance, 45.0, -30.0
 
 
 FormationEnv.__doc__ = FormationEnv.__doc__.replace(

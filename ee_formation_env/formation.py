@@ -58,6 +58,7 @@ class FormationGraph:
             raise ValueError(f"edges: duplicate edge (in either direction) in {edge_array.tolist()}")
         self.n_agents = int(n_agents)
         self.edges = edge_array.astype(np.int64)
+        self._tails, self._heads = self.edges[:, 0].copy(), self.edges[:, 1].copy()  # contiguous, for indexing
         self.n_edges = len(self.edges)
         self.incidence = np.zeros((self.n_agents, self.n_edges))
         self.incidence[self.edges[:, 0], np.arange(self.n_edges)] = 1.0
@@ -87,7 +88,7 @@ class FormationGraph:
 
     def edge_vectors(self, positions: np.ndarray) -> np.ndarray:
         """``z_k = x_tail - x_head`` for every edge, shape (n_edges, dim), from (n_agents, dim) positions."""
-        return positions[self.edges[:, 0]] - positions[self.edges[:, 1]]
+        return positions[self._tails] - positions[self._heads]
 
 
 def rigidity_matrix(graph: FormationGraph, positions: np.ndarray) -> np.ndarray:

@@ -118,6 +118,12 @@ class ObservationBuilder:
         self.slot_starts = slot_bounds[:-1]  # for np.add.reduceat over slot vectors
         self.slot_degrees = np.asarray(degrees, dtype=np.float64)
         self.slot_slices = [slice(int(a), int(b)) for a, b in zip(slot_bounds[:-1], slot_bounds[1:])]
+        # Every real slot's row in the (N * D) padded slot table; agent i's mask of real slots (read-only).
+        self._padded_rows = np.array([i * n_slots + k for i, d in enumerate(degrees) for k in range(d)], dtype=np.intp)
+        self.slot_masks = [np.arange(n_slots) < d for d in degrees]
+        for mask in self.slot_masks:
+            mask.flags.writeable = False
+        self._padded_shape = (len(degrees), n_slots) if w == 1 else (len(degrees), n_slots, w)
         self._slot_sign = np.array([[float(n.sign)] for slots in neighbors for n in slots])  # (S, 1)
         self._slot_rotation = task.base_rotations[slot_agent][:, :m, :m]  # row-vector @ R: world -> own base
 
@@ -167,6 +173,13 @@ class ObservationBuilder:
         errors = self._slot_sign * edge_errors[self.slot_edge]
         rotated = np.stack([z_slots, errors], axis=1) @ self._slot_rotation
         return rotated[:, 0], rotated[:, 1]
+
+    def padded_slot_errors(self, slot_errors: np.ndarray) -> np.ndarray:
+        """The slots' edge errors padded with zeros to the graph's largest degree: (N, D) for distance,
+        (N, D, m) for displacement formations; row i is agent i's (its real slots first)."""
+        padded = np.zeros(self._padded_shape)
+        padded.reshape(-1, *self._padded_shape[2:])[self._padded_rows] = slot_errors
+        return padded
 
     def observations(self, agents: list[str], slot_z: np.ndarray, slot_errors: np.ndarray,
                      q_observed: np.ndarray, dq: np.ndarray) -> dict[str, np.ndarray]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gymnasium
 import pettingzoo
 
-from ee_formation_env.scenario import BUILTIN_SCENARIOS
+from ee_formation_env.scenario import BUILTIN_SCENARIOS, load_scenario
 
 PETTINGZOO_NAMESPACE = "ee_formation"
 GYMNASIUM_NAMESPACE = "EEFormation"
@@ -28,5 +28,7 @@ def register_all() -> None:
             pettingzoo.register("parallel", pettingzoo_id(name), entry_point="ee_formation_env:parallel_env",
                                 kwargs={"scenario": name})
         if gymnasium_id(name) not in gymnasium.registry:
+            # max_episode_steps: the built-in episode length in env steps (the env truncates there too);
+            # gymnasium.make(..., episode_seconds=T) with a longer T also needs max_episode_steps.
             gymnasium.register(gymnasium_id(name), entry_point="ee_formation_env.centralized:CentralizedFormationEnv",
-                               kwargs={"scenario": name})
+                               kwargs={"scenario": name}, max_episode_steps=load_scenario(name).max_steps)

@@ -81,9 +81,13 @@ class Arm:
 
     def read_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Joint positions (rad) and velocities (rad/s) of the chain joints."""
-        states = pybullet.getJointStates(self.body, self.joint_indices, physicsClientId=self.world.client)
-        positions, velocities, _, _ = zip(*states)
+        positions, velocities = self.read_state_lists()
         return np.array(positions), np.array(velocities)
+
+    def read_state_lists(self) -> tuple[list[float], list[float]]:
+        """:meth:`read_state` as Python lists (the env joins every arm's into one array)."""
+        states = pybullet.getJointStates(self.body, self.joint_indices, physicsClientId=self.world.client)
+        return [state[0] for state in states], [state[1] for state in states]
 
     def torque_command(self, torques: list[float]) -> tuple[int, list[int], list[float]]:
         """``(body, joint indices, torques N m)``: what :meth:`PhysicsWorld.step_with_torques` sends before
@@ -130,9 +134,15 @@ class ArmSet:
         commands = [arm.torque_command(values[joints]) for arm, joints in zip(self.arms, self.joint_slices)]
         self.world.step_with_torques(commands, physics_steps)
 
-    def read_states(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Each arm's joint positions (rad) and velocities (rad/s)."""
-        return [arm.read_state() for arm in self.arms]
+    def read_states(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every arm's joint positions (rad) and velocities (rad/s), as flat vectors (arm i's: ``joint_slices[i]``)."""
+        positions: list[float] = []
+        velocities: list[float] = []
+        for arm in self.arms:
+            q, dq = arm.read_state_lists()
+            positions += q
+            velocities += dq
+        return np.array(positions), np.array(velocities)
 
     def contacts_per_arm(self) -> list[int]:
         """Contact points of each arm with other arms (contacts with itself do not count)."""

@@ -2,7 +2,8 @@
 
 Each agent of each env is one slot of the VecEnv (``num_envs = n_envs * n_agents``), acting on its own
 local observation: decentralized execution with parameter sharing. Written for this project rather than
-taken from SuperSuit 3.11, which gets these wrong (FACTS.md, section 3), and each is tested:
+taken from SuperSuit 3.11, which gets these wrong (``docs/physics.md``, "SuperSuit and SB3: why the project
+has its own VecEnv"), and each is tested:
 
 - timeouts bootstrap: a truncated episode sets ``info["TimeLimit.truncated"]`` and
   ``info["terminal_observation"]``, a terminated one does not claim truncation;

@@ -265,7 +265,7 @@ def _planar_square(formation: str, yaws: list[float] | None = None) -> dict[str,
 _SPATIAL_BASES = [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.0]]
 # The paper's printed 3D incidence matrix is not an incidence matrix (column 3 repeats edge 1-3,
 # column 5 has no tail, column 6 has three entries); the tetrahedron needs all six edges of K4.
-# Kept: columns 1, 2, 4 (1-2, 1-3, 1-4); repaired: 3-4, 2-4, 2-3. See README, "Deviations".
+# Kept: columns 1, 2, 4 (1-2, 1-3, 1-4); repaired: 3-4, 2-4, 2-3. See docs/physics.md, "The paper's 3D incidence matrix".
 _SPATIAL_EDGES = [[0, 1], [0, 2], [2, 3], [0, 3], [1, 3], [1, 2]]
 _TETRA_HALF = 0.4 / (2 * math.sqrt(2))  # a regular tetrahedron of side 0.4 m inscribed in a cube
 

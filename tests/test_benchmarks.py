@@ -47,7 +47,17 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
             assert math.isfinite(row[key]) and row[key] > 0, (row["case"], key)
     raw = [row for row in rows if row["section"] == "raw_floor" and "stepSimulation" in row["case"]]
     assert {row["scenario"] for row in raw} == {"planar_square", "spatial_tetrahedron"}
-    assert all(row["ratio_to_raw"] == 1.0 for row in raw)
+    # Every other timed row: its physics rate from its own best repeat, and ratio_to_raw = that rate over the
+    # raw floor of the same bodies measured in the same run (the scaling rows carry their own floor).
+    raw_rate = {row["scenario"]: row["physics_steps_per_s"] for row in raw}
+    timed = [row for row in rows if not row.get("skipped") and row["section"] != "reset" and row not in raw]
+    assert {row["section"] for row in timed} >= {"raw_floor", "env_step", "closed_loop", "scaling"}
+    for row in timed:
+        assert row["best_seconds"] == pytest.approx(min(row["seconds"]), abs=1e-6), row["case"]
+        assert row["physics_steps_per_s"] == pytest.approx(
+            row["env_steps"] * row["frame_skip"] / row["best_seconds"], rel=1e-12), row["case"]
+        floor = row["raw_physics_steps_per_s"] if row["section"] == "scaling" else raw_rate[row["scenario"]]
+        assert row["ratio_to_raw"] == pytest.approx(row["physics_steps_per_s"] / floor, rel=1e-12), row["case"]
     env_steps = {(row["scenario"], row["frame_skip"]) for row in rows if row["section"] == "env_step"}
     assert env_steps == {("planar_square", 1), ("planar_square", 10), ("spatial_tetrahedron", 1),
                          ("spatial_tetrahedron", 5)}

@@ -15,7 +15,7 @@ IDS = ["EEFormation/PlanarSquare-v0", "EEFormation/SpatialTetrahedron-v0"]
 
 @pytest.mark.parametrize("gym_id", IDS)
 def test_check_env(closer, gym_id):
-    # The render check opens render_mode="human" (a GUI) on this headless machine: rgb_array is tested below.
+    # Short episodes; the render check with default arguments is in test_checkers.py, rgb_array below.
     env = closer(gymnasium.make(gym_id, episode_seconds=0.2))
     check_env(env.unwrapped, skip_render_check=True)
 

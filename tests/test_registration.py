@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import warnings
 
 import gymnasium
@@ -77,3 +80,28 @@ def test_aec_entry_points(closer):
         wrapped.step(None if termination or truncation else np.zeros(2, np.float32))
         steps += 1
     assert steps == 4 * 10 + 4  # 10 cycles of 4 agents, then each agent's final None step
+
+
+@pytest.mark.parametrize("name", sorted(BUILTIN_SCENARIOS))
+def test_gymnasium_max_episode_steps_is_the_episode_length(name):
+    assert gymnasium.spec(gymnasium_id(name)).max_episode_steps == ee_formation_env.load_scenario(name).max_steps
+
+
+def test_time_limit_and_env_truncate_on_the_same_step(closer):
+    env = closer(gymnasium.make("EEFormation/PlanarSquare-v0", max_episode_steps=5, episode_seconds=0.05))
+    env.reset(seed=0)
+    for step in range(1, 6):
+        _, _, terminated, truncated, _ = env.step(np.zeros(env.action_space.shape, np.float32))
+        assert truncated == (step == 5) and not terminated
+
+
+def test_gymnasium_make_with_module_prefix_needs_no_import():
+    code = ("import gymnasium\n"
+            "env = gymnasium.make('ee_formation_env:EEFormation/PlanarSquare-v0')\n"
+            "print(env.spec.id, env.spec.max_episode_steps)\n"
+            "env.close()\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "PYTHONPATH": root})
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split()[-2:] == ["EEFormation/PlanarSquare-v0", "3000"]

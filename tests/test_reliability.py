@@ -166,3 +166,27 @@ def test_same_seed_is_bit_identical_in_another_process_and_after_other_history(s
         for _ in range(10):
             env.step({a: np.full(env.action_space(a).shape, 0.3) for a in env.agents})
         assert rollout_digest(env) == other_process
+
+
+# ---------------------------------------------------------------------------------------- interpreter exit
+_LEFT_OPEN_AT_EXIT = """
+import sys
+sys.path.insert(0, {root!r})
+import gymnasium
+import ee_formation_env
+parallel = ee_formation_env.parallel_env("planar_square")
+parallel.reset(seed=0)
+centralized = gymnasium.make("EEFormation/PlanarSquare-v0")
+centralized.reset(seed=0)
+# Held by module globals, the envs are collected late at exit, after pybullet's own globals are cleared.
+ee_formation_env._left_open = parallel
+gymnasium._left_open = centralized
+"""
+
+
+def test_env_left_open_at_interpreter_exit_prints_nothing():
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    finished = subprocess.run([sys.executable, "-c", _LEFT_OPEN_AT_EXIT.format(root=root)], capture_output=True,
+                              text=True, timeout=120)
+    assert finished.returncode == 0, finished.stderr
+    assert "Exception ignored" not in finished.stderr, finished.stderr

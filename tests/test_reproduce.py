@@ -6,11 +6,20 @@ import csv
 import json
 from pathlib import Path
 
+import matplotlib.image
 import numpy as np
 
 from baselines.reproduce import main
 
-PLANAR_FIGURES = ("planar_trajectories", "planar_edge_errors", "planar_estimates", "planar_joints")
+# Pixel size (width, height) of each planar figure: its figsize in inches x DPI (100), two preset columns.
+PLANAR_FIGURES = {"planar_trajectories": (1000, 460), "planar_edge_errors": (1100, 650),
+                  "planar_estimates": (1100, 900), "planar_joints": (1100, 650)}
+
+
+def _read_png(path: Path) -> np.ndarray:
+    """The decoded image (height, width, channels), floats in [0, 1]; fails if the file is not a PNG."""
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", path
+    return matplotlib.image.imread(path)
 
 
 def test_quick_planar_reproduction(tmp_path: Path) -> None:
@@ -39,8 +48,13 @@ def test_quick_planar_reproduction(tmp_path: Path) -> None:
         assert np.all(np.isfinite(body))
         assert np.ptp(body[:, header.index("q0_0")]) > 0  # the arms moved
 
-    for name in PLANAR_FIGURES:
-        for folder in (out, figures):
-            path = folder / f"{name}.png"
-            assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-            assert 10_000 < path.stat().st_size < 200_000
+    for name, (width, height) in PLANAR_FIGURES.items():
+        images = [_read_png(folder / f"{name}.png") for folder in (out, figures)]
+        np.testing.assert_array_equal(images[0], images[1])  # the same figure in both places
+        image = images[0]
+        assert image.shape[:2] == (height, width), name  # figsize (inches) x DPI, two presets side by side
+        rgb = image[..., :3]
+        drawn = np.any(rgb < 0.9, axis=-1)  # anything visibly darker than the white background
+        assert 0.01 < drawn.mean() < 0.5, name  # axes, text and curves, not a blank or a filled canvas
+        colours = {tuple(pixel) for pixel in np.round(rgb[drawn] * 8).astype(int)}
+        assert len(colours) >= 10, name  # coloured curves, not only black axes and text

@@ -48,7 +48,7 @@ def test_planar_square_is_the_papers_set_up():
 
 
 def test_planar_square_initial_end_effectors(make_env):
-    """FACTS: the paper's initial q put the end-effectors at (2.25, 1.299), (4.701, 2.25), (3.75, 4.701), (1.299, 3.75)."""
+    """The paper's initial q put the end-effectors at (2.25, 1.299), (4.701, 2.25), (3.75, 4.701), (1.299, 3.75)."""
     for name in ("planar_square", "planar_square_rotated"):  # rotated bases compensate q1: same positions
         env = make_env(name, initial_q_noise=0.0)
         env.reset(seed=0)

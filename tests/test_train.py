@@ -69,3 +69,12 @@ def test_rllib_smoke_run(tmp_path):
     comparison = _comparison(run_dir)
     assert "learned" in comparison["results"]
     assert (run_dir / "rllib_module.pt").is_file()
+
+
+def test_progress_total_is_what_sb3_collects():
+    from types import SimpleNamespace
+
+    # PPO collects whole rollouts of n_steps x num_envs agent steps; SAC whole vec-env steps.
+    assert train._collected_steps(3000, SimpleNamespace(n_steps=256), 4) == 3072
+    assert train._collected_steps(2048, SimpleNamespace(n_steps=256), 4) == 2048
+    assert train._collected_steps(3001, SimpleNamespace(), 4) == 3004

@@ -44,7 +44,7 @@ def test_printed_law_with_paper_gains_converges_on_3m_square():
 
 
 def test_printed_law_stalls_on_4m_square_and_projection_fixes_it():
-    """Far from the target the printed law collapses a_hat to its spurious equilibrium 0."""
+    """Far from the target the printed law collapses a_hat to its spurious equilibrium 0 (docs/physics.md)."""
     # planar_square's own tuned gains on the 4.0 m square (a shape override alone would derive new ones)
     kwargs = dict(shape=_square(4.0), controller_gains=builtin_scenario("planar_square")["controller_gains"])
     printed, printed_errors, _, printed_estimates = _run(
