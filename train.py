@@ -1,13 +1,15 @@
 """Train a shared formation policy and compare it with the reference controllers on the same metrics.
 
-    python train.py                                   # default: PPO on planar_square, ~10 min on 2 cores
-    python train.py --mode residual --total-timesteps 400000
+    python train.py                                   # default: residual PPO on planar_square, 6-14 min on 2 cores
+    python train.py --mode torque                     # the policy outputs the torques itself
     python train.py --backend rllib --total-timesteps 20000
     python train.py --eval-only runs/<name>           # re-evaluate a saved run
 
 One policy is shared by every agent, each acting on its own local observation (decentralized execution).
-``--mode torque``: the policy outputs normalized joint torques. ``--mode residual``: its output, scaled by
-``--residual-scale``, is added to a reference controller's action (``--reference``).
+``--mode residual`` (default): the policy's output, scaled by ``--residual-scale``, is added to a reference
+controller's action (``--reference``); rewards are scaled by ``1 - correction_penalty * mean(residual^2)``.
+``--mode torque``: the policy outputs normalized joint torques. The training design (episode length, start
+noise, PPO settings) is in README, "Training".
 
 Every run writes to ``--out`` (default ``runs/<name>``): ``config.json``, the model and its observation
 normalization, TensorBoard logs, checkpoints, ``learning_curve.csv``, and the comparison against every
@@ -38,43 +40,77 @@ from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
 EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
+# Training design (README, "Training"): short episodes give many starts per budget (the references settle in
+# ~1 s); torque mode also widens the start distribution. The comparison runs the scenario's own episodes (30 s)
+# and start noise.
+DEFAULT_TIMESTEPS = {"residual": 600_000, "torque": 2_500_000}
+TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 5.0}
+TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.3}  # rad; None: the scenario's
+REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
 
 # ------------------------------------------------------------------------------------------ arguments
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="train.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="planar_square", help="built-in name or YAML/JSON scenario file")
-    parser.add_argument("--mode", choices=("torque", "residual"), default="torque")
+    parser.add_argument("--mode", choices=("torque", "residual"), default="residual",
+                        help="residual (default): learn a correction on top of --reference; torque: learn torques")
     parser.add_argument("--reference", default="adaptive_jacobian",
                         choices=baselines.MODEL_BASED_POLICIES,
                         help="reference controller of --mode residual")
-    parser.add_argument("--residual-scale", type=float, default=0.1, help="residual action scale (0, 1]")
+    parser.add_argument("--residual-scale", type=float, default=0.3, help="residual action scale (0, 1]")
+    parser.add_argument("--correction-penalty", type=float, default=0.5,
+                        help="residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]")
+    parser.add_argument("--residual-gate", action=argparse.BooleanOptionalAction, default=True,
+                        help="residual mode: scale the correction by min(1, the agent's error in tolerances), so "
+                             "that it fades out at the goal (default on)")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
-    parser.add_argument("--total-timesteps", type=int, default=600_000, help="agent steps (all agents count)")
-    parser.add_argument("--n-envs", type=int, default=2, help="parallel envs (each with all its agents)")
+    parser.add_argument("--total-timesteps", type=int, default=None,
+                        help=f"agent steps (all agents count); default {DEFAULT_TIMESTEPS}")
+    parser.add_argument("--n-envs", type=int, default=8, help="parallel envs (each with all its agents)")
     parser.add_argument("--n-workers", type=int, default=0,
                         help="worker processes for the envs (0 = step them in this process, the fastest for "
                              "the planar scenarios; use 2 on 2 cores for costlier scenarios)")
     parser.add_argument("--train-episode-seconds", type=float, default=None,
-                        help="episode length while training, s (default: the scenario's)")
+                        help=f"episode length while training, s (default {TRAIN_EPISODE_SECONDS})")
+    parser.add_argument("--train-initial-q-noise", type=float, default=None,
+                        help="half-width of the uniform noise on the initial joint positions while training, rad "
+                             f"(default {TRAIN_INITIAL_Q_NOISE}, None: the scenario's; evaluation uses the scenario's)")
+    parser.add_argument("--gamma", type=float, default=0.99, help="discount per control step")
+    parser.add_argument("--log-std-init", type=float, default=-1.0,
+                        help="initial log standard deviation of the Gaussian policy (ppo)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
     parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--eval-workers", type=int, default=2,
+                        help="processes for the evaluation episodes (0 = run them in this process)")
     parser.add_argument("--eval-seconds", type=float, default=None,
                         help="episode length for the comparison, s (default: the scenario's)")
     parser.add_argument("--address", default=None, help="rllib: address of an existing Ray cluster")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
+    if args.total_timesteps is None:
+        args.total_timesteps = DEFAULT_TIMESTEPS[args.mode]
+    if args.train_episode_seconds is None:
+        args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
+    if args.train_initial_q_noise is None:
+        args.train_initial_q_noise = TRAIN_INITIAL_Q_NOISE[args.mode]
     if args.total_timesteps < 1 or args.n_envs < 1 or args.eval_episodes < 1:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
-    if args.n_workers < 0:
-        parser.error("--n-workers must be >= 0")
+    if args.n_workers < 0 or args.eval_workers < 0:
+        parser.error("--n-workers and --eval-workers must be >= 0")
     if args.backend == "rllib" and args.algo != "ppo":
         parser.error("--backend rllib supports --algo ppo only")
+    if not 0 <= args.correction_penalty <= 1:
+        parser.error("--correction-penalty: expected a value in [0, 1]")
+    if not 0 < args.gamma <= 1:
+        parser.error("--gamma: expected a value in (0, 1]")
+    if (args.train_initial_q_noise is not None and args.train_initial_q_noise < 0) or args.train_episode_seconds <= 0:
+        parser.error("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
     return args
 
 
@@ -101,14 +137,20 @@ def run_name(args: argparse.Namespace) -> str:
     return f"{scenario}-{args.mode}-{args.algo}-{args.backend}-seed{args.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def training_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    return {} if args.train_episode_seconds is None else {"episode_seconds": args.train_episode_seconds}
+def training_overrides(args: argparse.Namespace | dict[str, Any]) -> dict[str, Any]:
+    """Scenario overrides of the training env (from parsed arguments or a saved config): episode length
+    and start randomization."""
+    settings = vars(args) if isinstance(args, argparse.Namespace) else args
+    overrides = {"episode_seconds": settings["train_episode_seconds"]}
+    if settings.get("train_initial_q_noise") is not None:
+        overrides["initial_q_noise"] = settings["train_initial_q_noise"]
+    return overrides
 
 
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:
     """A picklable factory of the env the learner steps."""
     return functools.partial(make_training_env, args.scenario, overrides, args.mode, args.reference,
-                             args.residual_scale)
+                             args.residual_scale, args.correction_penalty, args.residual_gate)
 
 
 # ------------------------------------------------------------------------------------------ learned policy
@@ -157,21 +199,49 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
         from stable_baselines3 import PPO, SAC
 
         model = (PPO if config["algo"] == "ppo" else SAC).load(run_dir / "model.zip", device="cpu")
-        predict = lambda obs: model.predict(obs, deterministic=True)[0]  # noqa: E731
+        predict = _numpy_actor(model) if config["algo"] == "ppo" else None
+        if predict is None:
+            predict = lambda obs: model.predict(obs, deterministic=True)[0]  # noqa: E731
     else:
         predict = _rllib_predictor(run_dir)
     learned = LearnedPolicy(predict, normalizer)
     if config["mode"] == "torque":
         return {agent: learned for agent in env.possible_agents}
     references = baselines.make_policies(config["reference"], env)
-    return {agent: ResidualPolicy(references[agent], learned, config["residual_scale"])
+    gate = config.get("residual_gate", False)
+    return {agent: ResidualPolicy(references[agent], learned, config["residual_scale"],
+                                  env.observation_layout(agent) if gate else None)
             for agent in env.possible_agents}
 
 
+def _numpy_actor(model: Any) -> Callable[[np.ndarray], np.ndarray] | None:
+    """PPO's deterministic action (the Gaussian's mean) as numpy matrix products, or None if the policy is not
+    a plain MLP of ``Linear`` and ``Tanh`` layers. One agent at a time, as the evaluation calls it, this is
+    ~20x cheaper than ``model.predict``, whose per-call overhead would dominate a 30 s evaluation."""
+    import torch
+
+    policy = model.policy
+    layers = [*policy.mlp_extractor.policy_net, policy.action_net]
+    if not isinstance(policy.features_extractor.flatten, torch.nn.Flatten) or not all(
+            isinstance(layer, (torch.nn.Linear, torch.nn.Tanh)) for layer in layers):
+        return None
+    steps = [(layer.weight.detach().numpy().astype(np.float64).T, layer.bias.detach().numpy().astype(np.float64))
+             if isinstance(layer, torch.nn.Linear) else None for layer in layers]
+
+    def predict(observation: np.ndarray) -> np.ndarray:
+        hidden = np.asarray(observation, dtype=np.float64)
+        for step in steps:
+            hidden = np.tanh(hidden) if step is None else hidden @ step[0] + step[1]
+        return hidden
+
+    return predict
+
+
 # ------------------------------------------------------------------------------------------ sb3
-def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
+def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
+    """The SB3 model (with its normalized, monitored VecEnv as ``model.get_env()``) that ``train_sb3`` trains;
+    ``out_dir`` None: no monitor file and no TensorBoard logs (the throughput benchmark)."""
     from stable_baselines3 import PPO, SAC
-    from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     from ee_formation_env.sb3 import SharedPolicyVecEnv
@@ -181,20 +251,28 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
     torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
     factory = env_factory(args, training_overrides(args))
     venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers)
-    venv = VecMonitor(venv, filename=str(out_dir / "monitor.csv"))
-    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=0.99)
-    # A residual policy should start close to "no correction": a smaller initial action noise.
+    venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / "monitor.csv"))
+    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
+    # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
+    # policy starts far from "no correction" and a torque policy saturates its joints half of the time.
     policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64])
-    if args.mode == "residual":
-        policy_kwargs["log_std_init"] = -1.0
-    common = dict(seed=args.seed, verbose=0, tensorboard_log=str(out_dir / "tensorboard"), device="cpu",
-                  policy_kwargs=policy_kwargs)
     if args.algo == "ppo":
-        model = PPO("MlpPolicy", venv, n_steps=256, batch_size=512, n_epochs=5, learning_rate=3e-4,
-                    gamma=0.99, gae_lambda=0.95, clip_range=0.2, **common)
-    else:
-        model = SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
-                    learning_starts=2_000, gamma=0.99, train_freq=1, gradient_steps=1, **common)
+        policy_kwargs["log_std_init"] = args.log_std_init
+    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
+                  tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
+    if args.algo == "ppo":
+        # 128 steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults.
+        return PPO("MlpPolicy", venv, n_steps=128, batch_size=1024, n_epochs=5, learning_rate=3e-4,
+                   gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
+    return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
+               learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
+
+
+def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    model = build_sb3_model(args, out_dir)
+    venv = model.get_env()
     checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
                                      save_path=str(out_dir / "checkpoints"), name_prefix="model")
     callbacks = [checkpoints]
@@ -202,7 +280,9 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
         callbacks.append(_progress_callback(_collected_steps(args.total_timesteps, model, venv.num_envs)))
     started = time.time()
     model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
-    (out_dir / "timing.json").write_text(json.dumps({"train_seconds": time.time() - started}))
+    seconds = time.time() - started
+    (out_dir / "timing.json").write_text(json.dumps({"train_seconds": seconds, "agent_steps": model.num_timesteps,
+                                                     "agent_steps_per_s": model.num_timesteps / seconds}))
     model.save(out_dir / "model.zip")
     ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
         out_dir / "obs_normalizer.pkl")
@@ -273,7 +353,7 @@ def train_rllib(args: argparse.Namespace, out_dir: Path) -> None:
                      rollout_fragment_length="auto")
         .multi_agent(policies={"shared"}, policy_mapping_fn=lambda agent_id, *a, **k: "shared")
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs={"shared": RLModuleSpec()}))
-        .training(train_batch_size_per_learner=2048, minibatch_size=256, num_epochs=5, lr=3e-4, gamma=0.99)
+        .training(train_batch_size_per_learner=2048, minibatch_size=256, num_epochs=5, lr=3e-4, gamma=args.gamma)
         .debugging(seed=args.seed)
     )
     algorithm = config.build_algo() if hasattr(config, "build_algo") else config.build()
@@ -323,31 +403,52 @@ def _rllib_predictor(run_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
 
 # ------------------------------------------------------------------------------------------ comparison
 def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> dict[str, Any]:
-    """Evaluate the learned policy and every reference policy on the same held-out seeds."""
+    """Evaluate the learned policy and every reference policy on the same held-out seeds.
+
+    Episodes run in ``--eval-workers`` processes (each its own env), or in this one with 0; an episode's
+    result does not depend on where it runs (same seed, same episode, bit for bit).
+    """
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
-    results: dict[str, Any] = {}
-    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
-        error_unit = "m²" if env.formation.kind == "distance" else "m"
-        candidates = {"learned": lambda: learned_policies(run_dir, env, config)}
-        for name in baselines.POLICIES:
-            candidates[name] = functools.partial(baselines.make_policies, name, env)
-        bar = _evaluation_progress(len(candidates) * len(seeds), args.no_progress)
-        for name, build in candidates.items():
-            policies = build()
-            episodes = []
-            for seed in seeds:
-                if bar is not None:
-                    bar.set_postfix_str(name)
-                episodes.append(run_episode(env, policies, seed=seed))
-                if bar is not None:
-                    bar.update(1)
-            if bar is None:
-                print(f"evaluated {name} on {len(seeds)} seeds", flush=True)
-            results[name] = summarize(episodes)
-            results[name]["per_episode"] = [e.as_dict() for e in episodes]
+    names = ["learned", *baselines.POLICIES]
+    jobs = [(name, seed) for name in names for seed in seeds]
+    episodes: dict[tuple[str, int], Any] = {}
+    setup = (config["scenario"], overrides, str(run_dir), config)
+    bar = _evaluation_progress(len(jobs), args.no_progress)
+
+    def done(job: tuple[str, int], metrics: Any) -> None:
+        episodes[job] = metrics
         if bar is not None:
-            bar.close()
+            bar.set_postfix_str(job[0])
+            bar.update(1)
+
+    if args.eval_workers == 0:
+        _evaluation_worker_setup(*setup)
+        try:
+            for job in jobs:
+                done(job, _evaluate_episode(*job))
+        finally:
+            _evaluation_worker_teardown()
+    else:
+        import concurrent.futures
+        import multiprocessing
+
+        with concurrent.futures.ProcessPoolExecutor(
+                args.eval_workers, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_evaluation_worker_setup, initargs=setup) as pool:
+            futures = {pool.submit(_evaluate_episode, *job): job for job in jobs}
+            for future in concurrent.futures.as_completed(futures):
+                done(futures[future], future.result())
+    if bar is not None:
+        bar.close()
+    else:
+        print(f"evaluated {len(names)} policies on {len(seeds)} seeds", flush=True)
+    error_unit = "m²" if ee_formation_env.load_scenario(config["scenario"]).formation == "distance" else "m"
+    results: dict[str, Any] = {}
+    for name in names:
+        runs = [episodes[(name, seed)] for seed in seeds]
+        results[name] = summarize(runs)
+        results[name]["per_episode"] = [e.as_dict() for e in runs]
     label = f"learned ({config['mode']})"
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results}
     (run_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
@@ -357,6 +458,45 @@ def compare(args: argparse.Namespace, config: dict[str, Any], run_dir: Path) -> 
     _plot(run_dir, results, label, error_unit)
     print(table)
     return comparison
+
+
+_EVALUATION: dict[str, Any] = {}  # one evaluation worker's env and policies
+
+
+def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
+    _EVALUATION.clear()
+    _EVALUATION.update(env=ee_formation_env.parallel_env(scenario, **overrides), run_dir=Path(run_dir), config=config,
+                       policies={})
+
+
+def _evaluation_worker_teardown() -> None:
+    _EVALUATION["env"].close()
+    _EVALUATION.clear()
+
+
+def _evaluate_episode(name: str, seed: int) -> Any:
+    """One held-out episode of policy ``name`` ("learned" or a reference) in this worker's env."""
+    env, policies = _EVALUATION["env"], _EVALUATION["policies"]
+    if name not in policies:
+        policies[name] = (learned_policies(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
+                          else baselines.make_policies(name, env))
+    return run_episode(env, policies[name], seed=seed)
+
+
+def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
+    """Mean per-agent episode return of each reference policy in the *training* env (its episode length and
+    start noise, torque mode), on held-out seeds: the lines the learning curve is drawn against.
+
+    In residual mode the reference alone is the learner's zero correction, whose return is the same.
+    """
+    overrides = training_overrides(config)
+    seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
+    returns = {}
+    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
+        for name in baselines.POLICIES:
+            policies = baselines.make_policies(name, env)
+            returns[name] = float(np.mean([run_episode(env, policies, seed=seed).mean_return for seed in seeds]))
+    return returns
 
 
 def _evaluation_progress(total: int, disabled: bool) -> Any:
@@ -389,9 +529,14 @@ def _plot(run_dir: Path, results: dict[str, Any], label: str, error_unit: str) -
             window = max(len(curve) // 20, 5)
             axes[0].plot(curve[window - 1:, 0], np.convolve(curve[:, 1], np.ones(window) / window, mode="valid"),
                          label=f"mean of {window}")
-            axes[0].legend(loc="lower right", fontsize=8)
-    axes[0].set(title="learning curve", xlabel="agent steps",
-                ylabel="episode return per agent\n(sum of step rewards, each in [0, 1])")
+    references_path = run_dir / "reference_returns.json"
+    if references_path.is_file():  # each reference policy's return in the training episodes
+        for (name, value), color in zip(json.loads(references_path.read_text()).items(), plt.cm.Dark2.colors):
+            axes[0].axhline(value, linestyle="--", linewidth=1, color=color, label=name)
+    if curve.size or references_path.is_file():
+        axes[0].legend(loc="best", fontsize=7)
+    axes[0].set(title="learning curve (training episodes)", xlabel="agent steps",
+                ylabel="episode return per agent\n(sum of step rewards, each in [0, 2])")
     axes[0].ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
 
     errors = np.array([results[n]["final_formation_error"] for n in names], dtype=np.float64)
@@ -436,6 +581,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         compare(args, config, run_dir)
         return 0
 
+    started = time.time()
     ee_formation_env.load_scenario(args.scenario)  # fail fast on a bad scenario, before any process starts
     require_training_extras(args)
     run_dir = Path(args.out) if args.out else Path("runs") / run_name(args)
@@ -447,7 +593,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"training {args.algo} ({args.backend}, mode {args.mode}) on {args.scenario} for {args.total_timesteps} "
           f"agent steps -> {run_dir}")
     (train_sb3 if args.backend == "sb3" else train_rllib)(args, run_dir)
+    (run_dir / "reference_returns.json").write_text(json.dumps(reference_returns(config), indent=2))
     compare(args, config, run_dir)
+    timing = json.loads((run_dir / "timing.json").read_text())
+    timing["total_seconds"] = time.time() - started  # training, reference lines and evaluation
+    (run_dir / "timing.json").write_text(json.dumps(timing))
     print(f"wrote {run_dir}/comparison.md, comparison.json, comparison.png")
     return 0
 

@@ -14,6 +14,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 import numpy as np
 
 from ee_formation_env.env import FormationEnv
+from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
 
 
 class Policy(Protocol):
@@ -22,20 +23,20 @@ class Policy(Protocol):
     def __call__(self, observation: np.ndarray) -> np.ndarray: ...
 
 
-DEFAULT_POSITION_TOLERANCE = 0.01  # m: the edge-length accuracy that counts as "in formation"
 DEFAULT_HOLD_SECONDS = 1.0  # s: the formation must be held at least this long before the episode ends
 
 
 def formation_tolerance(env: FormationEnv, position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> float:
     """Formation-error threshold (formation units) equivalent to an edge accuracy ``position_tolerance`` (m).
 
-    Distance formations: ``e = |z|^2 - d^2 ~ 2 d delta``, so the threshold is ``2 rms(d*) delta`` (m^2);
-    displacement formations: ``delta`` (m).
+    The formation error is the RMS of ``|e_k|``; the threshold is the RMS of the per-edge tolerances of the
+    reward (:func:`ee_formation_env.reward.edge_tolerances`): ``2 rms(d*) delta`` (m^2) for distance
+    formations (``e = |z|^2 - d^2 ~ 2 d delta``), ``delta`` (m) for displacement formations. So every edge
+    within its tolerance (the reward's in-tolerance term on every agent) implies success's threshold.
     """
     formation = env.formation
-    if formation.kind == "distance":
-        return 2.0 * float(np.sqrt(np.mean(formation.desired**2))) * position_tolerance
-    return position_tolerance
+    lengths = np.linalg.norm(formation.desired_vectors, axis=1)
+    return float(np.sqrt(np.mean(edge_tolerances(formation.kind, lengths, position_tolerance) ** 2)))
 
 
 @dataclass

@@ -18,6 +18,8 @@ Sections:
 - ``closed_loop``: ``env.step`` plus the ``adaptive_jacobian`` controller on every agent;
 - ``sb3_rollout``: ``PPO.collect_rollouts`` through :class:`~ee_formation_env.sb3.SharedPolicyVecEnv`
   with 2 worker processes (and in-process, for comparison);
+- ``sb3_training``: ``model.learn`` of ``train.py``'s default configuration (the same model, envs and PPO
+  settings, built by ``train.build_sb3_model``): training throughput in agent steps/s, updates included;
 - ``scaling``: 2, 4, 8 and 16 arms on a minimally rigid graph (:mod:`benchmarks.scenarios`), 2-DOF planar
   and 7-DOF spatial arms: raw floor, ``env.step`` at ``frame_skip`` 1, and reset cost;
 - ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios.
@@ -51,8 +53,10 @@ if __package__ in (None, ""):  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.scenarios import planar_ring, spatial_ring  # noqa: E402
 
-SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "scaling", "reset")
+SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset")
 ARM_COUNTS = (2, 4, 8, 16)
+# train.py runs whose training throughput is measured: the default run first (the target applies to it).
+TRAINING_CASES = ((), ("--n-workers", "2"), ("--mode", "torque"), ("--mode", "torque", "--n-workers", "2"))
 DEFAULT_JSON = "results/benchmarks.json"
 
 
@@ -64,15 +68,16 @@ class Budget:
     closed_loop_seconds: float  # simulated seconds of closed loop per repeat (planar_square)
     closed_loop_seconds_spatial: float
     sb3_steps: int  # n_steps of the PPO rollout (per slot)
+    training_updates: int  # PPO updates of train.py's default run timed per repeat
     resets: int
     repeats: int
     scaling_repeats: int
 
 
 FULL = Budget(physics_steps=10_000, closed_loop_seconds=30.0,
-              closed_loop_seconds_spatial=10.0, sb3_steps=512, resets=200, repeats=5, scaling_repeats=3)
+              closed_loop_seconds_spatial=10.0, sb3_steps=512, training_updates=4, resets=200, repeats=5, scaling_repeats=3)
 QUICK = Budget(physics_steps=200, closed_loop_seconds=0.5,
-               closed_loop_seconds_spatial=0.2, sb3_steps=16, resets=5, repeats=1, scaling_repeats=1)
+               closed_loop_seconds_spatial=0.2, sb3_steps=16, training_updates=1, resets=5, repeats=1, scaling_repeats=1)
 
 
 # ---------------------------------------------------------------------------------------------- timers
@@ -283,6 +288,36 @@ def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> li
     return rows
 
 
+def bench_training(budget: Budget, extra_args: Sequence[str] = ()) -> list[dict[str, Any]]:
+    """Section ``sb3_training``: agent steps/s of ``train.py``'s default run (``extra_args`` change it),
+    PPO updates included; the first update (model warm-up) is not timed."""
+    try:
+        import train
+        from stable_baselines3.common.utils import configure_logger  # noqa: F401 (the "train" extra)
+    except ImportError as error:
+        return [{"section": "sb3_training", "case": f"skipped ({error})", "skipped": True}]
+    args = train.parse_args(["--no-progress", *extra_args])
+    model = train.build_sb3_model(args, None)
+    try:
+        per_update = model.n_steps * model.get_env().num_envs
+        model.learn(total_timesteps=per_update)  # warm-up: first rollout, first update
+
+        def learn() -> float:
+            start = time.perf_counter()
+            model.learn(total_timesteps=budget.training_updates * per_update, reset_num_timesteps=False)
+            return time.perf_counter() - start
+
+        times = interleaved({"learn": learn}, max(1, min(budget.repeats, 3)))["learn"]
+    finally:
+        model.get_env().close()
+    agent_steps = budget.training_updates * per_update
+    description = " ".join(extra_args) or "defaults"
+    return [{"section": "sb3_training", "case": f"train.py ({description}): {args.mode} mode, {args.n_envs} envs, "
+                                                f"{args.n_workers} worker processes",
+             "scenario": args.scenario, "mode": args.mode, "n_envs": args.n_envs, "n_workers": args.n_workers,
+             "agent_steps": agent_steps, "seconds": times, "agent_steps_per_s": agent_steps / min(times)}]
+
+
 def bench_scaling(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
     """Section (e): raw floor, env.step at frame_skip 1 and reset cost versus the number of arms and DOF."""
     rows = []
@@ -353,6 +388,9 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
     for scenario in ("planar_square", "spatial_tetrahedron"):
         reset = find("reset", scenario)
         add(f"reset, 4 arms ({scenario})", reset and reset["reset_ms"], 5.0, False, "ms")
+    training = find("sb3_training", "planar_square")  # the first row: train.py's defaults
+    add("train.py default run: agent steps/s, updates included", training and training["agent_steps_per_s"],
+        8000.0, True, "")
     for family, fit in results.get("scaling_fits", {}).items():
         add(f"scaling {family}: per-arm env.step cost, {max(ARM_COUNTS)} arms / 4 arms", fit["per_arm_cost_ratio"],
             1.25, False, "x")
@@ -367,7 +405,7 @@ def format_tables(results: dict[str, Any]) -> str:
     lines = ["| section | case | physics steps/s | env steps/s | x raw floor | real-time factor | us/env step |",
              "|---|---|---:|---:|---:|---:|---:|"]
     for r in results["rows"]:
-        if r["section"] == "reset" or r.get("skipped"):
+        if r["section"] in ("reset", "sb3_training") or r.get("skipped"):
             continue
         lines.append(f"| {r['section']} | {r['case']} | {_fmt(r['physics_steps_per_s'], ',.0f')} | "
                      f"{_fmt(r['env_steps_per_s'], ',.0f')} | {_fmt(r['ratio_to_raw'], '.2f')} | "
@@ -383,6 +421,10 @@ def format_tables(results: dict[str, Any]) -> str:
         for family, fit in results.get("scaling_fits", {}).items():
             lines.append(f"\n{family}: env.step ~ {fit['intercept_us']:.0f} us + {fit['slope_us_per_arm']:.1f} us per arm "
                          f"(largest deviation from the line {fit['max_relative_residual']:.0%})")
+    training = [r for r in results["rows"] if r["section"] == "sb3_training" and not r.get("skipped")]
+    if training:
+        lines += ["", "| training throughput | agent steps/s |", "|---|---:|"]
+        lines += [f"| {r['case']} | {r['agent_steps_per_s']:,.0f} |" for r in training]
     resets = [r for r in results["rows"] if r["section"] == "reset"]
     if resets:
         lines += ["", "| reset | arms | ms |", "|---|---:|---:|"]
@@ -423,6 +465,10 @@ def run(quick: bool = False, sections: Sequence[str] = SECTIONS, progress: Calla
     if "sb3_rollout" in sections:
         progress("SB3 rollouts: planar_square")
         results["rows"] += bench_sb3("planar_square", budget, raw_rates["planar_square"])
+    if "sb3_training" in sections:
+        for extra_args in TRAINING_CASES[:1] if quick else TRAINING_CASES:  # --quick: the default run only
+            progress(f"SB3 training throughput: train.py {' '.join(extra_args) or '(defaults)'}")
+            results["rows"] += bench_training(budget, extra_args)
     if "scaling" in sections:
         counts = ARM_COUNTS
         progress(f"scaling: {list(counts)} arms, 2 and 7 DOF")

@@ -18,6 +18,7 @@ from ee_formation_env.observation import ObservationBuilder, ObservationLayout, 
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet
 from ee_formation_env.scenario import Scenario, load_scenario
+from ee_formation_env.reward import agent_error_ratios, edge_tolerances, rewards_from_ratios
 from ee_formation_env.task import FormationTask, build_task
 from ee_formation_env.world import PhysicsWorld
 
@@ -59,10 +60,12 @@ class FormationEnv(ParallelEnv):
 
 {observation_table}
 
-    **Reward** of agent ``i``, in [0, 1] (weights in ``scenario.reward``, see :class:`RewardConfig`):
-    ``1 - formation * tanh(mean_k(|e_k| / s_k) / formation_scale) - velocity * tanh(|dq_i| / velocity_scale)
-    - torque * mean(a_i^2)`` over its incident edges (``s_k = d*_k^2`` or ``|z*_k|``: relative edge errors),
-    or the team mean with ``team = True``. Never negative, so ending an episode early never pays.
+    **Reward** of agent ``i`` (:mod:`ee_formation_env.reward`, settings in ``scenario.reward``, see
+    :class:`RewardConfig`): ``formation * clip(log10(c / (x_i + f)) / log10(c / f), 0, 1) + in_tolerance *
+    [all its edges within tolerance]`` (``c = 100``, ``f = 0.1`` by default), with ``x_i`` the mean over its
+    incident edges of ``|e_k| / tol_k`` and ``tol_k`` the edge error of an edge 1 cm (``position_tolerance``)
+    off its length; or the team mean with ``team = True``. In [0, 2]; never negative, so ending an episode
+    early never pays.
 
     **Info** of agent ``i``, numeric and of fixed shape (so that TorchRL and RLlib can stack it):
     ``formation_error`` (RMS over all edges of |e_k|, m^2 or m), ``edge_errors`` (its slots' errors, own
@@ -116,6 +119,9 @@ class FormationEnv(ParallelEnv):
         self.arm_set.reset(list(self.task.initial_q))
         self.world.save_snapshot()
         self._torque_limits_flat = np.concatenate(self.task.torque_limits)
+        self._edge_tolerances = edge_tolerances(self.task.formation.kind,
+                                                np.linalg.norm(self.task.formation.desired_vectors, axis=1),
+                                                self.scenario.reward.position_tolerance)
         continuous = self.arm_set.continuous
         # Continuous joints are observed wrapped to [-pi, pi): None (no joint), True (every joint) or a mask.
         self._wrap = None if not continuous.any() else True if continuous.all() else continuous
@@ -209,7 +215,7 @@ class FormationEnv(ParallelEnv):
 
         observations = self._observer.observations(self.agents, measured.slot_z, measured.slot_errors,
                                                    measured.q_observed, measured.dq)
-        rewards = self._rewards(measured, normalized)
+        rewards = self._rewards(measured)
         infos = self._infos(measured, clipped, contacts, torques)
         ended = measured.fault != 0 or (self.scenario.terminate_on_contact and any(contacts))
         truncated = not ended and self._step_count >= self.scenario.max_steps
@@ -389,18 +395,11 @@ class FormationEnv(ParallelEnv):
                         f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s")
         raise AssertionError("_physics_fault called without a fault")
 
-    def _rewards(self, measured: Measurement, normalized: np.ndarray) -> dict[str, float]:
-        weights = self.scenario.reward
-        observer, arm_set = self._observer, self.arm_set
-        relative = np.sqrt(measured.edge_squares) / self.task.formation.error_scales  # |e_k| / s_k
-        formation = np.add.reduceat(relative[observer.slot_edge], observer.slot_starts) / observer.slot_degrees
-        speed = np.sqrt(np.add.reduceat(measured.dq * measured.dq, arm_set.joint_starts))
-        effort = np.add.reduceat(normalized * normalized, arm_set.joint_starts) / arm_set.joint_counts
-        rewards = 1.0 - (weights.formation * np.tanh(formation / weights.formation_scale)
-                         + weights.velocity * np.tanh(speed / weights.velocity_scale) + weights.torque * effort)
-        if weights.team:
-            rewards[:] = rewards.mean()
-        return dict(zip(self.agents, rewards.tolist()))
+    def _rewards(self, measured: Measurement) -> dict[str, float]:
+        observer = self._observer
+        ratios, within = agent_error_ratios(np.sqrt(measured.edge_squares), self._edge_tolerances,
+                                            observer.slot_edge, observer.slot_starts, observer.slot_degrees)
+        return dict(zip(self.agents, rewards_from_ratios(ratios, within, self.scenario.reward).tolist()))
 
     def _infos(self, measured: Measurement, clipped: np.ndarray, contacts: list[int],
                torques: np.ndarray) -> dict[str, dict[str, Any]]:

@@ -31,6 +31,7 @@ import yaml
 from ee_formation_env.assets import asset_path
 from ee_formation_env.formation import FORMATION_KINDS
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
+from ee_formation_env.reward import RewardConfig, parse_reward
 
 
 @dataclass(frozen=True)
@@ -57,27 +58,6 @@ class ArmConfig:
     base_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
     initial_q: tuple[float, ...] | None = None  # None: all zeros
     robot: str | None = None  # built-in robot name, if the arm was given as one
-
-
-@dataclass(frozen=True)
-class RewardConfig:
-    """Per-agent reward in [0, 1] (1: in formation, still, no torque); weights sum to at most 1.
-
-    ``r_i = 1 - formation * tanh(mean_k(|e_k| / s_k) / formation_scale)
-              - velocity * tanh(|dq_i| / velocity_scale) - torque * mean_j(a_ij^2)``
-
-    over the agent's incident edges k, with ``s_k = d*_k^2`` (distance) or ``|z*_k|`` (displacement), so
-    ``|e_k| / s_k`` is a relative edge error; ``dq_i`` in rad/s; ``a_i`` the normalized action in [-1, 1].
-    The reward never goes negative, so ending an episode early (a physics fault) never pays.
-    With ``team = True`` every agent receives the mean of all agents' rewards.
-    """
-
-    formation: float = 0.6
-    velocity: float = 0.2
-    torque: float = 0.2
-    formation_scale: float = 1.0  # relative edge error at which the formation term reaches tanh(1)
-    velocity_scale: float = 5.0  # rad/s
-    team: bool = False
 
 
 @dataclass(frozen=True)
@@ -425,7 +405,7 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["joint_damping"] = damping if damping == "urdf" else _non_negative("joint_damping", damping)
     kwargs["max_joint_velocity"] = _positive("max_joint_velocity", data.get("max_joint_velocity", _default("max_joint_velocity")))
     kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", _default("singularity_threshold")))
-    kwargs["reward"] = _parse_reward(data.get("reward", {}))
+    kwargs["reward"] = parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
     kwargs["controller_gains"] = _parse_controller_gains(data.get("controller_gains"))
 
@@ -537,34 +517,6 @@ def _parse_torque_limits(value: Any, n_agents: int) -> Any:
         "torque_limits: expected null (URDF efforts), a positive number (N m), a list per joint "
         f"or a list of lists per arm, got {value!r}"
     )
-
-
-def _parse_reward(value: Any) -> RewardConfig:
-    if isinstance(value, RewardConfig):
-        return value
-    if not isinstance(value, Mapping):
-        raise ValueError(f"reward: expected a dict of weights, got {value!r}")
-    allowed = {f.name for f in fields(RewardConfig)}
-    unknown = set(value) - allowed
-    if unknown:
-        raise ValueError(f"reward: unknown key(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
-    parsed: dict[str, Any] = {}
-    for key, weight in value.items():
-        if key == "team":
-            if not isinstance(weight, bool):
-                raise ValueError(f"reward.team: expected true or false, got {weight!r}")
-            parsed[key] = weight
-        elif key.endswith("_scale"):
-            parsed[key] = _positive(f"reward.{key}", weight)
-        else:
-            parsed[key] = _non_negative(f"reward.{key}", weight)
-    config = RewardConfig(**parsed)
-    if config.formation + config.velocity + config.torque > 1.0 + 1e-9:
-        raise ValueError(
-            f"reward: the weights formation + velocity + torque must sum to at most 1 (so that rewards stay in "
-            f"[0, 1]), got {config.formation + config.velocity + config.torque:g}"
-        )
-    return config
 
 
 def _parse_controller_gains(value: Any) -> ControllerGains | None:

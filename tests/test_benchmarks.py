@@ -43,6 +43,10 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
         if row["section"] == "reset":
             assert row["reset_ms"] > 0
             continue
+        if row["section"] == "sb3_training":  # train.py's default run, updates included
+            assert row["mode"] == "residual"
+            assert row["agent_steps_per_s"] == pytest.approx(row["agent_steps"] / min(row["seconds"]), rel=1e-12)
+            continue
         for key in ("physics_steps_per_s", "env_steps_per_s", "real_time_factor", "ratio_to_raw"):
             assert math.isfinite(row[key]) and row[key] > 0, (row["case"], key)
     raw = [row for row in rows if row["section"] == "raw_floor" and "stepSimulation" in row["case"]]
@@ -50,7 +54,8 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
     # Every other timed row: its physics rate from its own best repeat, and ratio_to_raw = that rate over the
     # raw floor of the same bodies measured in the same run (the scaling rows carry their own floor).
     raw_rate = {row["scenario"]: row["physics_steps_per_s"] for row in raw}
-    timed = [row for row in rows if not row.get("skipped") and row["section"] != "reset" and row not in raw]
+    timed = [row for row in rows if not row.get("skipped") and row["section"] not in ("reset", "sb3_training")
+             and row not in raw]
     assert {row["section"] for row in timed} >= {"raw_floor", "env_step", "closed_loop", "scaling"}
     for row in timed:
         assert row["best_seconds"] == pytest.approx(min(row["seconds"]), abs=1e-6), row["case"]

@@ -162,12 +162,13 @@ def test_observation_contents_match_simulator(make_env, name):
 
 @pytest.mark.parametrize("formation", ["planar_square", "planar_square_displacement"])
 def test_reward_matches_docstring(make_env, formation):
-    weights = {"formation": 0.5, "velocity": 0.3, "torque": 0.15, "formation_scale": 0.2, "velocity_scale": 2.0}
-    env = make_env(formation, episode_seconds=1.0, reward=weights)
+    settings = {"formation": 0.7, "in_tolerance": 0.4, "position_tolerance": 0.5, "error_floor": 0.2,
+                "error_ceiling": 50.0}
+    env = make_env(formation, episode_seconds=1.0, reward=settings)
     env.reset(seed=2)
     rng = np.random.default_rng(2)
     for _ in range(3):
-        actions = random_actions(env, rng, scale=1.5)  # partly out of range: the reward uses the clipped action
+        actions = random_actions(env, rng, scale=1.5)
         _, rewards, _, _, infos = env.step(actions)
     ee = _ee_world(env)[:, :2]
     shape = np.asarray(env.scenario.shape)
@@ -175,18 +176,18 @@ def test_reward_matches_docstring(make_env, formation):
     z_star = np.array([shape[t] - shape[h] for t, h in env.scenario.edges])
     if env.scenario.formation == "distance":
         per_edge = np.abs(np.sum(z**2, axis=1) - np.sum(z_star**2, axis=1))
-        scales = np.sum(z_star**2, axis=1)
+        tolerances = 2 * np.linalg.norm(z_star, axis=1) * 0.5  # an edge 0.5 m off its length, to first order
     else:
         per_edge = np.linalg.norm(z - z_star, axis=1)
-        scales = np.linalg.norm(z_star, axis=1)
+        tolerances = np.full(len(per_edge), 0.5)
     for i, agent in enumerate(env.agents):
         incident = [k for k, (t, h) in enumerate(env.scenario.edges) if i in (t, h)]
-        _, dq = env.arms[i].read_state()
-        a = np.clip(actions[agent].astype(np.float64), -1, 1)
-        relative = (per_edge[incident] / scales[incident]).mean()
-        expected = 1.0 - (0.5 * np.tanh(relative / 0.2) + 0.3 * np.tanh(np.linalg.norm(dq) / 2.0) + 0.15 * np.mean(a**2))
+        x = (per_edge[incident] / tolerances[incident]).mean()
+        within = bool(np.all(per_edge[incident] <= tolerances[incident]))
+        closeness = min(max(math.log10(50.0 / (x + 0.2)) / math.log10(50.0 / 0.2), 0.0), 1.0)
+        expected = 0.7 * closeness + 0.4 * within
         assert rewards[agent] == pytest.approx(expected, rel=1e-6)
-        assert 0.0 <= rewards[agent] <= 1.0
+        assert 0.0 <= rewards[agent] <= 1.1
         expected_rms = math.sqrt(np.mean(per_edge**2))
         assert infos[agent]["formation_error"] == pytest.approx(expected_rms, rel=1e-6)
 

@@ -77,15 +77,15 @@ def test_robots_exist():
 
 # ------------------------------------------------------------------------------------------ overrides
 def test_overrides_replace_top_level_keys_and_merge_reward():
-    scenario = load_scenario("planar_square", episode_seconds=2.0, frame_skip=4, reward={"velocity": 0.1})
+    scenario = load_scenario("planar_square", episode_seconds=2.0, frame_skip=4, reward={"in_tolerance": 0.5})
     assert scenario.episode_seconds == 2.0 and scenario.frame_skip == 4 and scenario.max_steps == 500
-    assert scenario.reward == RewardConfig(formation=0.6, velocity=0.1, torque=0.2, team=False)
+    assert scenario.reward == RewardConfig(formation=1.0, in_tolerance=0.5, team=False)
     merged = load_scenario(scenario_dict(reward={"formation": 0.3}), reward={"team": True})
-    assert merged.reward == RewardConfig(formation=0.3, velocity=0.2, torque=0.2, team=True)
-    with pytest.raises(ValueError, match="sum to at most 1"):
-        load_scenario("planar_square", reward={"formation": 0.9})
-    with pytest.raises(ValueError, match="reward.velocity_scale: expected a positive"):
-        load_scenario("planar_square", reward={"velocity_scale": 0.0})
+    assert merged.reward == RewardConfig(formation=0.3, in_tolerance=1.0, team=True)
+    with pytest.raises(ValueError, match="reward.error_floor: expected a value below error_ceiling"):
+        load_scenario("planar_square", reward={"error_floor": 200.0})
+    with pytest.raises(ValueError, match="reward.position_tolerance: expected a positive"):
+        load_scenario("planar_square", reward={"position_tolerance": 0.0})
 
 
 def test_env_accepts_a_scenario_object(make_env):
@@ -168,7 +168,7 @@ def test_yaml_written_by_hand(tmp_path):
         encoding="utf-8")
     scenario = load_scenario(path)
     assert scenario.name == "pair" and scenario.n_agents == 2 and scenario.edges == ((0, 1),)
-    assert scenario.reward.formation == 0.5 and scenario.reward.velocity == 0.2
+    assert scenario.reward.formation == 0.5 and scenario.reward.in_tolerance == 1.0
     assert scenario.physics_hz == 1000.0 and scenario.frame_skip == 10  # defaults
 
 
@@ -238,7 +238,7 @@ def _with_arm(index: int, **arm_changes):
     (scenario_dict(gravity=[0.0, 0.0, float("nan")]), r"gravity: expected finite numbers"),
     (scenario_dict(initial_q_noise=-0.1), "initial_q_noise: expected a finite number >= 0"),
     (scenario_dict(reward={"speed": 1.0}), r"reward: unknown key\(s\) \['speed'\]"),
-    (scenario_dict(reward={"formation": -1.0}), "reward.formation: expected a finite number >= 0"),
+    (scenario_dict(reward={"formation": -1.0}), "reward.formation: expected a weight >= 0"),
     (scenario_dict(reward={"team": 1}), "reward.team: expected true or false"),
     (scenario_dict(dim=4), "dim: expected 2 or 3, got 4"),
     (scenario_dict(formation="bearing"), "formation: expected one of"),

@@ -12,7 +12,7 @@ import baselines  # noqa: E402
 import train  # noqa: E402
 
 FAST = ["--n-envs", "1", "--n-workers", "0", "--eval-episodes", "2", "--eval-seconds", "0.3",
-        "--train-episode-seconds", "0.5", "--no-progress"]
+        "--train-episode-seconds", "0.5", "--no-progress", "--eval-workers", "0"]
 METRIC_FIELDS = {"success_rate", "final_formation_error", "settling_time", "control_energy", "peak_torque",
                  "saturation_fraction", "min_singularity_margin", "contact_steps", "centroid_drift"}
 
@@ -41,7 +41,7 @@ def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
 
 def test_saved_model_reloads_and_reproduces_its_evaluation(tmp_path):
     run_dir = tmp_path / "run"
-    train.main(["--total-timesteps", "300", "--out", str(run_dir), *FAST])
+    train.main(["--total-timesteps", "300", "--out", str(run_dir), *FAST, "--eval-workers", "1"])  # in a worker
     first = _comparison(run_dir)["results"]["learned"]
     train.main(["--eval-only", str(run_dir), *FAST])
     again = _comparison(run_dir)["results"]["learned"]

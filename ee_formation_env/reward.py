@@ -1,0 +1,127 @@
+"""The per-agent reward: how close the agent's incident edges are to their lengths, in units of the success
+tolerance, on a log scale; plus a bonus on steps where all of them are within the tolerance.
+
+Why this shape (measured on ``planar_square``, whose 3 m edges must be held to 1 cm):
+
+- the error is measured relative to the *success tolerance* (an edge within ``position_tolerance`` m of
+  its length), not relative to the edge length: at the goal's precision a relative error is ~0.007, where
+  a kernel of the relative error (the former ``tanh``) is flat and separates solving from doing nothing
+  by a few percent only;
+- a log scale rises across the whole error range (doing nothing starts at ~40 tolerances, a random policy
+  at thousands) and is steepest near the goal; exponential kernels ``exp(-x)`` or ``exp(-x / 10)`` are
+  ~0 at the start and taught PPO nothing;
+- no velocity or torque penalty: holding a formation against gravity and reaching it in ~1 s needs the
+  full torque, and a torque penalty rewarded a residual policy for weakening its reference;
+- every reward is >= 0, so ending an episode early (a physics fault) never pays.
+
+``r_i = formation * clip(log10(ceiling / (x_i + floor)) / log10(ceiling / floor), 0, 1)
+        + in_tolerance * [every incident edge k has |e_k| <= tol_k]``
+
+with ``x_i = mean_k |e_k| / tol_k`` over agent i's incident edges, ``tol_k = 2 d*_k delta`` (distance
+formations, m^2: ``|z|^2 - d^2 ~ 2 d (|z| - d)``) or ``delta`` (displacement formations, m), ``delta =
+position_tolerance``. With the defaults, ``r_i`` is 1 at zero error, ~0.65 at one tolerance, 0.33 at ten,
+0 from a hundred on, plus 1 inside the tolerance: in [0, 2].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+DEFAULT_POSITION_TOLERANCE = 0.01  # m: the edge-length accuracy that counts as "in formation"
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights and scales of the per-agent reward (see the module docstring for the formula).
+
+    ``formation``: weight of the log-scaled error term (>= 0); ``in_tolerance``: bonus on steps where all
+    the agent's incident edges are within tolerance (>= 0); ``position_tolerance``: edge accuracy, m;
+    ``error_floor`` < ``error_ceiling``: the errors, in tolerances, at which the log term saturates at 1
+    and reaches 0; ``team``: every agent receives the mean of all agents' rewards.
+    """
+
+    formation: float = 1.0
+    in_tolerance: float = 1.0
+    position_tolerance: float = DEFAULT_POSITION_TOLERANCE
+    error_floor: float = 0.1
+    error_ceiling: float = 100.0
+    team: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.error_floor < self.error_ceiling:
+            raise ValueError(f"reward.error_floor: expected a value below error_ceiling ({self.error_ceiling}), "
+                             f"got {self.error_floor}")
+
+
+def parse_reward(value: Any) -> RewardConfig:
+    """``reward`` from scenario data (a dict of :class:`RewardConfig` fields, missing ones at their
+    defaults); ``ValueError`` naming the field on bad input."""
+    if isinstance(value, RewardConfig):
+        return value
+    if value is None:
+        return RewardConfig()
+    if not isinstance(value, Mapping):
+        raise ValueError(f"reward: expected a dict of RewardConfig fields, got {value!r}")
+    allowed = sorted(f.name for f in fields(RewardConfig))
+    unknown = set(value) - set(allowed)
+    if unknown:
+        raise ValueError(f"reward: unknown key(s) {sorted(unknown)}; allowed: {allowed}")
+    parsed: dict[str, Any] = {}
+    for key, number in value.items():
+        if key == "team":
+            if not isinstance(number, bool):
+                raise ValueError(f"reward.team: expected true or false, got {number!r}")
+            parsed[key] = number
+            continue
+        if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(number):
+            raise ValueError(f"reward.{key}: expected a finite number, got {number!r}")
+        if key in ("formation", "in_tolerance") and number < 0:
+            raise ValueError(f"reward.{key}: expected a weight >= 0, got {number!r}")
+        if key in ("position_tolerance", "error_floor", "error_ceiling") and number <= 0:
+            raise ValueError(f"reward.{key}: expected a positive number, got {number!r}")
+        parsed[key] = float(number)
+    return RewardConfig(**parsed)
+
+
+def edge_tolerances(kind: str, desired_lengths: np.ndarray, position_tolerance: float) -> np.ndarray:
+    """Each edge's success tolerance in formation units: ``2 d*_k delta`` (m^2, ``kind="distance"``) or
+    ``delta`` (m, ``"displacement"``), for an edge accuracy ``delta = position_tolerance`` (m).
+
+    ``desired_lengths``: ``d*_k = |z*_k|`` per edge (m).
+    """
+    lengths = np.asarray(desired_lengths, dtype=np.float64)
+    if kind == "distance":
+        return 2.0 * lengths * position_tolerance
+    if kind == "displacement":
+        return np.full(lengths.shape, float(position_tolerance))
+    raise ValueError(f"kind: expected 'distance' or 'displacement', got {kind!r}")
+
+
+def agent_error_ratios(edge_abs_errors: np.ndarray, tolerances: np.ndarray, slot_edges: np.ndarray,
+                       slot_starts: np.ndarray, degrees: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per agent: the mean over its incident edges of ``|e_k| / tol_k``, and whether all are ``<= tol_k``.
+
+    ``edge_abs_errors``, ``tolerances``: (E,) per edge; ``slot_edges`` (S,): the edge of each agent slot,
+    agent by agent; ``slot_starts`` (N,): where each agent's slots start; ``degrees`` (N,): slot counts
+    (every agent has at least one edge).
+    """
+    ratios = edge_abs_errors / tolerances
+    slot_ratios = ratios[slot_edges]
+    mean_ratios = np.add.reduceat(slot_ratios, slot_starts) / degrees
+    all_within = np.logical_and.reduceat(slot_ratios <= 1.0, slot_starts)
+    return mean_ratios, all_within
+
+
+def rewards_from_ratios(mean_ratios: np.ndarray, all_within: np.ndarray, config: RewardConfig) -> np.ndarray:
+    """Every agent's reward (N,) from :func:`agent_error_ratios`' outputs."""
+    span = np.log10(config.error_ceiling / config.error_floor)
+    closeness = np.clip(np.log10(config.error_ceiling / (mean_ratios + config.error_floor)) / span, 0.0, 1.0)
+    rewards = config.formation * closeness + config.in_tolerance * all_within
+    if config.team:
+        rewards = np.full_like(rewards, rewards.mean())
+    return rewards
