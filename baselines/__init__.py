@@ -27,6 +27,11 @@ _CONTROLLERS = {
 }
 MODEL_BASED_POLICIES: tuple[str, ...] = tuple(_CONTROLLERS)  # the paper's laws I, II, III
 POLICIES: tuple[str, ...] = (*MODEL_BASED_POLICIES, "zero", "random")
+_OPTIONS = {  # controller options make_policy passes through
+    "gradient": (),
+    "approx_jacobian": ("anti_windup",),
+    "adaptive_jacobian": ("projection", "parameter_bounds", "anti_windup"),
+}
 
 __all__ = ["POLICIES", "MODEL_BASED_POLICIES", "Gains", "make_policy", "make_policies", "agent_model",
            "default_gains"]
@@ -54,8 +59,9 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
 
     ``gains``: a :class:`Gains`, or a dict of overrides of the defaults for this scenario
     (:func:`baselines.gains.default_gains`). ``a_hat0``: initial kinematic estimate (default: the nominal
-    URDF's parameters). ``options``: controller options, e.g. ``projection=False`` or ``param_box``
-    for ``adaptive_jacobian``. ``seed`` seeds ``random``.
+    URDF's parameters). ``options``: controller options: ``anti_windup`` (``approx_jacobian`` and
+    ``adaptive_jacobian``), ``projection`` and ``parameter_bounds`` (``adaptive_jacobian``; default box
+    ``[0.5, 2] x`` the nominal parameters), see :mod:`baselines.controllers`. ``seed`` seeds ``random``.
     """
     if name not in POLICIES:
         raise ValueError(f"policy: unknown policy {name!r}; available: {list(POLICIES)}")
@@ -68,8 +74,9 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
         gains = default_gains(env.task, env.task.agent_index(agent)).with_updates(**dict(gains or {}))
     elif not isinstance(gains, Gains):
         raise TypeError(f"gains: expected a Gains, a dict or None, got {type(gains).__name__}")
-    if options and name != "adaptive_jacobian":
-        raise ValueError(f"options: {name} takes no options, got {sorted(options)}")
+    unknown = set(options) - set(_OPTIONS[name])
+    if unknown:
+        raise ValueError(f"options: {name} takes {list(_OPTIONS[name]) or 'no options'}, got {sorted(unknown)}")
     return _CONTROLLERS[name](model, gains, None if a_hat0 is None else np.asarray(a_hat0, dtype=np.float64),
                               **options)
 

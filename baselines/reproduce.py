@@ -1,4 +1,4 @@
-"""Reproduce the paper's simulations (Sec. VI, Figs. 5-8 in 2D and 10-13 in 3D) and the stall study.
+"""Reproduce the paper's simulations (Sec. VI, Figs. 4-7 in 2D and 9-12 in 3D) and the stall study.
 
     python -m baselines.reproduce [--out results/reproduction] [--figures-dir docs/figures]
                                   [--only planar|spatial|stall ...] [--quick]
@@ -51,7 +51,9 @@ PAPER, DEFAULTS = "paper", "project defaults"
 QUICK_SECONDS = 2.0  # horizon cap of --quick
 CSV_PERIOD = 0.01  # s between CSV rows (the figures use every step)
 PLOT_POINTS = 4000  # at most this many samples per plotted line
+LOG_POINTS = 800  # samples per line on a log time axis
 DPI = 100
+JOINTS_DPI = 75  # the joint figures have 16 panels: a lower resolution keeps them under 200 kB
 
 # The paper's 2D preset needs 1 ms steps and unbounded torque (peaks of ~1e5 N m).
 _PLANAR_PAPER = {"frame_skip": 1, "torque_limits": 1e7, "max_joint_velocity": 1000.0}
@@ -93,6 +95,7 @@ class RunResult:
     control_hz: float
     physics_hz: float
     wall_time: float
+    base_yaws: tuple[float, ...] = ()  # rad, each arm's base yaw (world frame)
 
     @property
     def trajectory(self) -> dict[str, np.ndarray]:
@@ -174,7 +177,8 @@ def run(spec: RunSpec) -> RunResult:
         return RunResult(spec, metrics, policies[agents[0]].gains, float(np.max(env.torque_limits[0])),
                          np.asarray(estimates), env.nominal_models[0].param_names,
                          [model.n_joints for model in env.nominal_models], list(env.scenario.edges), env.dim,
-                         env.scenario.control_hz, env.scenario.physics_hz, wall)
+                         env.scenario.control_hz, env.scenario.physics_hz, wall,
+                         tuple(float(arm.base_rpy[2]) for arm in env.scenario.arms))
     finally:
         env.close()
 
@@ -230,71 +234,107 @@ def _plot_trajectories(ax: Any, result: RunResult) -> None:
         ax.set_aspect("equal", adjustable="datalim")
 
 
-def _save(fig: Any, path: Path) -> Path:
+def _save(fig: Any, path: Path, dpi: int = DPI) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI, pil_kwargs={"optimize": True})
+    fig.savefig(path, dpi=dpi, pil_kwargs={"optimize": True})
     plt.close(fig)
     return path
 
 
+# The paper's figure numbers (order of the figures in its LaTeX source).
+PAPER_FIGURES = {"planar": {"trajectories": 4, "edge_errors": 5, "estimates": 6, "joints": 7},
+                 "spatial": {"trajectories": 9, "edge_errors": 10, "estimates": 11, "joints": 12}}
+
+
+def _log_time(t: np.ndarray, every: slice) -> np.ndarray:
+    """Indices of samples with t > 0, log-spaced in time (for a log time axis, where the 0.1-2 s
+    transients stay visible; :data:`LOG_POINTS` per line keeps the PNGs small)."""
+    positive = np.arange(len(t))[every]
+    positive = positive[t[positive] > 0]
+    if len(positive) <= LOG_POINTS:
+        return positive
+    wanted = np.geomspace(t[positive[0]], t[positive[-1]], LOG_POINTS)
+    return np.unique(positive[np.clip(np.searchsorted(t[positive], wanted), 0, len(positive) - 1)])
+
+
 def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
-    """The paper-style figures of a two-preset study, presets side by side (one column each)."""
+    """The paper-style figures of a two-preset study, presets side by side (one column each).
+
+    Time axes are logarithmic: the transients take 0.1-2 s of 30-50 s runs. Joint plots are small
+    multiples, one row per arm, one labelled line per joint.
+    """
     study = results[0].spec.study
     label = {"planar": "2D planar square", "spatial": "3D tetrahedron"}[study]
+    numbers = PAPER_FIGURES[study]
     paths = []
     cols = len(results)
 
-    fig = plt.figure(figsize=(5 * cols, 4.6))
+    fig = plt.figure(figsize=(5 * cols, 4.9))
     for c, result in enumerate(results):
         ax = fig.add_subplot(1, cols, c + 1, projection="3d" if result.dim == 3 else None)
         _plot_trajectories(ax, result)
-        ax.set_title(_title(result), fontsize=9)
+        title = _title(result)
+        if result.dim == 3:
+            title += "\nbase yaws (deg): " + ", ".join(f"{math.degrees(y):.0f}" for y in result.base_yaws)
+        ax.set_title(title, fontsize=9)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{label}: end-effector trajectories (x start, o end; final formation edges in black)")
+    fig.suptitle(f"{label}: end-effector trajectories (x start, o end; final formation edges in black) "
+                 f"- paper Fig. {numbers['trajectories']}")
     paths.append(_save(fig, out / f"{study}_trajectories.png"))
 
     fig, axes = plt.subplots(2, cols, figsize=(5.5 * cols, 6.5), sharex="col", squeeze=False)
     for c, result in enumerate(results):
         t, errors = result.trajectory["t"], result.trajectory["edge_errors"]
-        every = _every(len(t))
+        rows = _log_time(t, _every(len(t)))
         for k, (tail, head) in enumerate(result.edges):
-            axes[0, c].plot(t[every], errors[every, k], lw=1, label=f"e{k} ({tail}-{head})")
-            axes[1, c].semilogy(t[every], np.abs(errors[every, k]) + 1e-16, lw=1)
+            axes[0, c].plot(t[rows], errors[rows, k], lw=1, label=f"e{k} ({tail}-{head})")
+            axes[1, c].loglog(t[rows], np.abs(errors[rows, k]) + 1e-16, lw=1)
+        axes[0, c].set_xscale("log")
         axes[0, c].set_title(_title(result), fontsize=9)
         axes[0, c].set_ylabel("e_k = |z_k|^2 - d_k^2 (m^2)")
         axes[1, c].set_ylabel("|e_k| (m^2, log)")
-        axes[1, c].set_xlabel("t (s)")
+        axes[1, c].set_xlabel("t (s, log)")
         axes[0, c].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{label}: inner distance errors")
+    fig.suptitle(f"{label}: inner distance errors - paper Fig. {numbers['edge_errors']}")
     paths.append(_save(fig, out / f"{study}_edge_errors.png"))
 
     n_agents = results[0].a_hat.shape[1]
     fig, axes = plt.subplots(n_agents, cols, figsize=(5.5 * cols, 2.0 * n_agents + 1), sharex="col", squeeze=False)
     for c, result in enumerate(results):
         t = result.trajectory["t"]
-        every = _every(len(t))
+        rows = _log_time(t, _every(len(t)))
         for i in range(n_agents):
             for p, name in enumerate(result.param_names):
-                axes[i, c].plot(t[every], result.a_hat[every, i, p], lw=1, label=name)
+                axes[i, c].plot(t[rows], result.a_hat[rows, i, p], lw=1, label=name)
+            axes[i, c].set_xscale("log")
             axes[i, c].set_ylabel(f"arm_{i} a_hat (m)")
         axes[0, c].set_title(_title(result), fontsize=9)
         axes[0, c].legend(fontsize=7, ncol=2)
-        axes[-1, c].set_xlabel("t (s)")
-    fig.suptitle(f"{label}: kinematic parameter estimates")
+        axes[-1, c].set_xlabel("t (s, log)")
+    fig.suptitle(f"{label}: kinematic parameter estimates - paper Fig. {numbers['estimates']}")
     paths.append(_save(fig, out / f"{study}_estimates.png"))
 
-    fig, axes = plt.subplots(2, cols, figsize=(5.5 * cols, 6.5), sharex="col", squeeze=False)
+    fig, axes = plt.subplots(n_agents, 2 * cols, figsize=(3.7 * 2 * cols, 1.9 * n_agents + 1.2), sharex="col",
+                             squeeze=False)
     for c, result in enumerate(results):
         t = result.trajectory["t"]
-        every = _every(len(t))
-        axes[0, c].plot(t[every], result.trajectory["q"][every], lw=0.8)
-        axes[1, c].plot(t[every], result.trajectory["dq"][every], lw=0.8)
-        axes[0, c].set_title(_title(result), fontsize=9)
-        axes[0, c].set_ylabel("q (rad)")
-        axes[1, c].set_ylabel("dq (rad/s)")
-        axes[1, c].set_xlabel("t (s)")
-    fig.suptitle(f"{label}: joint positions and velocities (all joints of all arms)")
-    paths.append(_save(fig, out / f"{study}_joints.png"))
+        rows = _log_time(t, _every(len(t)))
+        start = np.cumsum([0] + result.joint_counts)
+        for i in range(n_agents):
+            joints = range(start[i], start[i + 1])
+            for column, key, unit in ((2 * c, "q", "rad"), (2 * c + 1, "dq", "rad/s")):
+                ax = axes[i, column]
+                for j, index in enumerate(joints):
+                    ax.plot(t[rows], result.trajectory[key][rows, index], lw=0.9, label=f"joint {j + 1}")
+                ax.set_xscale("log")
+                ax.set_ylabel(f"arm_{i} {key} ({unit})", fontsize=8)
+                if i == 0:
+                    ax.set_title(f"{result.spec.preset}: {key}", fontsize=9)
+                    ax.legend(fontsize=6, ncol=2 if len(joints) > 4 else 1)
+        axes[-1, 2 * c].set_xlabel("t (s, log)")
+        axes[-1, 2 * c + 1].set_xlabel("t (s, log)")
+    fig.suptitle(f"{label}: joint positions and velocities, one row per arm - paper Fig. {numbers['joints']}")
+    paths.append(_save(fig, out / f"{study}_joints.png", dpi=JOINTS_DPI))
     return paths
 
 

@@ -11,9 +11,10 @@ import numpy as np
 
 from baselines.reproduce import main
 
-# Pixel size (width, height) of each planar figure: its figsize in inches x DPI (100), two preset columns.
-PLANAR_FIGURES = {"planar_trajectories": (1000, 460), "planar_edge_errors": (1100, 650),
-                  "planar_estimates": (1100, 900), "planar_joints": (1100, 650)}
+# Pixel size (width, height) of each planar figure: its figsize in inches x DPI (100; 75 for the joint
+# figure, one row per arm and a q and a dq column per preset), two preset columns.
+PLANAR_FIGURES = {"planar_trajectories": (1000, 490), "planar_edge_errors": (1100, 650),
+                  "planar_estimates": (1100, 900), "planar_joints": (1110, 660)}
 
 
 def _read_png(path: Path) -> np.ndarray:

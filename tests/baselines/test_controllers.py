@@ -7,6 +7,7 @@ import pytest
 
 import baselines
 import ee_formation_env
+from baselines.controllers import Gains
 from baselines.gains import PAPER_GAINS, default_gains
 from baselines.metrics import run_episode
 from ee_formation_env.scenario import _square, builtin_scenario
@@ -57,7 +58,7 @@ def test_printed_law_stalls_on_4m_square_and_projection_fixes_it():
         "planar_square", "adaptive_jacobian", 15.0, **kwargs, policy_kwargs=dict(a_hat0=[2.0, 2.0]))
     assert projected.success
     assert np.max(np.abs(projected_errors)) < 1e-4
-    assert min(np.min(a) for a in projected_estimates) >= 1.0 - 1e-12  # inside the default box [0.5, 2] x a_hat0
+    assert min(np.min(a) for a in projected_estimates) >= 0.75 - 1e-12  # inside the default box [0.5, 2] x nominal 1.5
 
 
 def test_printed_law_with_paper_gains_stalls_on_4m_square():
@@ -136,3 +137,72 @@ def test_action_is_the_law_divided_by_the_torque_limits():
         gains = default_gains(env.task, 0)  # planar_square's own tuned gains
         expected = (-gains.kp * jacobian.T @ e_hat - gains.kd * dq) / 50.0
         np.testing.assert_allclose(policy(observations["arm_0"]), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_saturated_springs_bound_the_force_and_keep_the_law_near_the_target():
+    """Finite spring_force: far away each edge error is clipped at F / (2 K_P d); near the target the
+    law is the printed one; the result is the same at both ends of an edge (one potential)."""
+    with ee_formation_env.parallel_env("planar_square", initial_q_noise=0.0) as env:
+        observations, _ = env.reset(seed=0)
+        gains = Gains(kp=2.0, kd=20.0, spring_force=4.0)
+        saturated = baselines.make_policy("gradient", env, "arm_0", gains=gains)
+        printed = baselines.make_policy("gradient", env, "arm_0", gains=Gains(kp=2.0, kd=20.0))
+        parts = env.observation_layout("arm_0").split(observations["arm_0"])
+        errors = parts.edge_errors[:, 0] * parts.mask
+        lengths = parts.desired[:, 0]
+        level = 4.0 / (2.0 * 2.0 * np.where(lengths > 0, lengths, 1.0))
+        expected = 2.0 * np.clip(errors, -level, level) @ parts.relative_positions
+        np.testing.assert_allclose(saturated.gradient(parts)[:2], expected, rtol=1e-12)
+        assert np.any(np.abs(errors) > level)  # the start is far enough for the clip to act
+        small = parts.edge_errors * 1e-6  # near the target: no clipping, the printed gradient
+        np.testing.assert_array_equal(saturated.saturated_errors(small, parts.desired), small)
+        assert np.linalg.norm(saturated.gradient(parts)) < np.linalg.norm(printed.gradient(parts))
+
+
+def test_gains_reject_a_per_joint_formation_gain_with_saturation():
+    with ee_formation_env.parallel_env("planar_square") as env:
+        with pytest.raises(ValueError, match="gains.kp"):
+            baselines.make_policy("gradient", env, "arm_0", gains={"kp": [1.0, 2.0], "spring_force": 3.0})
+        with pytest.raises(ValueError, match="gains.spring_force"):
+            baselines.make_policy("gradient", env, "arm_0", gains={"spring_force": -1.0})
+
+
+def test_parameter_bounds_are_validated_and_the_boundary_time_reported():
+    with ee_formation_env.parallel_env("planar_square", initial_q_noise=0.0, episode_seconds=2.0) as env:
+        for bad, field in ((1.0, "parameter_bounds"), ((2.0, 1.0), "parameter_bounds"),
+                           (([1.0, 2.0, 3.0], 4.0), "parameter_bounds.lower"), ((0.5, "x"), "parameter_bounds.upper")):
+            with pytest.raises(ValueError, match=field):
+                baselines.make_policy("adaptive_jacobian", env, "arm_0", parameter_bounds=bad)
+        with pytest.raises(ValueError, match="a_hat0"):  # the initial estimate must lie in the known set
+            baselines.make_policy("adaptive_jacobian", env, "arm_0", a_hat0=[2.7, 0.3], parameter_bounds=(1.0, 3.0))
+        default = baselines.make_policy("adaptive_jacobian", env, "arm_0")
+        np.testing.assert_allclose(default.param_low, [0.75, 0.75])  # [0.5, 2] x nominal 1.5 m
+        np.testing.assert_allclose(default.param_high, [3.0, 3.0])
+        # A tight box around a poor guess: the estimate ends on its boundary and the fraction says so.
+        policies = baselines.make_policies("adaptive_jacobian", env, a_hat0=[2.7, 0.3],
+                                           parameter_bounds=([2.6, 0.25], [2.8, 0.35]))
+        run_episode(env, policies, seed=0)
+        fractions = [p.boundary_fraction for p in policies.values()]
+        assert all(0.0 < f <= 1.0 for f in fractions)
+        # A slow adaptation (Gamma = 1e-3) from the truth never reaches a wide box's boundary.
+        free = baselines.make_policies("adaptive_jacobian", env, a_hat0=[1.5, 1.5], parameter_bounds=(0.5, 5.0),
+                                       gains={"adaptation_gain": 1e-3})
+        run_episode(env, free, seed=0)
+        assert all(p.boundary_fraction == 0.0 for p in free.values())
+
+
+def test_anti_windup_keeps_the_internal_model_within_the_torque_limits():
+    """Law-II under torque limits: the printed internal model integrates torque never applied."""
+    limits = [[2.0] * 7] * 4
+    peaks = {}
+    for anti_windup in (False, True):
+        with ee_formation_env.parallel_env("spatial_tetrahedron", torque_limits=limits, episode_seconds=1.0,
+                                           initial_q_noise=0.0) as env:
+            policies = baselines.make_policies("approx_jacobian", env, gains={"kp": 120.0, "kd": 2.0, "ki": 1.0},
+                                               anti_windup=anti_windup)
+            peak = [0.0]
+            run_episode(env, policies, seed=0, on_step=lambda _: peak.__setitem__(0, max(peak[0], max(
+                float(np.max(np.abs(p.eta) / 2.0)) for p in policies.values()))))
+            peaks[anti_windup] = peak[0]
+    assert peaks[True] <= 1.0 + 1e-9  # |K_I eta| <= limit with K_I = 1
+    assert peaks[False] > peaks[True]

@@ -8,7 +8,7 @@ import pytest
 import baselines
 import ee_formation_env
 from baselines.dynamics import nominal_dynamics
-from baselines.gains import default_gains, derive_gains
+from baselines.gains import INTERNAL_MODEL_GAIN, default_gains, derive_gains
 from baselines.metrics import run_episode
 from ee_formation_env.scenario import BUILTIN_SCENARIOS, load_scenario
 from ee_formation_env.task import build_task
@@ -66,7 +66,7 @@ def test_derived_damping_respects_the_explicit_step_rule():
             radius = np.max(np.abs(np.linalg.eigvals(dt * np.linalg.inv(dynamics.mass_matrix(q)) * gains.kd)))
             assert radius <= 1.0 + 1e-9
         assert np.all(np.asarray(gains.kd) > 0)
-        assert gains.ki == 1.0  # gravity loads the kuka's joints
+        assert gains.ki == INTERNAL_MODEL_GAIN  # gravity loads the kuka's joints
 
 
 @pytest.mark.parametrize("policy", ["gradient", "adaptive_jacobian"])
@@ -76,3 +76,44 @@ def test_derived_gains_converge_on_a_robot_without_tuned_defaults(policy):
         metrics = run_episode(env, baselines.make_policies(policy, env), seed=0)
         assert metrics.physics_fault == ""
         assert metrics.success, metrics.final_formation_error
+
+
+def test_derived_formation_gain_is_one_scalar_within_the_step_rule():
+    """K_P and the spring force are shared by every arm (one potential), and the stiffness they add keeps
+    dt^2 rho(H^-1 K_q) <= KAPPA at sampled configurations (rule 3 of baselines.gains)."""
+    from baselines.gains import KAPPA, arm_inputs, formation_gains, formation_stiffness
+
+    task = build_task(load_scenario(KUKA_TRIANGLE))
+    incident = [[n.edge for n in neighbors] for neighbors in task.graph.neighbors]
+    gains = formation_gains(arm_inputs(task), task.scenario.control_dt, task.formation.kind, incident,
+                            formation_stiffness(task))
+    assert len({float(g.kp) for g in gains}) == 1 and np.ndim(gains[0].kp) == 0
+    assert float(derive_gains(task, 0).kp) == float(gains[0].kp)
+    # Each edge's spring force is the same at both of its ends.
+    for k in range(task.graph.n_edges):
+        forces = {gains[i].spring_force[incident[i].index(k)] for i in range(len(gains)) if k in incident[i]}
+        assert len(forces) == 1 and 0 < forces.pop() < np.inf
+    chain = task.models[0]
+    dynamics = nominal_dynamics(task.scenario.arms[0].urdf, chain.joint_names)
+    stiffness = formation_stiffness(task)
+    dt = task.scenario.control_dt
+    for q in chain.sample_configurations(50, np.random.default_rng(2)):
+        jacobian = chain.jacobian(q)
+        k_q = gains[0].kp * stiffness * jacobian.T @ jacobian
+        radius = np.max(np.abs(np.linalg.eigvals(dt**2 * np.linalg.solve(dynamics.mass_matrix(q), k_q))))
+        assert radius <= KAPPA * 1.05  # sampled: a little above the rule's own samples is possible
+
+
+def test_formation_gains_reject_bad_input():
+    from baselines.gains import arm_inputs, formation_gains
+
+    task = build_task(load_scenario(KUKA_TRIANGLE))
+    incident = [[0, 2], [0, 1], [1, 2]]
+    with pytest.raises(ValueError, match="control_dt"):
+        formation_gains(arm_inputs(task), 0.0, "distance", incident, 1.0)
+    with pytest.raises(ValueError, match="formation_kind"):
+        formation_gains(arm_inputs(task), 0.01, "bearing", incident, 1.0)
+    with pytest.raises(ValueError, match="incident_edges"):
+        formation_gains(arm_inputs(task), 0.01, "distance", [[0, 2]], 1.0)
+    with pytest.raises(ValueError, match="formation_stiffness"):
+        formation_gains(arm_inputs(task), 0.01, "distance", incident, 0.0)
