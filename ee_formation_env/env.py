@@ -19,7 +19,7 @@ from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.reward import agent_error_ratios, edge_tolerances, rewards_from_ratios
-from ee_formation_env.task import FormationTask, build_task
+from ee_formation_env.task import build_task
 from ee_formation_env.world import PhysicsWorld
 
 # ``info["physics_fault"]`` codes (0: none). The last fault's full reason (arm, speed) is ``env.physics_fault_reason``.

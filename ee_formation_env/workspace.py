@@ -7,7 +7,6 @@ by the scenario generators of the benchmarks.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
