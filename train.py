@@ -68,10 +68,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--total-timesteps", type=int, default=None,
                         help=f"agent steps (all agents count); default {DEFAULT_TIMESTEPS}")
-    parser.add_argument("--n-envs", type=int, default=8, help="parallel envs (each with all its agents)")
-    parser.add_argument("--n-workers", type=int, default=0,
-                        help="worker processes for the envs (0 = step them in this process, the fastest for "
-                             "the planar scenarios; use 2 on 2 cores for costlier scenarios)")
+    parser.add_argument("--n-envs", type=int, default=32, help="parallel envs (each with all its agents)")
+    parser.add_argument("--n-steps", type=int, default=32,
+                        help="ppo: steps per env slot per update (an update learns from n_steps x n_envs x agents "
+                             "agent steps: 4,096 with the defaults on 4 agents)")
+    parser.add_argument("--n-workers", type=int, default=2,
+                        help="worker processes for the envs (default 2, one per core of a 2-core machine; 0 = step "
+                             "them in this process)")
     parser.add_argument("--train-episode-seconds", type=float, default=None,
                         help=f"episode length while training, s (default {TRAIN_EPISODE_SECONDS})")
     parser.add_argument("--train-initial-q-noise", type=float, default=None,
@@ -97,8 +100,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
     if args.train_initial_q_noise is None:
         args.train_initial_q_noise = TRAIN_INITIAL_Q_NOISE[args.mode]
-    if args.total_timesteps < 1 or args.n_envs < 1 or args.eval_episodes < 1:
-        parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
+    if args.total_timesteps < 1 or args.n_envs < 1 or args.n_steps < 1 or args.eval_episodes < 1:
+        parser.error("--total-timesteps, --n-envs, --n-steps and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
     if args.n_workers < 0 or args.eval_workers < 0:
@@ -250,7 +253,8 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
 
     torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
     factory = env_factory(args, training_overrides(args))
-    venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers)
+    # No per-step infos cross the worker pipes: the learner reads none (the VecEnv adds what SB3 needs).
+    venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers, info_keys=())
     venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / "monitor.csv"))
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
     # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
@@ -261,8 +265,9 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
                   tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
     if args.algo == "ppo":
-        # 128 steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults.
-        return PPO("MlpPolicy", venv, n_steps=128, batch_size=1024, n_epochs=5, learning_rate=3e-4,
+        # n_steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults. Many envs and short
+        # rollouts: the learner's per-step cost (one forward pass for every slot) is paid once for 128 slots.
+        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=1024, n_epochs=5, learning_rate=3e-4,
                    gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
     return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
                learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)

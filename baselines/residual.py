@@ -22,6 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 import baselines
+from baselines.controllers import PolicyTeam
 from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
 
@@ -42,14 +43,21 @@ def error_gate(layout: ObservationLayout, observation: np.ndarray,
     """``min(1, x)``: ``x`` the mean over the agent's neighbour slots of ``|e_ij| / tol_ij`` read from its
     observation, with ``tol_ij = 2 d*_ij delta`` (distance, one error entry per slot) or ``delta``
     (displacement), ``delta = position_tolerance`` (m): the reward's error ratio, seen by the agent."""
-    parts = layout.split(observation)
-    real = parts.mask > 0.5
-    errors = np.linalg.norm(parts.edge_errors[real], axis=1)
+    return float(error_gates(layout, np.asarray(observation)[None], position_tolerance)[0])
+
+
+def error_gates(layout: ObservationLayout, observations: np.ndarray,
+                position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
+    """:func:`error_gate` of a stack of k observations (k, size) of one layout: (k,)."""
+    parts = layout.split(observations)
+    real = parts.mask > 0.5  # (k, slots)
+    errors = np.linalg.norm(parts.edge_errors, axis=2)
     if layout.error_width == 1:
-        tolerances = 2.0 * parts.desired[real, 0] * position_tolerance
+        tolerances = np.where(real, 2.0 * parts.desired[:, :, 0] * position_tolerance, 1.0)
     else:
-        tolerances = np.full(len(errors), position_tolerance)
-    return min(1.0, float(np.mean(errors / tolerances)))
+        tolerances = np.full(errors.shape, position_tolerance)
+    ratios = np.where(real, errors / tolerances, 0.0)
+    return np.minimum(1.0, ratios.sum(axis=1) / real.sum(axis=1))
 
 
 class ResidualPolicy:
@@ -85,8 +93,16 @@ class ResidualActionEnv:
         if not 0 <= correction_penalty <= 1:
             raise ValueError(f"correction_penalty: expected a value in [0, 1], got {correction_penalty!r}")
         self.env, self.scale, self.correction_penalty = env, float(scale), float(correction_penalty)
+        self.agents_in_order = list(env.possible_agents)
         self.gate_layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents} if gate else None
-        self.references = baselines.make_policies(reference, env, **dict(reference_kwargs or {}))
+        # Agents sharing an observation layout get their gates in one call: (layout, their rows).
+        self._gate_groups: list[tuple[ObservationLayout, list[int]]] = []
+        if gate:
+            groups: dict[ObservationLayout, list[int]] = {}
+            for k, agent in enumerate(self.agents_in_order):
+                groups.setdefault(self.gate_layouts[agent], []).append(k)
+            self._gate_groups = list(groups.items())
+        self.references = PolicyTeam(baselines.make_policies(reference, env, **dict(reference_kwargs or {})))
         self._observations: dict[str, np.ndarray] = {}
 
     def __getattr__(self, name: str) -> Any:
@@ -96,25 +112,33 @@ class ResidualActionEnv:
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._observations, infos = self.env.reset(seed=seed, options=options)
-        for policy in self.references.values():
-            policy.reset()
+        self.references.reset()
         return self._observations, infos
 
     def step(self, actions: Mapping[str, np.ndarray]):
-        residuals = {agent: np.asarray(action, dtype=np.float64) for agent, action in actions.items()}
-        combined = {agent: combine(self.references[agent](self._observations[agent]), residual, self._scale(agent))
-                    for agent, residual in residuals.items()}
+        if not isinstance(actions, Mapping) or actions.keys() != set(self.agents_in_order):
+            return self.env.step(actions)  # the env raises its error, naming the agents
+        agents = self.agents_in_order
+        residuals = [np.clip(np.asarray(actions[agent], dtype=np.float64), -1.0, 1.0) for agent in agents]
+        references = self.references(self._observations)
+        scales = self._scales()
+        combined = {agent: references[agent] + scale * residual
+                    for agent, scale, residual in zip(agents, scales, residuals)}
         observations, rewards, terminations, truncations, infos = self.env.step(combined)
         self._observations = observations
-        if self.correction_penalty > 0:
-            rewards = {agent: reward * correction_factor(residuals[agent], self.correction_penalty)
-                       for agent, reward in rewards.items()}
+        if self.correction_penalty > 0:  # the factor of correction_factor (residuals are clipped already)
+            rewards = {agent: rewards[agent] * (1.0 - self.correction_penalty * float(np.mean(residual * residual)))
+                       for agent, residual in zip(agents, residuals)}
         return observations, rewards, terminations, truncations, infos
 
-    def _scale(self, agent: str) -> float:
+    def _scales(self) -> np.ndarray:
+        """Every agent's correction scale (agent order): ``scale``, times its error gate if gated."""
         if self.gate_layouts is None:
-            return self.scale
-        return self.scale * error_gate(self.gate_layouts[agent], self._observations[agent])
+            return np.full(len(self.agents_in_order), self.scale)
+        gates = np.empty(len(self.agents_in_order))
+        for layout, rows in self._gate_groups:
+            gates[rows] = error_gates(layout, np.stack([self._observations[self.agents_in_order[k]] for k in rows]))
+        return self.scale * gates
 
     def close(self) -> None:
         self.env.close()

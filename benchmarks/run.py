@@ -56,7 +56,8 @@ from benchmarks.scenarios import planar_ring, spatial_ring  # noqa: E402
 SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset")
 ARM_COUNTS = (2, 4, 8, 16)
 # train.py runs whose training throughput is measured: the default run first (the target applies to it).
-TRAINING_CASES = ((), ("--n-workers", "2"), ("--mode", "torque"), ("--mode", "torque", "--n-workers", "2"))
+TRAINING_CASES = ((), ("--n-workers", "0"), ("--n-envs", "8", "--n-steps", "128", "--n-workers", "0"), ("--mode", "torque"),
+                  ("--mode", "torque", "--n-workers", "0"))
 DEFAULT_JSON = "results/benchmarks.json"
 
 

@@ -183,8 +183,9 @@ def agent_gradient(kind: str, relative_positions: np.ndarray, edge_errors: np.nd
 
     ``relative_positions``: (slots, dim) ``z_ij = x_i - x_j``; ``edge_errors``: (slots,) for distance
     formations (``|z_ij|^2 - d_ij^2``) or (slots, dim) for displacement ones (``z_ij - z*_ij``).
-    Padding slots must carry zeros. Returns (dim,).
+    Padding slots must carry zeros. Returns (dim,). With a leading axis of k agents on both arguments
+    ((k, slots, dim) and (k, slots) or (k, slots, dim)), returns the k gradients (k, dim).
     """
     if kind == "distance":
-        return 2.0 * edge_errors @ relative_positions
-    return edge_errors.sum(axis=0)
+        return 2.0 * (edge_errors[..., None, :] @ relative_positions)[..., 0, :]
+    return edge_errors.sum(axis=-2)

@@ -456,16 +456,31 @@ class SerialChain:
 
         ``zeta`` is a (3,) vector in the base frame, or (2,) for planar formations (z = 0).
         """
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.n_joints,):
+            raise ValueError(f"q: expected shape ({self.n_joints},), got {q.shape}")
         zeta = np.asarray(zeta, dtype=float)
-        if zeta.shape == (2,):
-            zeta = np.array([zeta[0], zeta[1], 0.0])
-        elif zeta.shape != (3,):
+        if zeta.shape not in ((2,), (3,)):
             raise ValueError(f"zeta: expected shape (3,) or (2,), got {zeta.shape}")
-        frames, axes = self._pose(q)  # axes: (n, 3)
-        # zeta . (omega_j x v) = (zeta x omega_j) . v and zeta x omega = S(zeta) omega
-        zeta_x_axes = axes @ (zeta @ _SKEW_BASIS).reshape(3, 3).T
-        columns = (frames[self._param_segment] @ self._param_directions).reshape(-1, 3)  # (p, 3)
-        return (zeta_x_axes @ columns.T) * self._regressor_mask
+        return self.regressor_batch(q[None], zeta[None])[0]
+
+    def regressor_batch(self, q_batch: np.ndarray, zeta_batch: np.ndarray) -> np.ndarray:
+        """Regressors Z(q_k, zeta_k) (k, n, p) of k configurations at once (:meth:`regressor` for k arms):
+        ``zeta_batch`` (k, 3) in the base frame, or (k, 2) for planar formations (z = 0)."""
+        q_batch = self._check_batch(q_batch)
+        k, n = q_batch.shape
+        zeta = np.asarray(zeta_batch, dtype=float)
+        if zeta.shape == (k, 2):
+            zeta = np.concatenate([zeta, np.zeros((k, 1))], axis=1)
+        elif zeta.shape != (k, 3):
+            raise ValueError(f"zeta_batch: expected shape ({k}, 3) or ({k}, 2), got {zeta.shape}")
+        frames = self._frames_batch(q_batch)  # (n + 1, k, 3, 3)
+        axes = (frames[1:] @ self._axes[:, None]).reshape(n, k, 1, 3)  # joint axes in the base frame
+        # zeta . (omega_j x v) = (zeta x omega_j) . v, and zeta x omega = S(zeta) omega
+        skews = (zeta @ _SKEW_BASIS).reshape(k, 3, 3)
+        zeta_x_axes = (axes @ skews.transpose(0, 2, 1)).reshape(n, k, 3).transpose(1, 0, 2)  # (k, n, 3)
+        columns = (frames[self._param_segment] @ self._param_directions[:, None]).reshape(-1, k, 3)  # (p, k, 3)
+        return (zeta_x_axes @ columns.transpose(1, 2, 0)) * self._regressor_mask
 
     def sample_configurations(self, count: int, rng: np.random.Generator) -> np.ndarray:
         """Joint angles (count, n), rad, uniform within the limits; continuous in [-pi, pi)."""

@@ -50,7 +50,8 @@ __doc__ = __doc__.format(observation_table=observation_table())
 
 @dataclass(frozen=True)
 class ObservationParts:
-    """One observation split into named parts (views into a float64 copy)."""
+    """One observation split into named parts (views into a float64 copy). Split from a stack of k
+    observations (k, size), every part has a leading axis of k."""
 
     mask: np.ndarray  # (n_slots,) 1 for a real neighbour, 0 for padding
     relative_positions: np.ndarray  # (n_slots, dim) z_ij = x_i - x_j, m
@@ -62,7 +63,7 @@ class ObservationParts:
 
 @dataclass(frozen=True)
 class ObservationLayout:
-    """Sizes of one agent's observation; :meth:`split` parses one."""
+    """Sizes of one agent's observation; :meth:`split` parses one (or a stack of them)."""
 
     n_slots: int
     dim: int
@@ -78,18 +79,20 @@ class ObservationLayout:
         return self.n_slots * self.slot_size + 2 * self.n_joints
 
     def split(self, observation: np.ndarray) -> ObservationParts:
+        """Parts of one observation (size,), or of a stack of observations (k, size) with a leading k axis."""
         observation = np.asarray(observation, dtype=np.float64)
-        if observation.shape != (self.size,):
-            raise ValueError(f"observation: expected shape ({self.size},), got {observation.shape}")
+        if observation.ndim not in (1, 2) or observation.shape[-1] != self.size:
+            raise ValueError(f"observation: expected shape ({self.size},) or (k, {self.size}), got {observation.shape}")
         m, w, n = self.dim, self.error_width, self.n_joints
-        slots = observation[:self.n_slots * self.slot_size].reshape(self.n_slots, self.slot_size)
+        lead = observation.shape[:-1]
+        slots = observation[..., :self.n_slots * self.slot_size].reshape(*lead, self.n_slots, self.slot_size)
         return ObservationParts(
-            mask=slots[:, 0],
-            relative_positions=slots[:, 1:1 + m],
-            desired=slots[:, 1 + m:1 + m + w],
-            edge_errors=slots[:, 1 + m + w:],
-            q=observation[-2 * n:-n],
-            dq=observation[-n:],
+            mask=slots[..., 0],
+            relative_positions=slots[..., 1:1 + m],
+            desired=slots[..., 1 + m:1 + m + w],
+            edge_errors=slots[..., 1 + m + w:],
+            q=observation[..., -2 * n:-n],
+            dq=observation[..., -n:],
         )
 
 

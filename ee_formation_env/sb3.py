@@ -29,16 +29,22 @@ EnvFactory = Callable[[], Any]  # () -> a PettingZoo ParallelEnv (picklable for 
 class _EnvGroup:
     """Envs stepped in one process: flattens agents into slots and auto-resets finished episodes."""
 
-    def __init__(self, factories: Sequence[EnvFactory]):
+    def __init__(self, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None = None):
         self.envs = [factory() for factory in factories]
         self.agents = list(self.envs[0].possible_agents)
+        self.info_keys = None if info_keys is None else tuple(info_keys)
+
+    def _slot_info(self, info: dict) -> dict:
+        if self.info_keys is None:
+            return dict(info)
+        return {key: info[key] for key in self.info_keys}
 
     def reset(self, seeds: Sequence[int | None]) -> tuple[np.ndarray, list[dict]]:
         observations, infos = [], []
         for env, seed in zip(self.envs, seeds):
             obs, info = env.reset(seed=seed)
             observations.extend(obs[a] for a in self.agents)
-            infos.extend(dict(info[a]) for a in self.agents)
+            infos.extend(self._slot_info(info[a]) for a in self.agents)
         return np.stack(observations), infos
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
@@ -48,7 +54,7 @@ class _EnvGroup:
             obs, reward, terminated, truncated, info = env.step(
                 {agent: actions[e * n + k] for k, agent in enumerate(self.agents)})
             ended = not env.agents
-            slot_infos = [dict(info[a]) for a in self.agents]
+            slot_infos = [self._slot_info(info[a]) for a in self.agents]
             if ended:
                 for k, agent in enumerate(self.agents):
                     slot_infos[k]["terminal_observation"] = obs[agent]
@@ -66,10 +72,10 @@ class _EnvGroup:
             env.close()
 
 
-def _worker(connection: Connection, factories: Sequence[EnvFactory]) -> None:
+def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None) -> None:
     group = None
     try:
-        group = _EnvGroup(factories)
+        group = _EnvGroup(factories, info_keys)
         connection.send(("ok", None))
         while True:
             command, payload = connection.recv()
@@ -97,18 +103,29 @@ class SharedPolicyVecEnv(VecEnv):
 
     ``n_workers = 0`` steps every env in this process; ``n_workers = k`` spreads them over ``k`` worker
     processes (``spawn`` start method, so each builds a fresh PyBullet client).
+    ``info_keys``: the env info entries each slot's info keeps (None, the default: all of them). Training
+    needs none of them (SB3 reads only the ``terminal_observation`` and ``TimeLimit.truncated`` this VecEnv
+    adds), and with worker processes every entry kept is pickled through a pipe on every step.
     """
 
-    def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0):
+    def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None):
         if not factories:
             raise ValueError("factories: expected at least one env factory")
         if not isinstance(n_workers, int) or n_workers < 0:
             raise ValueError(f"n_workers: expected an integer >= 0, got {n_workers!r}")
+        if info_keys is not None and (isinstance(info_keys, str) or not all(isinstance(k, str) for k in info_keys)):
+            raise TypeError(f"info_keys: expected None or a sequence of info key names, got {info_keys!r}")
         probe = factories[0]()
         self.agents = list(probe.possible_agents)
         spaces = [(probe.observation_space(a), probe.action_space(a)) for a in self.agents]
         self.scenario = probe.scenario
         probe_render_mode = probe.render_mode
+        if info_keys is not None:
+            _, probe_infos = probe.reset(seed=0)
+            unknown = sorted(set(info_keys) - set(probe_infos[self.agents[0]]))
+            if unknown:
+                probe.close()
+                raise ValueError(f"info_keys: unknown info key(s) {unknown}; the env's: {sorted(probe_infos[self.agents[0]])}")
         probe.close()
         if any(s != spaces[0] for s in spaces):
             raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
@@ -119,13 +136,14 @@ class SharedPolicyVecEnv(VecEnv):
         self._processes: list[multiprocessing.Process] = []
         self._envs_per_worker: list[int] = []
         if self.n_workers == 0:
-            self._local = _EnvGroup(factories)
+            self._local = _EnvGroup(factories, info_keys)
         else:
             context = multiprocessing.get_context("spawn")
             chunks = np.array_split(np.arange(self.n_envs), self.n_workers)
             for chunk in chunks:
                 parent, child = context.Pipe()
-                process = context.Process(target=_worker, args=(child, [factories[i] for i in chunk]), daemon=True)
+                process = context.Process(target=_worker, args=(child, [factories[i] for i in chunk], info_keys),
+                                          daemon=True)
                 process.start()
                 child.close()
                 self._connections.append(parent)

@@ -217,6 +217,22 @@ def test_regressor_identity_for_any_params(arm):
 
 
 @pytest.mark.parametrize("arm", ARM_IDS)
+def test_batched_regressor_is_the_regressor_of_each_configuration(arm):
+    chain = _chain(arm)
+    rng = np.random.default_rng(6)
+    q = chain.sample_configurations(7, rng)
+    zeta = rng.normal(size=(7, 3))
+    regressors = chain.regressor_batch(q, zeta)
+    assert regressors.shape == (7, chain.n_joints, chain.n_params)
+    for k in range(len(q)):
+        np.testing.assert_allclose(regressors[k], chain.regressor(q[k], zeta[k]), rtol=0, atol=1e-12)
+    planar = chain.regressor_batch(q, zeta[:, :2])  # (k, 2): z = 0
+    np.testing.assert_array_equal(planar, chain.regressor_batch(q, np.c_[zeta[:, :2], np.zeros(7)]))
+    with pytest.raises(ValueError, match="zeta_batch"):
+        chain.regressor_batch(q, zeta[:3])
+
+
+@pytest.mark.parametrize("arm", ARM_IDS)
 def test_jacobian_with_params_is_derivative_of_forward(arm):
     chain = _chain(arm)
     rng = np.random.default_rng(6)

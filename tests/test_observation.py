@@ -25,6 +25,19 @@ def test_split_names_every_entry_in_the_documented_order():
     np.testing.assert_array_equal(parts.dq, [24, 25, 26, 27])
 
 
+def test_split_of_a_stack_is_the_split_of_each_observation():
+    layout = ObservationLayout(n_slots=3, dim=2, error_width=1, n_joints=2)
+    stack = np.random.default_rng(0).normal(size=(5, layout.size))
+    parts = layout.split(stack)
+    assert parts.relative_positions.shape == (5, 3, 2) and parts.q.shape == (5, 2)
+    for k in range(5):
+        single = layout.split(stack[k])
+        for name in ("mask", "relative_positions", "desired", "edge_errors", "q", "dq"):
+            np.testing.assert_array_equal(getattr(parts, name)[k], getattr(single, name))
+    with pytest.raises(ValueError, match="observation: expected shape"):
+        layout.split(np.zeros((2, 2, layout.size)))
+
+
 def test_split_rejects_a_wrong_size():
     with pytest.raises(ValueError, match=r"observation: expected shape \(9,\)"):
         ObservationLayout(n_slots=1, dim=2, error_width=1, n_joints=2).split(np.zeros(10))

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import baselines
-from baselines.residual import ResidualActionEnv, ResidualPolicy, combine, correction_factor, error_gate
+from baselines.residual import (ResidualActionEnv, ResidualPolicy, combine, correction_factor, error_gate,
+                               error_gates)
 
 
 class _Zero:
@@ -85,3 +86,18 @@ def test_error_gate_is_the_agents_error_in_tolerances_capped_at_one(make_env, sc
     assert error_gate(layout, scaled) == pytest.approx(0.25)
     errors[:] = 0.0
     assert error_gate(layout, scaled) == 0.0  # at the goal the correction vanishes
+
+
+@pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement"])
+def test_error_gates_of_a_stack_are_each_agents_gate(make_env, scenario):
+    env = make_env(scenario)
+    observations, _ = env.reset(seed=2)
+    layout = env.observation_layout("arm_0")
+    stack = np.stack([observations[agent] for agent in env.possible_agents]).astype(np.float64)
+    slots = stack[:, :layout.n_slots * layout.slot_size].reshape(len(stack), layout.n_slots, layout.slot_size)
+    slots[:, :, 1 + layout.dim + layout.error_width:] *= 1e-4 * np.arange(1, len(stack) + 1)[:, None, None]
+    stack[:, :layout.n_slots * layout.slot_size] = slots.reshape(len(stack), -1)
+    gates = error_gates(layout, stack)
+    assert gates.shape == (len(stack),) and 0 < gates.min() < gates.max() < 1  # near the goal: gates below 1
+    for row, gate in zip(stack, gates):
+        assert gate == error_gate(layout, row)

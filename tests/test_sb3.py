@@ -151,3 +151,28 @@ def test_heterogeneous_agents_are_rejected():
     }
     with pytest.raises(ValueError, match="parameter sharing"):
         SharedPolicyVecEnv([functools.partial(make_training_env, scenario)], n_workers=0)
+
+
+@pytest.mark.parametrize("n_workers", [0, 1])
+def test_info_keys_choose_what_each_slot_info_keeps(n_workers):
+    venv = SharedPolicyVecEnv([_factory()], n_workers=n_workers, info_keys=("formation_error",))
+    lean = SharedPolicyVecEnv([_factory()], n_workers=n_workers, info_keys=())
+    try:
+        venv.reset()
+        lean.reset()
+        actions = np.zeros((venv.num_envs, 2), dtype=np.float32)
+        for step in range(5):  # the fifth step ends the 5-step episode
+            infos, lean_infos = venv.step(actions)[3], lean.step(actions)[3]
+            ending = {"terminal_observation", "TimeLimit.truncated"} if step == 4 else set()
+            assert all(set(info) == {"formation_error"} | ending for info in infos)
+            assert all(set(info) == ending for info in lean_infos)
+    finally:
+        venv.close()
+        lean.close()
+
+
+def test_bad_info_keys_are_rejected_before_any_worker_starts():
+    with pytest.raises(ValueError, match=r"info_keys: unknown info key\(s\) \['formation_eror'\]"):
+        SharedPolicyVecEnv([_factory()], n_workers=1, info_keys=("formation_eror",))
+    with pytest.raises(TypeError, match="info_keys"):
+        SharedPolicyVecEnv([_factory()], n_workers=0, info_keys="formation_error")

@@ -7,7 +7,7 @@ import pytest
 
 import baselines
 import ee_formation_env
-from baselines.controllers import Gains
+from baselines.controllers import ControllerBatch, Gains, PolicyTeam
 from baselines.gains import PAPER_GAINS, default_gains
 from baselines.metrics import run_episode
 from ee_formation_env.scenario import _square, builtin_scenario
@@ -206,3 +206,60 @@ def test_anti_windup_keeps_the_internal_model_within_the_torque_limits():
             peaks[anti_windup] = peak[0]
     assert peaks[True] <= 1.0 + 1e-9  # |K_I eta| <= limit with K_I = 1
     assert peaks[False] > peaks[True]
+
+
+KUKA = {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "initial_q": [0.0, 0.5, 0.0, -1.2, 0.0, 0.8, 0.0]}
+PANDA = {"urdf": "franka_panda/panda.urdf", "ee_link": "panda_hand", "initial_q": [0.0, -0.5, 0.0, -2.0, 0.0, 1.5, 0.8]}
+MIXED_TEAM = {  # two KUKA iiwa and one Franka Panda
+    "arms": [dict(KUKA, base_position=[0.0, 0.0, 0.0]), dict(PANDA, base_position=[1.0, 0.0, 0.0]),
+             dict(KUKA, base_position=[0.5, 0.9, 0.0])],
+    "edges": [[0, 1], [1, 2], [0, 2]], "shape": [[0.4, 0.2, 0.6], [0.9, 0.2, 0.6], [0.65, 0.6, 0.6]],
+    "formation": "displacement", "dim": 3, "arm_collisions": False,
+}
+
+
+@pytest.mark.parametrize("policy", ["gradient", "approx_jacobian", "adaptive_jacobian"])
+@pytest.mark.parametrize("scenario", ["planar_square", "spatial_tetrahedron"])
+def test_a_batch_of_controllers_acts_as_each_controller_alone(make_env, policy, scenario):
+    """Batched evaluation (PolicyTeam, ControllerBatch) gives every agent bit for bit the action and internal
+    state it gets alone, over steps that move the internal states, with gains that differ per agent."""
+    env = make_env(scenario, episode_seconds=0.2)
+    gains = [default_gains(env.task, i).with_updates(kd=5.0 + i, ki=0.5 * i) for i in range(env.task.n_agents)]
+    alone = {a: baselines.make_policy(policy, env, a, gains=g) for a, g in zip(env.possible_agents, gains)}
+    batched = {a: baselines.make_policy(policy, env, a, gains=g) for a, g in zip(env.possible_agents, gains)}
+    team = PolicyTeam(batched)
+    observations, _ = env.reset(seed=3)
+    team.reset()
+    while env.agents:
+        expected = {agent: alone[agent](observations[agent]) for agent in env.agents}
+        actions = team(observations)
+        for agent in env.agents:
+            assert actions[agent].tobytes() == expected[agent].tobytes()
+            for state in ("eta", "a_hat", "boundary_steps"):
+                assert np.array_equal(getattr(batched[agent], state, 0), getattr(alone[agent], state, 0))
+        observations, *_ = env.step(actions)
+
+
+def test_a_team_batches_like_robots_and_calls_other_policies_one_by_one(make_env):
+    env = make_env(MIXED_TEAM, episode_seconds=0.1)
+    team = PolicyTeam(baselines.make_policies("adaptive_jacobian", env))
+    assert sorted(len(batch.members) for _, batch in team._batches) == [1, 2]  # the two KUKAs, the Panda
+    twins = baselines.make_policies("adaptive_jacobian", env)
+    observations, _ = env.reset(seed=0)
+    actions = team(observations)
+    for agent in env.possible_agents:
+        assert actions[agent].tobytes() == twins[agent](observations[agent]).tobytes()
+    mixed = dict(twins, arm_1=baselines.make_policy("zero", env, "arm_1"))
+    assert not np.any(PolicyTeam(mixed)(observations)["arm_1"])
+
+
+def test_a_batch_rejects_controllers_it_cannot_stack(make_env):
+    env = make_env("planar_square")
+    gradient = baselines.make_policy("gradient", env, "arm_0")
+    adaptive = baselines.make_policy("adaptive_jacobian", env, "arm_1")
+    with pytest.raises(ValueError, match="one law"):
+        ControllerBatch([gradient, adaptive])
+    with pytest.raises(ValueError, match="same options"):
+        ControllerBatch([adaptive, baselines.make_policy("adaptive_jacobian", env, "arm_2", projection=False)])
+    with pytest.raises(ValueError, match="at least one"):
+        ControllerBatch([])
