@@ -267,7 +267,7 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     if args.algo == "ppo":
         # n_steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults. Many envs and short
         # rollouts: the learner's per-step cost (one forward pass for every slot) is paid once for 128 slots.
-        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=1024, n_epochs=5, learning_rate=3e-4,
+        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=min(1024, args.n_steps * venv.num_envs), n_epochs=5, learning_rate=3e-4,
                    gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
     return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
                learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)

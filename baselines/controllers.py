@@ -271,13 +271,12 @@ class ApproxJacobianController(FormationController):
     def batch_torques(cls, batch: "ControllerBatch", parts: ObservationParts) -> np.ndarray:
         e_hat = batch.gradients(parts)
         regressors = batch.chain.regressor_batch(parts.q, e_hat)  # J(q, a_hat)^T e_hat = Z a_hat
-        eta = np.stack([member.eta for member in batch.members])
-        a_hat = cls.adapt(batch, parts, regressors, np.stack([member.a_hat for member in batch.members]))
+        eta = batch.gather("eta")
+        a_hat = cls.adapt(batch, parts, regressors, batch.gather("a_hat"))
         u = -batch.kp * (regressors @ a_hat[:, :, None])[:, :, 0] - batch.kd * parts.dq + batch.ki * eta
         applied = np.clip(u, -batch.torque_limits, batch.torque_limits) if batch.members[0].anti_windup else u
-        eta = eta + batch.control_dt * (-batch.ki * eta + applied)
-        for member, member_eta, member_a_hat in zip(batch.members, eta, a_hat):
-            member.eta, member.a_hat = member_eta, member_a_hat
+        batch.scatter("eta", eta + batch.control_dt * (-batch.ki * eta + applied))
+        batch.scatter("a_hat", a_hat)
         return u
 
     @classmethod
@@ -378,9 +377,25 @@ class ControllerBatch:
         self.alpha = np.array([c.gains.alpha for c in controllers], dtype=np.float64)
         self.adaptation_gain = np.array([c.gains.adaptation_gain for c in controllers], dtype=np.float64)
         self.identity = np.eye(self.chain.n_params)
+        self._states: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}  # gather/scatter cache
         if isinstance(first, AdaptiveJacobianController):
             self.param_low = np.stack([c.param_low for c in controllers])
             self.param_high = np.stack([c.param_high for c in controllers])
+
+    def gather(self, name: str) -> np.ndarray:
+        """The members' internal state ``name`` stacked (k, ...): the array :meth:`scatter` last wrote while
+        every member still holds its row of it, else a fresh stack (e.g. after a reset)."""
+        stacked, rows = self._states.get(name, (None, ()))
+        if stacked is not None and all(getattr(member, name) is row for member, row in zip(self.members, rows)):
+            return stacked
+        return np.stack([getattr(member, name) for member in self.members])
+
+    def scatter(self, name: str, stacked: np.ndarray) -> None:
+        """Give each member its row of ``stacked`` as its internal state ``name``."""
+        rows = list(stacked)
+        for member, row in zip(self.members, rows):
+            setattr(member, name, row)
+        self._states[name] = (stacked, rows)
 
     def __call__(self, observations: np.ndarray) -> np.ndarray:
         parts = self.layout.split(observations)

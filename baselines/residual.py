@@ -94,6 +94,9 @@ class ResidualActionEnv:
             raise ValueError(f"correction_penalty: expected a value in [0, 1], got {correction_penalty!r}")
         self.env, self.scale, self.correction_penalty = env, float(scale), float(correction_penalty)
         self.agents_in_order = list(env.possible_agents)
+        shapes = {env.action_space(agent).shape for agent in self.agents_in_order}
+        self._uniform = len(shapes) == 1
+        self._action_shape = next(iter(shapes))
         self.gate_layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents} if gate else None
         # Agents sharing an observation layout get their gates in one call: (layout, their rows).
         self._gate_groups: list[tuple[ObservationLayout, list[int]]] = []
@@ -119,16 +122,35 @@ class ResidualActionEnv:
         if not isinstance(actions, Mapping) or actions.keys() != set(self.agents_in_order):
             return self.env.step(actions)  # the env raises its error, naming the agents
         agents = self.agents_in_order
-        residuals = [np.clip(np.asarray(actions[agent], dtype=np.float64), -1.0, 1.0) for agent in agents]
+        if self._uniform:  # every agent's residual in one (N, n) array: a few calls for the whole team
+            try:
+                residuals = np.array([actions[agent] for agent in agents], dtype=np.float64)
+            except (TypeError, ValueError):
+                residuals = None
+            if residuals is None or residuals.shape != (len(agents), *self._action_shape) \
+                    or not np.isfinite(residuals).all():
+                # The env raises its error, naming the agent, before anything (the references' states too) moves.
+                return self.env.step(actions)
+            np.clip(residuals, -1.0, 1.0, out=residuals)
+            penalties = np.mean(residuals * residuals, axis=1)
+        else:
+            try:
+                residuals = [np.asarray(actions[agent], dtype=np.float64) for agent in agents]
+            except (TypeError, ValueError):
+                return self.env.step(actions)
+            if any(r.shape != self.env.action_space(a).shape or not np.isfinite(r).all()
+                   for a, r in zip(agents, residuals)):
+                return self.env.step(actions)
+            residuals = [np.clip(residual, -1.0, 1.0) for residual in residuals]
+            penalties = np.array([np.mean(residual * residual) for residual in residuals])
         references = self.references(self._observations)
-        scales = self._scales()
         combined = {agent: references[agent] + scale * residual
-                    for agent, scale, residual in zip(agents, scales, residuals)}
+                    for agent, scale, residual in zip(agents, self._scales(), residuals)}
         observations, rewards, terminations, truncations, infos = self.env.step(combined)
         self._observations = observations
         if self.correction_penalty > 0:  # the factor of correction_factor (residuals are clipped already)
-            rewards = {agent: rewards[agent] * (1.0 - self.correction_penalty * float(np.mean(residual * residual)))
-                       for agent, residual in zip(agents, residuals)}
+            factors = (1.0 - self.correction_penalty * penalties).tolist()
+            rewards = {agent: rewards[agent] * factor for agent, factor in zip(agents, factors)}
         return observations, rewards, terminations, truncations, infos
 
     def _scales(self) -> np.ndarray:

@@ -101,3 +101,20 @@ def test_error_gates_of_a_stack_are_each_agents_gate(make_env, scenario):
     assert gates.shape == (len(stack),) and 0 < gates.min() < gates.max() < 1  # near the goal: gates below 1
     for row, gate in zip(stack, gates):
         assert gate == error_gate(layout, row)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"arm_0": np.zeros(3)}, r"actions\['arm_0'\]: expected shape \(2,\)"),
+    ({"arm_1": "left"}, r"actions\['arm_1'\]: expected a numeric array"),
+    ({"arm_2": np.array([np.nan, 0.0])}, r"actions\['arm_2'\]: expected finite values"),
+])
+def test_bad_residuals_get_the_envs_error_before_anything_moves(make_env, bad, match):
+    residual = ResidualActionEnv(make_env("planar_square"), scale=0.3, gate=True)
+    observations, _ = residual.reset(seed=0)
+    actions = {agent: np.zeros(2, dtype=np.float32) for agent in residual.possible_agents}
+    with pytest.raises(ValueError, match=match):
+        residual.step({**actions, **bad})
+    assert residual.env._step_count == 0
+    assert all(np.all(policy.eta == 0) for policy in residual.references.policies.values())  # nothing adapted
+    after, *_ = residual.step(actions)  # the wrapper is still usable
+    assert set(after) == set(observations)
