@@ -138,19 +138,22 @@ def time_env_steps(env: FormationEnv, steps: int, seed: int = 0) -> float:
     return time.perf_counter() - start
 
 
-def time_closed_loop(env: FormationEnv, policies: dict[str, Any], steps: int, seed: int = 0) -> float:
-    """Seconds for ``steps`` env steps with one controller per agent acting on its observation."""
+def time_closed_loop(env: FormationEnv, policies: dict[str, Any], steps: int, seed: int = 0,
+                     batched: bool = True) -> float:
+    """Seconds for ``steps`` env steps with one controller per agent acting on its observation: evaluated as
+    one :class:`baselines.controllers.PolicyTeam` (``batched``, as ``run_episode`` does) or agent by agent."""
+    from baselines.controllers import PolicyTeam
+
+    team = PolicyTeam(policies)
+    act = team if batched else (lambda observations: {a: policies[a](observations[a]) for a in env.agents})
     observations, _ = env.reset(seed=seed)
-    for policy in policies.values():
-        policy.reset()
+    team.reset()
     start = time.perf_counter()
     for _ in range(steps):
-        actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
-        observations, _, _, _, _ = env.step(actions)
+        observations, _, _, _, _ = env.step(act(observations))
         if not env.agents:
             observations, _ = env.reset()
-            for policy in policies.values():
-                policy.reset()
+            team.reset()
     return time.perf_counter() - start
 
 
@@ -231,24 +234,29 @@ def bench_scenario(name: str, budget: Budget) -> list[dict[str, Any]]:
     ]
 
 
-def bench_closed_loop(name: str, seconds: float, budget: Budget, raw_rate: float) -> dict[str, Any]:
-    """Section (c): env plus ``adaptive_jacobian`` on every agent, ``seconds`` of simulated time."""
+def bench_closed_loop(name: str, seconds: float, budget: Budget, raw_rate: float) -> list[dict[str, Any]]:
+    """Section (c): env plus ``adaptive_jacobian`` on every agent, ``seconds`` of simulated time; the team
+    evaluated in batches (as ``run_episode`` does) and agent by agent."""
     import baselines
 
     env = _make_env(name)
     try:
         policies = baselines.make_policies("adaptive_jacobian", env)
         steps = max(1, int(round(seconds / env.scenario.control_dt)))
-        times = interleaved({"loop": lambda: time_closed_loop(env, policies, steps)},
-                            max(1, min(budget.repeats, 3)))["loop"]
+        times = interleaved({"team": lambda: time_closed_loop(env, policies, steps),
+                             "agents": lambda: time_closed_loop(env, policies, steps, batched=False)},
+                            max(1, min(budget.repeats, 3)))
         scenario = env.scenario
     finally:
         env.close()
-    row = _row("closed_loop", f"{name}: env + adaptive_jacobian ({seconds:g} s simulated)", times, steps,
-               scenario.frame_skip, scenario.physics_hz, raw_rate, scenario=name, n_arms=scenario.n_agents,
-               simulated_seconds=seconds)
-    row["wall_seconds_per_30s_simulated"] = 30.0 / row["real_time_factor"]
-    return row
+    rows = []
+    for key, how in (("team", "one team call per step"), ("agents", "one call per agent")):
+        row = _row("closed_loop", f"{name}: env + adaptive_jacobian, {how} ({seconds:g} s simulated)", times[key],
+                   steps, scenario.frame_skip, scenario.physics_hz, raw_rate, scenario=name,
+                   n_arms=scenario.n_agents, simulated_seconds=seconds, batched=key == "team")
+        row["wall_seconds_per_30s_simulated"] = 30.0 / row["real_time_factor"]
+        rows.append(row)
+    return rows
 
 
 def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> list[dict[str, Any]]:
@@ -264,7 +272,7 @@ def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> li
     rows = []
     for workers in (2, 0):
         factories = [functools.partial(_make_env, name) for _ in range(n_envs)]
-        venv = SharedPolicyVecEnv(factories, n_workers=workers)
+        venv = SharedPolicyVecEnv(factories, n_workers=workers, info_keys=())  # as train.py: no per-step infos
         try:
             model = PPO("MlpPolicy", venv, n_steps=budget.sb3_steps, batch_size=budget.sb3_steps, device="cpu",
                         seed=0, verbose=0)
@@ -462,7 +470,7 @@ def run(quick: bool = False, sections: Sequence[str] = SECTIONS, progress: Calla
         for name, seconds in (("planar_square", budget.closed_loop_seconds),
                               ("spatial_tetrahedron", budget.closed_loop_seconds_spatial)):
             progress(f"closed loop: {name}")
-            results["rows"].append(bench_closed_loop(name, seconds, budget, raw_rates[name]))
+            results["rows"] += bench_closed_loop(name, seconds, budget, raw_rates[name])
     if "sb3_rollout" in sections:
         progress("SB3 rollouts: planar_square")
         results["rows"] += bench_sb3("planar_square", budget, raw_rates["planar_square"])
