@@ -1,6 +1,6 @@
 """Train a shared formation policy and compare it with the reference controllers on the same metrics.
 
-    python train.py                                   # default: residual PPO on planar_square, ~6 min on 2 cores
+    python train.py                                   # default: residual PPO on planar_square, 3-9 min on 2 cores
     python train.py --mode torque                     # the policy outputs the torques itself
     python train.py --backend rllib --total-timesteps 20000
     python train.py --eval-only runs/<name>           # re-evaluate a saved run
