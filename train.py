@@ -46,6 +46,14 @@ EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training rese
 DEFAULT_TIMESTEPS = {"residual": 600_000, "torque": 2_500_000}
 TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 5.0}
 TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.3}  # rad; None: the scenario's
+# Torque mode starts from demonstrations of a reference (README, "Training"): DAgger rounds, each this many
+# training episodes, the learner driving this share of the steps after the first round, then PPO.
+IMITATION_ROUNDS = 3
+IMITATION_EPISODES = 60
+IMITATION_LEARNER_SHARE = 0.5
+IMITATION_EPOCHS = (30, 15)  # epochs over all the data so far: first round, later rounds
+IMITATION_TIMESTEPS = 500_000  # PPO agent steps after the imitation
+IMITATION_LOG_STD = -2.5  # PPO's exploration around the imitated policy: std 0.08 of the torque range
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
 
@@ -64,6 +72,15 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--residual-gate", action=argparse.BooleanOptionalAction, default=True,
                         help="residual mode: scale the correction by min(1, the agent's error in tolerances), so "
                              "that it fades out at the goal (default on)")
+    parser.add_argument("--imitate", choices=(*baselines.MODEL_BASED_POLICIES, "none"), default=None,
+                        help="torque mode: start the policy as a copy of this reference controller, learned from its "
+                             "demonstrations (DAgger) before PPO (default gradient; none: learn from the reward "
+                             "alone); residual mode: none only")
+    parser.add_argument("--imitation-rounds", type=int, default=IMITATION_ROUNDS,
+                        help="--imitate: demonstration rounds (the first driven by the reference, the next ones "
+                             "partly by the learner)")
+    parser.add_argument("--imitation-episodes", type=int, default=IMITATION_EPISODES,
+                        help="--imitate: training episodes per demonstration round")
     parser.add_argument("--algo", choices=("ppo", "sac"), default="ppo")
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--total-timesteps", type=int, default=None,
@@ -94,8 +111,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--address", default=None, help="rllib: address of an existing Ray cluster")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
+    if args.imitate is None:  # torque-mode PPO on SB3 starts from a reference's demonstrations by default
+        args.imitate = "gradient" if (args.mode, args.backend, args.algo) == ("torque", "sb3", "ppo") else "none"
     if args.total_timesteps is None:
-        args.total_timesteps = DEFAULT_TIMESTEPS[args.mode]
+        args.total_timesteps = DEFAULT_TIMESTEPS[args.mode] if args.imitate == "none" else IMITATION_TIMESTEPS
     if args.train_episode_seconds is None:
         args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
     if args.train_initial_q_noise is None:
@@ -104,6 +123,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--total-timesteps, --n-envs, --n-steps and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
+    if args.imitate != "none" and (args.mode != "torque" or args.backend != "sb3" or args.algo != "ppo"):
+        parser.error("--imitate: expected none, except with --mode torque, --backend sb3 and --algo ppo")
+    if args.imitation_rounds < 1 or args.imitation_episodes < 1:
+        parser.error("--imitation-rounds and --imitation-episodes must be >= 1")
     if args.n_workers < 0 or args.eval_workers < 0:
         parser.error("--n-workers and --eval-workers must be >= 0")
     if args.backend == "rllib" and args.algo != "ppo":
@@ -259,7 +282,8 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
     # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
     # policy starts far from "no correction" and a torque policy saturates its joints half of the time.
-    policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64])
+    # A copy of a reference controller (--imitate) needs a wider actor than learning from the reward did.
+    policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64] if args.imitate == "none" else [256, 256])
     if args.algo == "ppo":
         policy_kwargs["log_std_init"] = args.log_std_init
     common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
@@ -278,6 +302,8 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
 
     model = build_sb3_model(args, out_dir)
     venv = model.get_env()
+    if args.imitate != "none":
+        imitate(model, args, out_dir)
     checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
                                      save_path=str(out_dir / "checkpoints"), name_prefix="model")
     callbacks = [checkpoints]
@@ -293,6 +319,91 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
         out_dir / "obs_normalizer.pkl")
     venv.close()
     _write_learning_curve_from_monitor(out_dir)
+
+
+def imitate(model: Any, args: argparse.Namespace, out_dir: Path) -> None:
+    """Start ``model``'s policy as a copy of the reference ``args.imitate``: DAgger rounds of demonstrations
+    in the training env (:func:`baselines.imitation.demonstrations`), the actor's mean fitted to the
+    reference's actions after each round, the observation normalization set from the data; then PPO's
+    exploration noise is narrowed to ``IMITATION_LOG_STD``. Writes ``imitation.json``."""
+    import torch
+
+    from baselines.imitation import demonstrations
+
+    venv = model.get_env()  # VecNormalize: the policy sees normalized observations
+    env = make_training_env(args.scenario, training_overrides(args), "torque")
+    rng = np.random.default_rng(args.seed)
+    seeds = rng.integers(0, EVAL_SEED_OFFSET, size=args.imitation_rounds * args.imitation_episodes)
+    observations, labels, rounds, started = [], [], [], time.time()
+    try:
+        for index in range(args.imitation_rounds):
+            learner = None if index == 0 else functools.partial(_actor_mean, model, venv)
+            episode_seeds = seeds[index * args.imitation_episodes:(index + 1) * args.imitation_episodes]
+            seen, wanted = demonstrations(env, args.imitate, args.imitation_episodes, episode_seeds, learner,
+                                          0.0 if index == 0 else IMITATION_LEARNER_SHARE, rng)
+            observations.append(seen)
+            labels.append(wanted)
+            loss = _fit_actor(model, venv, np.concatenate(observations), np.concatenate(labels),
+                              IMITATION_EPOCHS[min(index, 1)], args.seed + index)
+            rounds.append({"round": index, "samples": int(sum(len(x) for x in observations)), "loss": loss,
+                           "seconds": time.time() - started})
+            if not args.no_progress:
+                print(f"imitation round {index + 1}/{args.imitation_rounds}: {rounds[-1]['samples']} samples, "
+                      f"weighted loss {loss:.2e}, {rounds[-1]['seconds']:.0f} s", flush=True)
+    finally:
+        env.close()
+    with torch.no_grad():
+        model.policy.log_std.fill_(IMITATION_LOG_STD)
+    (out_dir / "imitation.json").write_text(json.dumps({"reference": args.imitate, "rounds": rounds,
+                                                        "log_std_after": IMITATION_LOG_STD}, indent=2))
+
+
+def _normalized(venv: Any, observations: np.ndarray) -> Any:
+    import torch
+
+    return torch.as_tensor(venv.normalize_obs(observations), dtype=torch.float32)
+
+
+def _actor_mean(model: Any, venv: Any, observations: np.ndarray) -> np.ndarray:
+    """The policy's deterministic action (its Gaussian's mean) for raw observations (k, size)."""
+    import torch
+
+    policy = model.policy
+    with torch.no_grad():
+        latent = policy.mlp_extractor.forward_actor(policy.features_extractor(_normalized(venv, observations)))
+        return policy.action_net(latent).numpy().astype(np.float64)
+
+
+def _fit_actor(model: Any, venv: Any, observations: np.ndarray, labels: np.ndarray, epochs: int, seed: int) -> float:
+    """Fit the actor's mean to ``labels`` by weighted least squares; returns the last minibatch's loss.
+
+    The observation normalization is set from the data first (and keeps updating in PPO afterwards).
+    Each sample is weighted by ``1 / (mean |label| + 0.02)``: near the goal the reference's torques are a
+    few percent of the range, and holding 1 cm needs them right to about that precision.
+    """
+    import torch
+
+    venv.obs_rms.mean = observations.mean(axis=0)
+    venv.obs_rms.var = observations.var(axis=0)
+    venv.obs_rms.count = float(len(observations))
+    inputs = _normalized(venv, observations)
+    targets = torch.as_tensor(labels, dtype=torch.float32)
+    weights = 1.0 / (targets.abs().mean(dim=1, keepdim=True) + 0.02)
+    policy = model.policy
+    parameters = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters()]
+    optimizer = torch.optim.Adam(parameters, lr=1e-3)
+    generator = torch.Generator().manual_seed(seed)
+    loss = torch.zeros(())
+    for _ in range(epochs):
+        order = torch.randperm(len(inputs), generator=generator)
+        for start in range(0, len(inputs), 1024):
+            batch = order[start:start + 1024]
+            latent = policy.mlp_extractor.forward_actor(policy.features_extractor(inputs[batch]))
+            loss = (weights[batch] * (policy.action_net(latent) - targets[batch]) ** 2).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    return float(loss.detach())
 
 
 def _collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:
