@@ -37,6 +37,21 @@ regressor ``Z(q, e_hat)``). Why this form:
 - Both ends of an edge know ``d_k`` (their observation), K_P and F, so they use the same ``c_k``:
   the law stays distributed.
 
+Gradient-rate damping (``Gains.rate_gain`` = K_R > 0; 0, the default, is the paper's law): the spring
+term acts on ``e_hat + K_R d(e_hat)/dt``, the derivative taken as the backward difference of the agent's
+own e_hat over one control step (its observation at two steps: no neighbour velocity is needed), so
+``u = -K_P J^T (e_hat + K_R d(e_hat)/dt) - K_D dq + ...``; law-III adapts with e_hat itself. Why:
+
+- ``-K_P J^T e_hat`` is unchanged (the gradient of one potential, one scalar K_P); the added term is,
+  in continuous time, the damping ``-K_R K_P J^T S(x) J dq`` (S the Hessian of the formation potential
+  in x), proportional to the formation's stiffness, positive semi-definite near the target.
+- The control is held over each step, so a spring acts on a state half a step old on average: a
+  negative damping ``K dt / 2`` per mode of stiffness K. Joint damping K_D must outweigh it on the
+  stiffest mode, and then over-damps the softest ones (their rate is about K / K_D): on an ill-conditioned
+  formation (stiffness eigenvalues 1e4 apart) they take minutes. The rate term damps each mode in
+  proportion to its own stiffness, which cancels the lag (K_R > dt / 2), so K_D can be ten times lower
+  (:mod:`baselines.gains`).
+
 Internal states are integrated once per env step (the control step ``dt``): ``eta`` by explicit Euler,
 ``a_hat`` by a linearly implicit Euler step, ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq``, because
 ``alpha Z^T Z`` is stiff (rates of ~2000 1/s on the paper's planar arms, unstable for explicit Euler at
@@ -68,7 +83,9 @@ class Gains:
     ``adaptation_gain``: Gamma of law-III (module docstring; 1, the default, is the printed law);
     ``spring_force``: saturation force (N) of each edge's virtual spring at its desired length
     (module docstring, "Saturated springs"), one number for every edge or one per neighbour slot (the
-    agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law.
+    agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law;
+    ``rate_gain``: K_R, s, of the gradient-rate damping (module docstring, "Gradient-rate damping"); 0, the
+    default, is the paper's law.
     """
 
     kp: Any = 5.0
@@ -77,6 +94,7 @@ class Gains:
     alpha: float = 0.02
     spring_force: Any = math.inf
     adaptation_gain: float = 1.0
+    rate_gain: float = 0.0
 
     def with_updates(self, **changes: Any) -> "Gains":
         allowed = sorted(field.name for field in fields(self))
@@ -98,6 +116,9 @@ class Gains:
         if isinstance(self.adaptation_gain, bool) or not isinstance(self.adaptation_gain, (int, float)) \
                 or not (self.adaptation_gain > 0 and math.isfinite(self.adaptation_gain)):
             raise ValueError(f"gains.adaptation_gain: expected a finite value > 0, got {self.adaptation_gain!r}")
+        if isinstance(self.rate_gain, bool) or not isinstance(self.rate_gain, (int, float)) \
+                or not (self.rate_gain >= 0 and math.isfinite(self.rate_gain)):
+            raise ValueError(f"gains.rate_gain: expected a finite value >= 0 s, got {self.rate_gain!r}")
         try:
             forces = np.asarray(self.spring_force, dtype=np.float64)
         except (TypeError, ValueError):
@@ -155,6 +176,19 @@ class FormationController:
 
     def reset(self) -> None:
         """Clear internal state (start of an episode)."""
+        self._previous_e_hat: np.ndarray | None = None
+
+    # ---- Gradient-rate damping (module docstring): the only state it needs is the previous e_hat.
+    def spring_gradient(self, e_hat: np.ndarray) -> np.ndarray:
+        """``e_hat + K_R (e_hat - e_hat_prev) / dt``: the gradient the spring term ``-K_P J^T (.)`` acts on.
+
+        The first call after a reset has no previous value and returns ``e_hat``; ``K_R = 0`` always does.
+        """
+        previous, self._previous_e_hat = self._previous_e_hat, e_hat
+        if self.gains.rate_gain == 0.0 or previous is None:
+            return e_hat
+        return e_hat + (self.gains.rate_gain / self.agent.control_dt) * (e_hat - previous)
+    # ---- end of gradient-rate damping
 
     def gradient(self, parts: ObservationParts) -> np.ndarray:
         """e_hat_i in the base frame, padded to 3 components (edge errors saturated if ``spring_force`` is finite)."""
@@ -199,7 +233,7 @@ class GradientController(FormationController):
     def torque(self, parts: ObservationParts) -> np.ndarray:
         jacobian = self.agent.chain.jacobian(parts.q, self.a_hat0)
         gravity = self.agent.dynamics.gravity_torque(parts.q, self.agent.gravity_in_base)
-        return -self._kp * (jacobian.T @ self.gradient(parts)) - self._kd * parts.dq + gravity
+        return -self._kp * (jacobian.T @ self.spring_gradient(self.gradient(parts))) - self._kd * parts.dq + gravity
 
 
 class ApproxJacobianController(FormationController):
@@ -221,6 +255,7 @@ class ApproxJacobianController(FormationController):
         super().__init__(agent, gains, a_hat0)
 
     def reset(self) -> None:
+        super().reset()
         self.eta = np.zeros(self.agent.chain.n_joints)
         self.a_hat = self.a_hat0.copy()
 
@@ -228,7 +263,7 @@ class ApproxJacobianController(FormationController):
         e_hat = self.gradient(parts)
         self._adapt(parts, e_hat)
         jacobian = self.agent.chain.jacobian(parts.q, self.a_hat)
-        u = -self._kp * (jacobian.T @ e_hat) - self._kd * parts.dq + self._ki * self.eta
+        u = -self._kp * (jacobian.T @ self.spring_gradient(e_hat)) - self._kd * parts.dq + self._ki * self.eta
         limits = self.agent.torque_limits
         applied = np.clip(u, -limits, limits) if self.anti_windup else u
         self.eta = self.eta + self.agent.control_dt * (-self._ki * self.eta + applied)
