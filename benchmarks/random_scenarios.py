@@ -23,7 +23,7 @@ rate, the mean and worst settling time of the successes, physics faults and arm 
   3D for 3 or 4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
 
 A failed run is classified from its final state and its last seconds (:attr:`RunRecord.failure_kind`):
-a physics fault; an arm at a singularity; the paper's gradient e_hat small while edges are off, either
+a physics fault; arms still touching each other at the end (jammed); an arm at a singularity; the paper's gradient e_hat small while edges are off, either
 with the error on a plateau (at or near an undesired equilibrium of the distance formation, or a saddle
 the flow leaves only slowly) or still falling (converging slowly along a weak mode: an ill-conditioned
 shape, or an arm near its workspace boundary that can barely move its end-effector the way the error
@@ -242,6 +242,7 @@ class RunRecord:
     wall_s: float
     final_error_trend: float = math.nan  # relative change of the max edge error over the last TREND_SECONDS
     final_rigidity_ratio: float = math.nan  # sigma_min / sigma_max of the rigidity matrix at the end
+    final_contact: bool = False  # arms touching each other at the last step
 
     @property
     def failure_kind(self) -> str:
@@ -250,6 +251,8 @@ class RunRecord:
             return ""
         if self.physics_fault:
             return "physics fault"
+        if self.final_contact:
+            return "arms jammed against each other (in contact at the end)"
         if self.final_singularity_margin < SINGULAR_MARGIN:
             return "an arm at a singularity (workspace boundary or folded)"
         if self.final_gradient_ratio < EQUILIBRIUM_RATIO:
@@ -320,7 +323,7 @@ def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs:
         return RunRecord(family, scenario["name"], env.scenario.n_agents, robots, policy, bool(success),
                          settle_index * dt if success else math.nan, float(series[-1]), fault, contacts,
                          float(margin), float(final_margin), gradient_ratio(env), speed, wall, trend,
-                         rigidity_ratio(env))
+                         rigidity_ratio(env), any(info["contacts"] > 0 for info in infos.values()))
     finally:
         env.close()
 

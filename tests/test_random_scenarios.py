@@ -67,6 +67,7 @@ def test_failure_kinds_tell_a_plateau_from_a_slow_weak_mode():
     assert record(success=True) == ""
     assert record(physics_fault="boom") == "physics fault"
     assert "singularity" in record(final_singularity_margin=0.5 * SINGULAR_MARGIN)
+    assert "jammed" in record(final_contact=True, final_singularity_margin=0.5 * SINGULAR_MARGIN)
     assert record().startswith("still converging")
     small = 0.5 * EQUILIBRIUM_RATIO
     assert "undesired equilibrium" in record(final_gradient_ratio=small, final_error_trend=-0.5 * PLATEAU_DROP)
