@@ -16,18 +16,21 @@ Rules, each evaluated at sampled configurations (seeded) plus the initial one:
 1. **Damping**, per joint. Sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while
    ``dt rho(H^-1 K_D) < 2`` (``dt < 2 lambda_min(H) / K_D`` for a scalar gain). Each joint gets
    ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the step), then all are
-   scaled down together until ``beta = dt rho(H^-1 K_D) <= 0.1`` at every sampled configuration;
-   ``K_D_max = 20 N m s/rad``. Why 0.1, far below the limit: the softest modes of the formation are
-   over-damped, and their rate is about ``kappa / beta`` per step (rule 3's kappa of that mode), so it
-   is ten times that of ``beta = 1``; the stiff modes get their damping from the gradient-rate term
-   (rule 5), without which ``beta`` must stay above about ``kappa / 2`` of the stiffest mode (the control
-   is held over the step, see ``baselines.controllers``). On the random planar scenarios of
-   ``benchmarks/random_scenarios.py`` (6-arm shapes whose stiffness eigenvalues span 1e4) ``beta = 1``
-   left two of ten scenarios 5-36 cm off after 20 s. Then ``K_D,j <= 0.5 spare_j / (0.5 rad/s)`` (spare torque: rule 2): the
-   formation's torque share must still move the joint at 0.5 rad/s against the damping (without this the
-   PERA-like arm, whose shoulder spends most of its 13.4 N m on gravity, crawls). A robot whose light
-   distal joints leave little damping at the scenario's control step needs a smaller step
-   (``frame_skip``) or reflected rotor inertia.
+   scaled down together until ``beta = dt rho(H^-1 K_D) <= 0.1`` at every sampled configuration
+   (``<= 1`` where gravity loads the joints, see below); ``K_D_max = 20 N m s/rad``. Why 0.1, far below
+   the limit: the softest modes of the formation are over-damped, their rate about ``kappa / beta`` per
+   step (rule 3's kappa of that mode), ten times that of ``beta = 1``; the stiff modes get their damping
+   from the gradient-rate term (rule 5), without which ``beta`` must stay above about ``kappa / 2`` of
+   the stiffest mode (the control is held over the step, see ``baselines.controllers``). On the random
+   planar scenarios of ``benchmarks/random_scenarios.py`` (6-arm shapes whose stiffness eigenvalues span
+   1e4) ``beta = 1`` left two of ten scenarios 5-36 cm off after 20 s. Where gravity loads the joints,
+   law-II/III's internal model (K_I > 0) integrates the damping torque too, and ``beta = 0.1`` made it
+   oscillate (law-II and law-III then failed 5 of the 6 random spatial scenarios): those arms keep
+   ``beta <= 1``. Then ``K_D,j <= 0.5 spare_j / (0.5 rad/s)`` (spare torque: rule 2): the formation's
+   torque share must still move the joint at 0.5 rad/s against the damping (without this the PERA-like
+   arm, whose shoulder spends most of its 13.4 N m on gravity, crawls). A robot whose light distal joints
+   leave little damping at the scenario's control step needs a smaller step (``frame_skip``) or reflected
+   rotor inertia.
 2. **Spring forces** from the torque budget. The spare torque of joint j is its limit minus the largest
    gravity torque it carries (never counted below 20 % of the limit); an end-effector force f asks joint
    j for at most ``|J[:, j]| |f|``, so arm i can take ``F_i = 0.5 min_j spare_j / max_q |J[:, j](q)|``,
