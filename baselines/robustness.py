@@ -1,10 +1,10 @@
-"""Robustness of the three laws to kinematic model mismatch, the printed law-III's stall map, anti-windup.
+"""Robustness of the three laws to model mismatch (planar, and 3D under gravity), law-III's stall map, anti-windup.
 
     python -m baselines.robustness [--out results/robustness] [--figures-dir docs/figures] [--quick]
-                                   [--only mismatch|separating|stall|windup ...]
+                                   [--only mismatch|separating|stall|windup|spatial ...]
 
-Studies (all on the built-in planar square: four ``planar_2link`` arms, 3.0 m square, the project's
-tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; see REPRODUCTION.md):
+Studies (the first three on the built-in planar square: four ``planar_2link`` arms, 3.0 m square, the
+project's tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; see REPRODUCTION.md):
 
 - ``mismatch``: the simulated ("true") arms differ from the nominal URDF the controllers know, by one of
   four kinds of size s, per arm, seeded: ``uniform`` (both link lengths scaled by 1 + s or 1 - s, one sign
@@ -479,7 +479,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", type=Path, default=Path("results/robustness"))
     parser.add_argument("--figures-dir", type=Path, default=None, help="also copy the PNGs here")
     parser.add_argument("--only", action="append", choices=STUDIES, help="run only this study (repeatable)")
-    parser.add_argument("--quick", action="store_true", help="1 s horizons and a 2 x 2 stall map (tests)")
+    parser.add_argument("--quick", action="store_true", help="1 s horizons, a 2 x 2 stall map, one spatial case per kind (tests)")
     args = parser.parse_args(argv)
     studies = args.only or list(STUDIES)
     args.out.mkdir(parents=True, exist_ok=True)
