@@ -46,6 +46,21 @@ for 16, so a 4-agent team is ~4x cheaper to evaluate in one batch. The Jacobian-
 regressor, ``J(q, a)^T e_hat = Z(q, e_hat) a``, so law-III's adaptation and its torque share one chain
 evaluation.
 
+Gradient-rate damping (``Gains.rate_gain`` = K_R > 0; 0, the default, is the paper's law): the spring
+term acts on ``e_hat + K_R d(e_hat)/dt``, the derivative taken as the backward difference of the agent's
+own e_hat over one control step (its observation at two steps: no neighbour velocity is needed), so
+``u = -K_P J^T (e_hat + K_R d(e_hat)/dt) - K_D dq + ...``; law-III adapts with e_hat itself. Why:
+
+- ``-K_P J^T e_hat`` is unchanged (the gradient of one potential, one scalar K_P); the added term is,
+  in continuous time, the damping ``-K_R K_P J^T S(x) J dq`` (S the Hessian of the formation potential
+  in x), proportional to the formation's stiffness, positive semi-definite near the target.
+- The control is held over each step, so a spring acts on a state half a step old on average: a
+  negative damping ``K dt / 2`` per mode of stiffness K. Joint damping K_D must outweigh it on the
+  stiffest mode, and then over-damps the softest ones (their rate is about K / K_D): on an ill-conditioned
+  formation (stiffness eigenvalues 1e4 apart) they take minutes. The rate term damps each mode in
+  proportion to its own stiffness, which cancels the lag (K_R > dt / 2), so K_D can be ten times lower
+  (:mod:`baselines.gains`).
+
 Internal states are integrated once per env step (the control step ``dt``): ``eta`` by explicit Euler,
 ``a_hat`` by a linearly implicit Euler step, ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq``, because
 ``alpha Z^T Z`` is stiff (rates of ~2000 1/s on the paper's planar arms, unstable for explicit Euler at
@@ -77,7 +92,9 @@ class Gains:
     ``adaptation_gain``: Gamma of law-III (module docstring; 1, the default, is the printed law);
     ``spring_force``: saturation force (N) of each edge's virtual spring at its desired length
     (module docstring, "Saturated springs"), one number for every edge or one per neighbour slot (the
-    agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law.
+    agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law;
+    ``rate_gain``: K_R, s, of the gradient-rate damping (module docstring, "Gradient-rate damping"); 0, the
+    default, is the paper's law.
     """
 
     kp: Any = 5.0
@@ -86,6 +103,7 @@ class Gains:
     alpha: float = 0.02
     spring_force: Any = math.inf
     adaptation_gain: float = 1.0
+    rate_gain: float = 0.0
 
     def with_updates(self, **changes: Any) -> "Gains":
         allowed = sorted(field.name for field in fields(self))
@@ -107,6 +125,9 @@ class Gains:
         if isinstance(self.adaptation_gain, bool) or not isinstance(self.adaptation_gain, (int, float)) \
                 or not (self.adaptation_gain > 0 and math.isfinite(self.adaptation_gain)):
             raise ValueError(f"gains.adaptation_gain: expected a finite value > 0, got {self.adaptation_gain!r}")
+        if isinstance(self.rate_gain, bool) or not isinstance(self.rate_gain, (int, float)) \
+                or not (self.rate_gain >= 0 and math.isfinite(self.rate_gain)):
+            raise ValueError(f"gains.rate_gain: expected a finite value >= 0 s, got {self.rate_gain!r}")
         try:
             forces = np.asarray(self.spring_force, dtype=np.float64)
         except (TypeError, ValueError):
@@ -202,6 +223,7 @@ class FormationController:
 
     def reset(self) -> None:
         """Clear internal state (start of an episode)."""
+        self._previous_e_hat: np.ndarray | None = None  # gradient-rate damping's one state
 
     def options(self) -> tuple:
         """The law's options; controllers batched together must share them."""
@@ -236,7 +258,8 @@ class GradientController(FormationController):
 
     @classmethod
     def batch_torques(cls, batch: "ControllerBatch", parts: ObservationParts) -> np.ndarray:
-        regressors = batch.chain.regressor_batch(parts.q, batch.gradients(parts))  # J(q, a)^T e_hat = Z a
+        spring = batch.spring_gradients(batch.gradients(parts))
+        regressors = batch.chain.regressor_batch(parts.q, spring)  # J(q, a)^T spring = Z(q, spring) a
         gravity = np.stack([member.agent.dynamics.gravity_torque(q, member.agent.gravity_in_base)
                             for member, q in zip(batch.members, parts.q)])
         return -batch.kp * (regressors @ batch.a_hat0[:, :, None])[:, :, 0] - batch.kd * parts.dq + gravity
@@ -261,6 +284,7 @@ class ApproxJacobianController(FormationController):
         super().__init__(agent, gains, a_hat0)
 
     def reset(self) -> None:
+        super().reset()
         self.eta = np.zeros(self.agent.chain.n_joints)
         self.a_hat = self.a_hat0.copy()
 
@@ -270,10 +294,15 @@ class ApproxJacobianController(FormationController):
     @classmethod
     def batch_torques(cls, batch: "ControllerBatch", parts: ObservationParts) -> np.ndarray:
         e_hat = batch.gradients(parts)
-        regressors = batch.chain.regressor_batch(parts.q, e_hat)  # J(q, a_hat)^T e_hat = Z a_hat
+        spring = batch.spring_gradients(e_hat)
+        if spring is e_hat:  # no rate damping: one regressor serves the adaptation and the torque
+            regressors = spring_regressors = batch.chain.regressor_batch(parts.q, e_hat)
+        else:  # both in one call: Z(q, e_hat) adapts, Z(q, spring) a_hat = J(q, a_hat)^T spring pulls
+            both = batch.chain.regressor_batch(np.concatenate([parts.q, parts.q]), np.concatenate([e_hat, spring]))
+            regressors, spring_regressors = both[:len(e_hat)], both[len(e_hat):]
         eta = batch.gather("eta")
         a_hat = cls.adapt(batch, parts, regressors, batch.gather("a_hat"))
-        u = -batch.kp * (regressors @ a_hat[:, :, None])[:, :, 0] - batch.kd * parts.dq + batch.ki * eta
+        u = -batch.kp * (spring_regressors @ a_hat[:, :, None])[:, :, 0] - batch.kd * parts.dq + batch.ki * eta
         applied = np.clip(u, -batch.torque_limits, batch.torque_limits) if batch.members[0].anti_windup else u
         batch.scatter("eta", eta + batch.control_dt * (-batch.ki * eta + applied))
         batch.scatter("a_hat", a_hat)
@@ -376,6 +405,7 @@ class ControllerBatch:
         self.a_hat0 = np.stack([c.a_hat0 for c in controllers])  # (k, p)
         self.alpha = np.array([c.gains.alpha for c in controllers], dtype=np.float64)
         self.adaptation_gain = np.array([c.gains.adaptation_gain for c in controllers], dtype=np.float64)
+        self.rate_gain = np.array([c.gains.rate_gain for c in controllers], dtype=np.float64)  # (k,), s
         self.identity = np.eye(self.chain.n_params)
         self._states: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}  # gather/scatter cache
         if isinstance(first, AdaptiveJacobianController):
@@ -411,6 +441,20 @@ class ControllerBatch:
         padded = np.zeros((len(e_hat), 3))
         padded[:, :e_hat.shape[1]] = e_hat
         return padded
+
+    def spring_gradients(self, e_hat: np.ndarray) -> np.ndarray:
+        """``e_hat + K_R (e_hat - e_hat_prev) / dt`` (k, 3): what the spring term ``-K_P J^T (.)`` acts on
+        (module docstring, "Gradient-rate damping"); remembers ``e_hat`` as each member's previous value.
+        ``e_hat`` itself (the same object) when no member has a rate gain; a member's first step after a
+        reset has no previous value and gets its ``e_hat``."""
+        if not np.any(self.rate_gain):
+            return e_hat
+        previous = np.stack([current if member._previous_e_hat is None else member._previous_e_hat
+                             for member, current in zip(self.members, e_hat)])
+        for member, current, rate in zip(self.members, e_hat, self.rate_gain):
+            if rate:  # a member without the term keeps no state, alone or in a batch
+                member._previous_e_hat = current
+        return e_hat + (self.rate_gain / self.control_dt)[:, None] * (e_hat - previous)
 
     def saturated_errors(self, edge_errors: np.ndarray, desired: np.ndarray) -> np.ndarray:
         """Edge errors (k, slots, w) clipped at each spring's saturation level (module docstring); unchanged

@@ -16,12 +16,21 @@ Rules, each evaluated at sampled configurations (seeded) plus the initial one:
 1. **Damping**, per joint. Sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while
    ``dt rho(H^-1 K_D) < 2`` (``dt < 2 lambda_min(H) / K_D`` for a scalar gain). Each joint gets
    ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the step), then all are
-   scaled down together until ``dt rho(H^-1 K_D) <= 1`` (half the limit) at every sampled configuration;
-   ``K_D_max = 20 N m s/rad``. Then ``K_D,j <= 0.5 spare_j / (0.5 rad/s)`` (spare torque: rule 2): the
-   formation's torque share must still move the joint at 0.5 rad/s against the damping (without this the
-   PERA-like arm, whose shoulder spends most of its 13.4 N m on gravity, crawls). A robot whose light
-   distal joints leave little damping at the scenario's control step needs a smaller step
-   (``frame_skip``) or reflected rotor inertia.
+   scaled down together until ``beta = dt rho(H^-1 K_D) <= 0.1`` at every sampled configuration
+   (``<= 1`` where gravity loads the joints, see below); ``K_D_max = 20 N m s/rad``. Why 0.1, far below
+   the limit: the softest modes of the formation are over-damped, their rate about ``kappa / beta`` per
+   step (rule 3's kappa of that mode), ten times that of ``beta = 1``; the stiff modes get their damping
+   from the gradient-rate term (rule 5), without which ``beta`` must stay above about ``kappa / 2`` of
+   the stiffest mode (the control is held over the step, see ``baselines.controllers``). On the random
+   planar scenarios of ``benchmarks/random_scenarios.py`` (6-arm shapes whose stiffness eigenvalues span
+   1e4) ``beta = 1`` left two of ten scenarios 5-36 cm off after 20 s. Where gravity loads the joints,
+   law-II/III's internal model (K_I > 0) integrates the damping torque too, and ``beta = 0.1`` made it
+   oscillate (law-II and law-III then failed 5 of the 6 random spatial scenarios): those arms keep
+   ``beta <= 1``. Then ``K_D,j <= 0.5 spare_j / (0.5 rad/s)`` (spare torque: rule 2): the formation's
+   torque share must still move the joint at 0.5 rad/s against the damping (without this the PERA-like
+   arm, whose shoulder spends most of its 13.4 N m on gravity, crawls). A robot whose light distal joints
+   leave little damping at the scenario's control step needs a smaller step (``frame_skip``) or reflected
+   rotor inertia.
 2. **Spring forces** from the torque budget. The spare torque of joint j is its limit minus the largest
    gravity torque it carries (never counted below 20 % of the limit); an end-effector force f asks joint
    j for at most ``|J[:, j]| |f|``, so arm i can take ``F_i = 0.5 min_j spare_j / max_q |J[:, j](q)|``,
@@ -31,8 +40,9 @@ Rules, each evaluated at sampled configurations (seeded) plus the initial one:
    add the joint stiffness ``K_q = K_P J^T S J`` (block-diagonal J over the arms), with S = d(e_hat)/dx at
    the target shape: ``4 R^T R`` (R the rigidity matrix) for distance formations, ``B B^T`` for
    displacement ones. A sampled (semi-implicit Euler) mass-spring-damper with ``beta = dt rho(H^-1 K_D)``
-   and ``kappa = dt^2 rho(H^-1 K_q)`` is stable for ``beta < 2`` and ``kappa < 2 (2 - beta)``; rule 1
-   gives ``beta <= 1`` and this rule takes ``kappa <= 0.5``:
+   and ``kappa = dt^2 rho(H^-1 K_q)`` is stable for ``beta < 2`` and ``kappa < 2 (2 - beta)``; with the
+   control held over the step (as the env does) and rule 5's rate term, every ``beta`` in [0, 1] is
+   stable up to ``kappa = 0.75``, and this rule takes ``kappa <= 0.5``:
    ``K_P = 0.5 / (dt^2 lambda_max(S) max_i max_q lambda_max(J_i H_i^-1 J_i^T))`` (the lightest effective
    end-effector mass of the team). The largest stable gain is the fastest near the target; 0.5 is the
    value that measured best on the random planar scenarios (``benchmarks/random_scenarios.py``: 0.25 and
@@ -42,6 +52,12 @@ Rules, each evaluated at sampled configurations (seeded) plus the initial one:
    K_I, meant to learn gravity faster from the weak saturated springs, made the stiff spatial loops
    oscillate); ``alpha`` makes law-III's adaptation rate ``alpha |Z|^2`` at most 1 1/s at the saturated
    gradient ``|e_hat| = F_i / K_P``: ``alpha = 1 / (max_q |Z(q, u)|^2 (F_i / K_P)^2)`` over unit directions u.
+5. **Gradient-rate damping** ``K_R = 1.5 dt`` (``Gains.rate_gain``, ``baselines.controllers``): the spring
+   acts on ``e_hat + K_R d(e_hat)/dt``. For one mode (mass m, stiffness k, damping d, ``kappa = k dt^2 / m``,
+   ``beta = d dt / m``, control held over the step, e_hat differenced over one step; :func:`mode_decay`)
+   1.5 dt damps the stiffest mode (``kappa = 0.5``) best at ``beta = 0.1`` (decay 0.18 per step, 0.13
+   at ``beta = 0``) and keeps every ``beta`` in [0, 1] stable up to ``kappa = 0.75``; without it
+   ``beta = 0.1`` is unstable at ``kappa = 0.5``.
 """
 
 from __future__ import annotations
@@ -72,6 +88,9 @@ INTERNAL_MODEL_GAIN = 5.0  # 1/s, rule 4: K_I where gravity loads the joints (at
 ADAPTATION_RATE = 0.1  # 1/s, rule 4: largest decay rate of a_hat at the saturated gradient
 ESTIMATE_CHANGE = 0.1  # rule 4: largest relative change of a_hat by the Z^T dq term over one reach of travel
 JOINT_SPEED = 0.5  # rad/s, rule 1: joint speed the formation's torque share reaches against the damping
+BETA = 0.1  # rule 1: bound on dt rho(H^-1 K_D)
+GRAVITY_BETA = 1.0  # rule 1: the bound where gravity loads the joints (K_I > 0, rule 4)
+RATE_STEPS = 1.5  # rule 5: K_R in control steps
 
 _TEAM_GAINS: "weakref.WeakKeyDictionary[FormationTask, list[Gains]]" = weakref.WeakKeyDictionary()
 
@@ -150,12 +169,14 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, samples: int = 200) -
     """Rules 1-3 of the module docstring for one arm, from sampled configurations (seeded) plus ``initial_q``."""
     chain, dynamics = arm.chain, arm.dynamics
     configurations = np.vstack([chain.sample_configurations(samples, np.random.default_rng(0)), arm.initial_q])
-    kd_step = damping_for_step(chain, dynamics, control_dt, configurations)
+    gravity = np.array([np.abs(dynamics.gravity_torque(q, arm.gravity_in_base)) for q in configurations])
+    gravity_peak = gravity.max(axis=0)  # N m per joint
+    gravity_loads_joints = bool(np.max(gravity_peak) > 1e-6)
+    kd_step = damping_for_step(chain, dynamics, control_dt, configurations,
+                               GRAVITY_BETA if gravity_loads_joints else BETA)
     positions, jacobians = chain.forward_and_jacobian_batch(configurations)
     jacobians = jacobians[:, :arm.dim]  # (k, dim, n): only the formation's coordinates matter
 
-    gravity = np.array([np.abs(dynamics.gravity_torque(q, arm.gravity_in_base)) for q in configurations])
-    gravity_peak = gravity.max(axis=0)  # N m per joint
     spare = np.maximum(arm.torque_limits - gravity_peak, SPARE_TORQUE_FLOOR * arm.torque_limits)
     lever = np.linalg.norm(jacobians, axis=1).max(axis=0)  # m: largest |J[:, j]| per joint
     force_limit = float(TORQUE_SHARE * np.min(spare / np.maximum(lever, 1e-9)))
@@ -172,7 +193,7 @@ def arm_gain_limits(arm: ArmGainInputs, control_dt: float, samples: int = 200) -
     reach = float(np.max(np.linalg.norm(positions[:, :arm.dim], axis=1)))
     return ArmGainLimits(kd=kd, force_limit=force_limit, param_norm=float(np.linalg.norm(chain.nominal_params)),
                          reach=reach, mobility=mobility,
-                         gravity_loads_joints=bool(np.max(gravity_peak) > 1e-6),
+                         gravity_loads_joints=gravity_loads_joints,
                          worst_regressor_norm2=regressor_norm2)
 
 
@@ -213,15 +234,32 @@ def formation_gains(arms: Sequence[ArmGainInputs], control_dt: float, formation_
         gamma = ESTIMATE_CHANGE * limit.param_norm**2 / max(saturated_gradient * limit.reach, 1e-12)
         alpha = ADAPTATION_RATE / max(gamma * limit.worst_regressor_norm2 * saturated_gradient**2, 1e-12)
         gains.append(Gains(kp=kp, kd=limit.kd, ki=ki, alpha=alpha, adaptation_gain=gamma,
-                           spring_force=tuple(edge_force[edge] for edge in edges)))
+                           spring_force=tuple(edge_force[edge] for edge in edges),
+                           rate_gain=RATE_STEPS * control_dt))
     return gains
 
 
 def damping_for_step(chain: SerialChain, dynamics: NominalDynamics, dt: float,
-                     configurations: np.ndarray) -> np.ndarray:
-    """Rule 1: per-joint K_D (N m s/rad) with ``dt rho(H^-1 K_D) <= 1`` at every given configuration."""
+                     configurations: np.ndarray, beta: float = BETA) -> np.ndarray:
+    """Rule 1: per-joint K_D (N m s/rad) with ``dt rho(H^-1 K_D) <= beta`` at every given configuration."""
     inverses = [np.linalg.inv(dynamics.mass_matrix(q)) for q in configurations]
     worst_diagonal = np.max([np.diag(inverse) for inverse in inverses], axis=0)
     kd = np.minimum(K_D_MAX, 1.0 / (dt * worst_diagonal))
     radius = max(float(np.max(np.abs(np.linalg.eigvals(dt * inverse * kd)))) for inverse in inverses)
-    return kd / max(radius, 1.0)
+    return kd / max(radius / beta, 1.0)
+
+
+def mode_decay(kappa: float, beta: float, rate_steps: float = RATE_STEPS, substeps: int = 10) -> float:
+    """Spectral radius of one sampled mode (rule 5): ``m ddq = u`` integrated by ``substeps`` semi-implicit
+    Euler steps per control step with ``u = -k (q + rate_steps (q - q_prev)) - d dq`` held over the step;
+    ``kappa = k dt^2 / m``, ``beta = d dt / m``. Below 1: the mode decays (by this factor per step)."""
+    h = 1.0 / substeps  # time in control steps, mass 1
+    step = np.array([[1.0, h], [0.0, 1.0]])
+    transition, held = np.eye(2), np.zeros((2, 1))
+    for _ in range(substeps):
+        transition, held = step @ transition, step @ held + np.array([[h * h], [h]])
+    closed = np.zeros((3, 3))  # state (q, dq, q_prev)
+    closed[:2, :2] = transition - held @ np.array([[kappa * (1.0 + rate_steps), beta]])
+    closed[:2, 2] = held[:, 0] * kappa * rate_steps
+    closed[2, 0] = 1.0
+    return float(np.max(np.abs(np.linalg.eigvals(closed))))

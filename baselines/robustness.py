@@ -1,10 +1,10 @@
-"""Robustness of the three laws to kinematic model mismatch, the printed law-III's stall map, anti-windup.
+"""Robustness of the three laws to model mismatch (planar, and 3D under gravity), law-III's stall map, anti-windup.
 
     python -m baselines.robustness [--out results/robustness] [--figures-dir docs/figures] [--quick]
-                                   [--only mismatch|separating|stall|windup ...]
+                                   [--only mismatch|separating|stall|windup|spatial ...]
 
-Studies (all on the built-in planar square: four ``planar_2link`` arms, 3.0 m square, the project's
-tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; see REPRODUCTION.md):
+Studies (the first three on the built-in planar square: four ``planar_2link`` arms, 3.0 m square, the
+project's tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; see REPRODUCTION.md):
 
 - ``mismatch``: the simulated ("true") arms differ from the nominal URDF the controllers know, by one of
   four kinds of size s, per arm, seeded: ``uniform`` (both link lengths scaled by 1 + s or 1 - s, one sign
@@ -25,6 +25,14 @@ tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; see REPROD
   final max |e_k| after 10 s.
 - ``windup``: law-II on the built-in spatial tetrahedron (gravity, K_I = 1) with torque limits halved,
   with and without the anti-windup option of the internal model.
+- ``spatial``: the built-in spatial tetrahedron (four PERA-like 7-DOF arms hanging from their bases,
+  gravity, its tuned gains K_P 120, K_D 2, K_I 1, alpha 0.01, 200 Hz control) with the env's
+  ``model_mismatch`` (:mod:`ee_formation_env.mismatch`): every joint-origin translation of each simulated
+  arm scaled by its own factor in ``[1 - s, 1 + s]`` (``length``), every link mass and inertia by one in
+  ``[1 - s, 1 + s]`` (``mass``), or both (``both``), s = 0.2, 0.5, 0.9, three mismatch seeds each, plus
+  the unperturbed arms; the controllers keep the nominal model (law-I its nominal gravity torque too).
+  Recorded per run: final max |edge length - target| (m), settling time (every edge within 1 cm to the
+  end) and physics faults.
 
 Outputs: ``robustness.json`` (every run) and PNG figures in ``--out`` (also copied to ``--figures-dir``).
 """
@@ -49,7 +57,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import ee_formation_env  # noqa: E402
-from baselines import _CONTROLLERS, agent_model  # noqa: E402
+from baselines import _CONTROLLERS, agent_model, make_policies  # noqa: E402
 from baselines.controllers import Gains  # noqa: E402
 from baselines.dynamics import nominal_dynamics  # noqa: E402
 from baselines.metrics import run_episode  # noqa: E402
@@ -57,10 +65,13 @@ from ee_formation_env.formation import rigidity_matrix  # noqa: E402
 from ee_formation_env.kinematics import chain_model  # noqa: E402
 from ee_formation_env.scenario import ROBOTS, _square, builtin_scenario, load_scenario  # noqa: E402
 
-STUDIES = ("mismatch", "separating", "stall", "windup")
+STUDIES = ("mismatch", "separating", "stall", "windup", "spatial")
 KINDS = ("uniform", "lengths", "offsets", "zero_component")
 SIZES = (0.1, 0.3, 0.5)
 SEEDS = (0, 1, 2)
+SPATIAL_KINDS = ("length", "mass", "both")
+SPATIAL_SIZES = (0.2, 0.5, 0.9)
+EDGE_TOLERANCE = 0.01  # m: the spatial study's "in formation" (every edge length within 1 cm)
 LAWS = {"law-I": "gradient", "law-II": "approx_jacobian", "law-III": "adaptive_jacobian"}
 PLANAR_GAINS = Gains(**builtin_scenario("planar_square")["controller_gains"])  # its tuned gains (K_P 5, K_D 20)
 LINK = 1.5  # m, both links of the nominal planar_2link
@@ -269,6 +280,84 @@ def windup_study(seconds: float) -> list[dict[str, Any]]:
     return rows
 
 
+def spatial_run(law: str, seconds: float, mismatch: dict[str, Any] | None) -> dict[str, Any]:
+    """One spatial-tetrahedron episode of ``law`` with ``model_mismatch`` ``mismatch`` (None: exact arms)."""
+    overrides: dict[str, Any] = {"episode_seconds": seconds, "initial_q_noise": 0.0}
+    if mismatch:
+        overrides["model_mismatch"] = mismatch
+    env = ee_formation_env.parallel_env("spatial_tetrahedron", **overrides)
+    try:
+        policies = make_policies(LAWS[law], env)  # the scenario's tuned gains; nominal models
+        observations, _ = env.reset(seed=0)
+        lengths = []
+
+        def length_error() -> float:
+            z = env.graph.edge_vectors(env.end_effector_positions()[:, :env.dim])
+            return float(np.max(np.abs(np.linalg.norm(z, axis=1) - env.formation.desired)))
+
+        lengths.append(length_error())
+        fault = ""
+        start = time.perf_counter()
+        while env.agents:
+            observations, _, _, _, infos = env.step({a: policies[a](observations[a]) for a in env.agents})
+            if not fault and next(iter(infos.values()))["physics_fault"]:
+                fault = env.physics_fault_reason
+            lengths.append(length_error())
+        series = np.asarray(lengths)
+        above = np.flatnonzero(series >= EDGE_TOLERANCE)
+        settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
+        success = settle_index < len(series) and not fault
+        dt = env.scenario.control_dt
+        return {"law": law, "final_max_length_error": float(series[-1]), "success": bool(success),
+                "settling_time": settle_index * dt if success else math.nan, "fault": fault,
+                "t": (np.arange(len(series)) * dt).tolist(), "max_length_error": series.tolist(),
+                "wall_s": time.perf_counter() - start}
+    finally:
+        env.close()
+
+
+def spatial_study(seconds: float, sizes: Sequence[float] = SPATIAL_SIZES,
+                  seeds: Sequence[int] = SEEDS) -> list[dict[str, Any]]:
+    """Every law on the spatial tetrahedron: exact arms, then kind x size x seed of model mismatch."""
+    cases: list[tuple[str, float, int, dict[str, Any] | None]] = [("none", 0.0, 0, None)]
+    for kind in SPATIAL_KINDS:
+        for size in sizes:
+            for seed in seeds:
+                mismatch = {"length": size if kind in ("length", "both") else 0.0,
+                            "mass": size if kind in ("mass", "both") else 0.0, "seed": seed}
+                cases.append((kind, size, seed, mismatch))
+    rows = []
+    for kind, size, seed, mismatch in cases:
+        for law in LAWS:
+            row = spatial_run(law, seconds, mismatch)
+            row.update(kind=kind, size=size, mismatch_seed=seed)
+            rows.append(row)
+            print(f"spatial {kind} s={size} seed={seed} {law}: final max|dl| {row['final_max_length_error']:.3g} m, "
+                  f"settle {row['settling_time']:.2f} s {row['fault']} ({row['wall_s']:.1f} s)", flush=True)
+    return rows
+
+
+def spatial_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown: per kind and size, per law: median (max) final max |dl| over seeds, successes, settling, faults."""
+    lines = ["| mismatch | s | law-I: final max abs(dl) m, median (max) | law-II | law-III "
+             "| in formation (I / II / III) | median settle s (I / II / III) | faults (I / II / III) |",
+             "|---|---|---|---|---|---|---|---|"]
+    keys = list(dict.fromkeys((r["kind"], r["size"]) for r in rows))
+    for kind, size in keys:
+        cells, wins, settles, faults = [], [], [], []
+        for law in LAWS:
+            selected = [r for r in rows if r["kind"] == kind and r["size"] == size and r["law"] == law]
+            errors = np.array([r["final_max_length_error"] for r in selected])
+            cells.append(f"{np.median(errors):.2g} ({errors.max():.2g})")
+            wins.append(f"{sum(r['success'] for r in selected)}/{len(selected)}")
+            settled = [r["settling_time"] for r in selected if r["success"]]
+            settles.append(f"{np.median(settled):.1f}" if settled else "-")
+            faults.append(str(sum(bool(r["fault"]) for r in selected)))
+        lines.append(f"| {kind} | {size:g} | " + " | ".join(cells) + f" | {' / '.join(wins)} | "
+                     f"{' / '.join(settles)} | {' / '.join(faults)} |")
+    return "\n".join(lines)
+
+
 # ------------------------------------------------------------------------------------------------ figures
 def _save(fig: Any, path: Path) -> Path:
     fig.tight_layout()
@@ -360,13 +449,37 @@ def windup_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
     return _save(fig, out / "robustness_windup.png")
 
 
+def spatial_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
+    """Final max |edge length error| vs mismatch size per kind (each seed a marker) per law, log scale."""
+    fig, axes = plt.subplots(1, len(SPATIAL_KINDS), figsize=(4.4 * len(SPATIAL_KINDS), 4.2), sharey=True,
+                             squeeze=False)
+    for c, kind in enumerate(SPATIAL_KINDS):
+        ax = axes[0, c]
+        for n, law in enumerate(LAWS):
+            selected = [r for r in rows if r["law"] == law and r["kind"] in ("none", kind)]
+            sizes = np.array([r["size"] for r in selected]) + (n - 1) * 0.015
+            values = np.array([r["final_max_length_error"] for r in selected]) + 1e-9
+            faulted = np.array([bool(r["fault"]) for r in selected])
+            ax.semilogy(sizes[~faulted], values[~faulted], "os^"[n], color=f"C{n}", label=law, alpha=0.8)
+            if faulted.any():
+                ax.semilogy(sizes[faulted], values[faulted], "x", color=f"C{n}", ms=9)
+        ax.axhline(EDGE_TOLERANCE, color="grey", ls=":", lw=1)
+        ax.set_title(f"{kind} mismatch" + (" (x: fault)" if c == 0 else ""))
+        ax.set_xlabel("mismatch size s (factors in [1 - s, 1 + s])")
+    axes[0, 0].set_ylabel("final max |edge length - target| (m, log)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("Spatial tetrahedron (PERA-like arms, gravity): model mismatch, 3 seeds per point; "
+                 "dotted: 1 cm", fontsize=10)
+    return _save(fig, out / "robustness_spatial.png")
+
+
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command-line entry: run the selected studies, write robustness.json and the figures."""
     parser = argparse.ArgumentParser(prog="python -m baselines.robustness", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("results/robustness"))
     parser.add_argument("--figures-dir", type=Path, default=None, help="also copy the PNGs here")
     parser.add_argument("--only", action="append", choices=STUDIES, help="run only this study (repeatable)")
-    parser.add_argument("--quick", action="store_true", help="1 s horizons and a 2 x 2 stall map (tests)")
+    parser.add_argument("--quick", action="store_true", help="1 s horizons, a 2 x 2 stall map, one spatial case per kind (tests)")
     args = parser.parse_args(argv)
     studies = args.only or list(STUDIES)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -387,11 +500,16 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if "windup" in studies:
         results["windup"] = windup_study(1.0 if args.quick else 20.0)
         figures.append(windup_figure(results["windup"], args.out))
+    if "spatial" in studies:
+        results["spatial"] = spatial_study(1.0, sizes=(0.5,), seeds=(0,)) if args.quick else spatial_study(20.0)
+        figures.append(spatial_figure(results["spatial"], args.out))
+        print(spatial_table(results["spatial"]), flush=True)
     for rows in results.values():  # keep the JSON small: time series only where a figure needs them
         for row in rows:
             if "mismatch_seed" in row:
                 row.pop("t", None)
                 row.pop("max_abs_e", None)
+                row.pop("max_length_error", None)
     (args.out / "robustness.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
     if args.figures_dir is not None:
         args.figures_dir.mkdir(parents=True, exist_ok=True)

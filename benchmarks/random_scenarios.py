@@ -22,9 +22,12 @@ rate, the mean and worst settling time of the successes, physics faults and arm 
   every arm is 3 cm clear of the others (a draw that cannot be is redrawn, seeded). Complete graph (rigid in
   3D for 3 or 4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
 
-A failed run is classified from its final state (:attr:`RunRecord.failure_kind`): an arm at a
-singularity, at or near an undesired equilibrium of the distance formation (the paper's gradient e_hat
-small while edges are off), or still converging.
+A failed run is classified from its final state and its last seconds (:attr:`RunRecord.failure_kind`):
+a physics fault; arms still touching each other at the end (jammed); an arm at a singularity; the paper's gradient e_hat small while edges are off, either
+with the error on a plateau (at or near an undesired equilibrium of the distance formation, or a saddle
+the flow leaves only slowly) or still falling (converging slowly along a weak mode: an ill-conditioned
+shape, or an arm near its workspace boundary that can barely move its end-effector the way the error
+needs); or still converging (a transient, e_hat not small).
 
 **Success** means every edge length within :data:`EDGE_TOLERANCE` (1 cm) of its target at the end of the
 episode, with no physics fault; the **settling time** is the first time after which every edge stays
@@ -51,6 +54,7 @@ import pybullet_data
 import ee_formation_env
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.scenario import ROBOTS
+from ee_formation_env.formation import rigidity_matrix
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix
 
 if __package__ in (None, ""):  # run as a script: python benchmarks/random_scenarios.py
@@ -64,7 +68,9 @@ SPATIAL_SECONDS = 30.0
 POLICIES = ("gradient", "approx_jacobian", "adaptive_jacobian")
 TARGETS = {"planar": 0.9, "spatial": 1.0}  # required success rate per family and policy
 SINGULAR_MARGIN = 0.02  # m: a final smallest Jacobian singular value below this counts as singular
-EQUILIBRIUM_RATIO = 0.05  # a final gradient ratio below this counts as (near) an equilibrium
+EQUILIBRIUM_RATIO = 0.05  # a final gradient ratio below this: e_hat small for the edge errors
+TREND_SECONDS = 5.0  # s: the error trend is measured over the last this many seconds
+PLATEAU_DROP = 0.1  # a max edge error that fell by less than this fraction over them is on a plateau
 
 # Spatial robots: (urdf, end-effector link, base height in m). The PERA-like arm hangs from its base.
 SPATIAL_ROBOTS: dict[str, tuple[str, str, float]] = {
@@ -234,6 +240,9 @@ class RunRecord:
     final_gradient_ratio: float  # max_i |e_hat_i| / (2 max_k |e_k| max_k |z_k|) at the end (0: an equilibrium)
     final_max_joint_speed: float  # rad/s at the end
     wall_s: float
+    final_error_trend: float = math.nan  # relative change of the max edge error over the last TREND_SECONDS
+    final_rigidity_ratio: float = math.nan  # sigma_min / sigma_max of the rigidity matrix at the end
+    final_contact: bool = False  # arms touching each other at the last step
 
     @property
     def failure_kind(self) -> str:
@@ -242,10 +251,16 @@ class RunRecord:
             return ""
         if self.physics_fault:
             return "physics fault"
+        if self.final_contact:
+            return "arms jammed against each other (in contact at the end)"
         if self.final_singularity_margin < SINGULAR_MARGIN:
             return "an arm at a singularity (workspace boundary or folded)"
         if self.final_gradient_ratio < EQUILIBRIUM_RATIO:
-            return "at or near an undesired equilibrium of the distance formation (e_hat ~ 0, e != 0)"
+            if not self.final_error_trend < -PLATEAU_DROP:
+                return ("at or near an undesired equilibrium of the distance formation (e_hat ~ 0, e != 0, the "
+                        "error on a plateau)")
+            return ("converging slowly along a weak mode (e_hat small for the edge errors, the error still "
+                    "falling)")
         return "still converging at the horizon"
 
 
@@ -264,6 +279,14 @@ def gradient_ratio(env: FormationEnv) -> float:
     e_hat = 2.0 * env.graph.incidence @ (errors[:, None] * z)  # (N, dim): sum over incident edges, signed
     scale = 2.0 * np.max(np.abs(errors)) * np.max(np.linalg.norm(z, axis=1))
     return float(np.max(np.linalg.norm(e_hat, axis=1)) / max(scale, 1e-300))
+
+
+def rigidity_ratio(env: FormationEnv) -> float:
+    """``sigma_min / sigma_max`` of the rigidity matrix at the current end-effector positions (its
+    ``n_edges``-th singular value: 0 where the realization is degenerate, small for an ill-conditioned one)."""
+    rigidity = rigidity_matrix(env.graph, env.end_effector_positions()[:, :env.dim])
+    values = np.linalg.svd(rigidity, compute_uv=False)
+    return float(values[min(rigidity.shape) - 1] / max(values[0], 1e-300))
 
 
 def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs: Any) -> RunRecord:
@@ -295,9 +318,12 @@ def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs:
         robots = ",".join(arm.robot or Path(arm.urdf).parent.name for arm in env.scenario.arms)
         final_margin = min(info["singularity_margin"] for info in infos.values())
         speed = max(float(np.max(np.abs(dq))) for dq in env.joint_velocities())
+        back = min(len(series) - 1, int(round(TREND_SECONDS / dt)))
+        trend = float(series[-1] / series[-1 - back] - 1.0) if back > 0 and series[-1 - back] > 0 else math.nan
         return RunRecord(family, scenario["name"], env.scenario.n_agents, robots, policy, bool(success),
                          settle_index * dt if success else math.nan, float(series[-1]), fault, contacts,
-                         float(margin), float(final_margin), gradient_ratio(env), speed, wall)
+                         float(margin), float(final_margin), gradient_ratio(env), speed, wall, trend,
+                         rigidity_ratio(env), any(info["contacts"] > 0 for info in infos.values()))
     finally:
         env.close()
 
@@ -346,6 +372,8 @@ def format_failures(records: Sequence[RunRecord]) -> str:
             lines.append(f"- {r.scenario} ({r.n_agents} arms: {r.robots}) {r.policy}: {r.failure_kind}; final max edge "
                          f"error {r.final_max_edge_error:.3g} m, final smallest singular value "
                          f"{r.final_singularity_margin:.3g} m, gradient ratio {r.final_gradient_ratio:.2g}, "
+                         f"error change over the last {TREND_SECONDS:g} s {r.final_error_trend:+.0%}, rigidity "
+                         f"sigma_min / sigma_max {r.final_rigidity_ratio:.2g}, "
                          f"joint speed {r.final_max_joint_speed:.2g} rad/s, contact steps {r.contact_steps}"
                          + (f", FAULT: {r.physics_fault}" if r.physics_fault else ""))
     return "\n".join(lines) if lines else "(none)"

@@ -51,3 +51,25 @@ def test_generators_are_deterministic_and_seed_dependent():
     assert spatial_scenario(1) == spatial_scenario(1)
     assert planar_scenario(3) != planar_scenario(4)
     assert spatial_scenario(1) != spatial_scenario(2)
+
+
+def test_failure_kinds_tell_a_plateau_from_a_slow_weak_mode():
+    from benchmarks.random_scenarios import EQUILIBRIUM_RATIO, PLATEAU_DROP, SINGULAR_MARGIN, RunRecord
+
+    def record(**changes):
+        fields = dict(family="planar", scenario="s", n_agents=6, robots="r", policy="gradient", success=False,
+                      settling_time=math.nan, final_max_edge_error=0.05, physics_fault="", contact_steps=0,
+                      min_singularity_margin=0.1, final_singularity_margin=0.1, final_gradient_ratio=0.5,
+                      final_max_joint_speed=0.0, wall_s=1.0, final_error_trend=-0.5, final_rigidity_ratio=0.01)
+        fields.update(changes)
+        return RunRecord(**fields).failure_kind
+
+    assert record(success=True) == ""
+    assert record(physics_fault="boom") == "physics fault"
+    assert "singularity" in record(final_singularity_margin=0.5 * SINGULAR_MARGIN)
+    assert "jammed" in record(final_contact=True, final_singularity_margin=0.5 * SINGULAR_MARGIN)
+    assert record().startswith("still converging")
+    small = 0.5 * EQUILIBRIUM_RATIO
+    assert "undesired equilibrium" in record(final_gradient_ratio=small, final_error_trend=-0.5 * PLATEAU_DROP)
+    assert "undesired equilibrium" in record(final_gradient_ratio=small, final_error_trend=0.2)
+    assert "weak mode" in record(final_gradient_ratio=small, final_error_trend=-2 * PLATEAU_DROP)

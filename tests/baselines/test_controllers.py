@@ -224,7 +224,8 @@ def test_a_batch_of_controllers_acts_as_each_controller_alone(make_env, policy, 
     """Batched evaluation (PolicyTeam, ControllerBatch) gives every agent bit for bit the action and internal
     state it gets alone, over steps that move the internal states, with gains that differ per agent."""
     env = make_env(scenario, episode_seconds=0.2)
-    gains = [default_gains(env.task, i).with_updates(kd=5.0 + i, ki=0.5 * i) for i in range(env.task.n_agents)]
+    gains = [default_gains(env.task, i).with_updates(kd=5.0 + i, ki=0.5 * i, rate_gain=0.01 * i)
+             for i in range(env.task.n_agents)]  # agent 0 without gradient-rate damping, the others with it
     alone = {a: baselines.make_policy(policy, env, a, gains=g) for a, g in zip(env.possible_agents, gains)}
     batched = {a: baselines.make_policy(policy, env, a, gains=g) for a, g in zip(env.possible_agents, gains)}
     team = PolicyTeam(batched)
@@ -235,7 +236,7 @@ def test_a_batch_of_controllers_acts_as_each_controller_alone(make_env, policy, 
         actions = team(observations)
         for agent in env.agents:
             assert actions[agent].tobytes() == expected[agent].tobytes()
-            for state in ("eta", "a_hat", "boundary_steps"):
+            for state in ("eta", "a_hat", "boundary_steps", "_previous_e_hat"):
                 assert np.array_equal(getattr(batched[agent], state, 0), getattr(alone[agent], state, 0))
         observations, *_ = env.step(actions)
 
@@ -263,3 +264,33 @@ def test_a_batch_rejects_controllers_it_cannot_stack(make_env):
         ControllerBatch([adaptive, baselines.make_policy("adaptive_jacobian", env, "arm_2", projection=False)])
     with pytest.raises(ValueError, match="at least one"):
         ControllerBatch([])
+
+
+def test_gradient_rate_damping_adds_the_backward_difference_of_e_hat():
+    """rate_gain K_R: the spring acts on e_hat + K_R (e_hat - e_hat_prev) / dt; the first step after a
+    reset, and K_R = 0, give the printed law; bad values are rejected."""
+    with ee_formation_env.parallel_env("planar_square", initial_q_noise=0.0) as env:
+        observations, _ = env.reset(seed=0)
+        dt = env.scenario.control_dt
+        plain = baselines.make_policy("gradient", env, "arm_0", gains=Gains(kp=2.0, kd=20.0))
+        rated = baselines.make_policy("gradient", env, "arm_0", gains=Gains(kp=2.0, kd=20.0, rate_gain=0.015))
+        first = observations["arm_0"]
+        np.testing.assert_array_equal(rated(first), plain(first))  # no previous e_hat yet
+        actions = {agent: np.full(env.action_space(agent).shape, 0.5, np.float32) for agent in env.agents}
+        observations, *_ = env.step(actions)
+        second = observations["arm_0"]
+        layout = env.observation_layout("arm_0")
+        e_prev, e_now = plain.gradient(layout.split(first)), plain.gradient(layout.split(second))
+        jacobian = env.nominal_models[0].jacobian(layout.split(second).q)
+        expected = plain(second) - 2.0 * (jacobian.T @ (0.015 / dt * (e_now - e_prev))) / env.task.torque_limits[0]
+        np.testing.assert_allclose(rated(second), expected, rtol=1e-5, atol=1e-6)
+        rated.reset()
+        np.testing.assert_array_equal(rated(second), plain(second))
+        for policy in ("approx_jacobian", "adaptive_jacobian"):  # the same term, and reset, in law-II/III
+            law = baselines.make_policy(policy, env, "arm_0", gains=Gains(kp=2.0, kd=20.0, rate_gain=0.015))
+            law(first)
+            law.reset()
+            assert law._previous_e_hat is None
+        for bad in (-1.0, float("nan"), True):
+            with pytest.raises(ValueError, match="gains.rate_gain"):
+                baselines.make_policy("gradient", env, "arm_0", gains={"rate_gain": bad})

@@ -117,3 +117,30 @@ def test_formation_gains_reject_bad_input():
         formation_gains(arm_inputs(task), 0.01, "distance", [[0, 2]], 1.0)
     with pytest.raises(ValueError, match="formation_stiffness"):
         formation_gains(arm_inputs(task), 0.01, "distance", incident, 0.0)
+
+
+def test_rate_term_keeps_every_sampled_mode_stable_at_low_damping():
+    """Rules 1, 3 and 5: with K_R = 1.5 dt every mode with kappa <= 0.75 and beta in [0, 1] decays
+    (control held over the step); without it beta = 0.1 is unstable at kappa = 0.5, the rule's bound."""
+    from baselines.gains import BETA, KAPPA, mode_decay
+
+    kappas, betas = np.linspace(1e-4, 0.75, 60), np.linspace(0.0, 1.0, 11)
+    assert max(mode_decay(k, b) for k in kappas for b in betas) < 1.0
+    assert mode_decay(KAPPA, BETA, rate_steps=0.0) > 1.0
+    assert mode_decay(KAPPA, BETA) < 0.85
+
+
+def test_derived_damping_is_low_without_gravity_and_the_rate_gain_is_set():
+    from baselines.gains import BETA, RATE_STEPS
+
+    scenario = load_scenario("planar_square", torque_limits=50.0, frame_skip=10, initial_q_noise=0.0,
+                             physics_hz=1000.0, episode_seconds=1.0, controller_gains=None)
+    with ee_formation_env.parallel_env(scenario) as env:
+        gains = derive_gains(env.task, 0)
+        chain = env.nominal_models[0]
+        dynamics = nominal_dynamics(env.scenario.arms[0].urdf, chain.joint_names)
+        dt = env.scenario.control_dt
+        radius = max(np.max(np.abs(np.linalg.eigvals(dt * np.linalg.inv(dynamics.mass_matrix(q)) * gains.kd)))
+                     for q in chain.sample_configurations(50, np.random.default_rng(1)))
+        assert 0.5 * BETA < radius <= BETA * 1.05
+        assert gains.ki == 0.0 and gains.rate_gain == pytest.approx(RATE_STEPS * dt)

@@ -47,3 +47,17 @@ def test_quick_study_writes_numbers_and_figures(tmp_path):
         assert 0.0 <= row["boundary_fraction"] <= 1.0
     assert json.loads((tmp_path / "robustness.json").read_text())["separating"]
     assert (tmp_path / "robustness_separating.png").stat().st_size > 0
+
+
+def test_quick_spatial_study_runs_every_law_with_mismatch(tmp_path):
+    results = robustness.main(["--quick", "--only", "spatial", "--out", str(tmp_path)])
+    rows = results["spatial"]
+    assert len(rows) == 3 * (1 + len(robustness.SPATIAL_KINDS))  # exact arms + one case per kind, 3 laws
+    assert {row["kind"] for row in rows} == {"none", *robustness.SPATIAL_KINDS}
+    for row in rows:
+        assert row["fault"] == "" and np.isfinite(row["final_max_length_error"])
+    # The mismatch reaches the simulated arms: law-I (nominal model, no internal model) ends elsewhere.
+    law1 = {row["kind"]: row["final_max_length_error"] for row in rows if row["law"] == "law-I"}
+    assert law1["length"] != law1["none"] and law1["mass"] != law1["none"]
+    assert "| length | 0.5 |" in robustness.spatial_table(rows)
+    assert (tmp_path / "robustness_spatial.png").stat().st_size > 0
