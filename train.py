@@ -52,7 +52,7 @@ IMITATION_ROUNDS = 3
 IMITATION_EPISODES = 60
 IMITATION_LEARNER_SHARE = 0.5
 IMITATION_EPOCHS = (30, 15)  # epochs over all the data so far: first round, later rounds
-IMITATION_TIMESTEPS = 500_000  # PPO agent steps after the imitation
+IMITATION_TIMESTEPS = 0  # PPO agent steps after the imitation: none by default (README: PPO degraded the copy)
 IMITATION_LOG_STD = -2.5  # PPO's exploration around the imitated policy: std 0.08 of the torque range
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
@@ -119,8 +119,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
     if args.train_initial_q_noise is None:
         args.train_initial_q_noise = TRAIN_INITIAL_Q_NOISE[args.mode]
-    if args.total_timesteps < 1 or args.n_envs < 1 or args.n_steps < 1 or args.eval_episodes < 1:
-        parser.error("--total-timesteps, --n-envs, --n-steps and --eval-episodes must be >= 1")
+    if args.total_timesteps < (0 if args.imitate != "none" else 1):
+        parser.error("--total-timesteps must be >= 1 (>= 0 with --imitate: the imitated policy as it is)")
+    if args.n_envs < 1 or args.n_steps < 1 or args.eval_episodes < 1:
+        parser.error("--n-envs, --n-steps and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
     if args.imitate != "none" and (args.mode != "torque" or args.backend != "sb3" or args.algo != "ppo"):
@@ -310,10 +312,11 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
     if not args.no_progress:
         callbacks.append(_progress_callback(_collected_steps(args.total_timesteps, model, venv.num_envs)))
     started = time.time()
-    model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
+    if args.total_timesteps > 0:
+        model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
     seconds = time.time() - started
     (out_dir / "timing.json").write_text(json.dumps({"train_seconds": seconds, "agent_steps": model.num_timesteps,
-                                                     "agent_steps_per_s": model.num_timesteps / seconds}))
+                                                     "agent_steps_per_s": model.num_timesteps / max(seconds, 1e-9)}))
     model.save(out_dir / "model.zip")
     ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
         out_dir / "obs_normalizer.pkl")

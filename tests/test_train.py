@@ -8,11 +8,16 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
+import numpy as np  # noqa: E402
+
 import baselines  # noqa: E402
 import train  # noqa: E402
+from baselines.imitation import demonstrations  # noqa: E402
+from baselines.residual import make_training_env  # noqa: E402
 
 FAST = ["--n-envs", "1", "--n-workers", "0", "--eval-episodes", "2", "--eval-seconds", "0.3",
-        "--train-episode-seconds", "0.5", "--no-progress", "--eval-workers", "0"]
+        "--train-episode-seconds", "0.5", "--no-progress", "--eval-workers", "0", "--imitation-rounds", "1",
+        "--imitation-episodes", "2"]
 METRIC_FIELDS = {"success_rate", "final_formation_error", "settling_time", "control_energy", "peak_torque",
                  "saturation_fraction", "min_singularity_margin", "contact_steps", "centroid_drift"}
 
@@ -78,3 +83,44 @@ def test_progress_total_is_what_sb3_collects():
     assert train._collected_steps(3000, SimpleNamespace(n_steps=256), 4) == 3072
     assert train._collected_steps(2048, SimpleNamespace(n_steps=256), 4) == 2048
     assert train._collected_steps(3001, SimpleNamespace(), 4) == 3004
+
+
+def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
+    """--imitate (the torque-mode default): DAgger rounds, the actor fitted to the reference's actions."""
+    run_dir = tmp_path / "run"
+    args = ["--mode", "torque", "--total-timesteps", "0", "--out", str(run_dir), *FAST, "--imitation-rounds", "2"]
+    assert train.main(args) == 0
+    imitation = json.loads((run_dir / "imitation.json").read_text())
+    assert imitation["reference"] == "gradient" and [r["round"] for r in imitation["rounds"]] == [0, 1]
+    assert imitation["rounds"][1]["samples"] == 2 * imitation["rounds"][0]["samples"] == 2 * 2 * 50 * 4
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["imitate"] == "gradient" and config["total_timesteps"] == 0
+    assert _comparison(run_dir)["results"]["learned"]["episodes"] == 2
+
+
+def test_the_fitted_actor_follows_the_reference_actions():
+    args = train.parse_args(["--mode", "torque", "--n-envs", "1", "--n-workers", "0", "--no-progress"])
+    model = train.build_sb3_model(args, None)
+    try:
+        env = make_training_env("planar_square", {"episode_seconds": 0.5}, "torque")
+        observations, labels = demonstrations(env, "gradient", 3, np.arange(3))
+        env.close()
+        venv = model.get_env()
+        before = np.mean((train._actor_mean(model, venv, observations) - labels) ** 2)
+        train._fit_actor(model, venv, observations, labels, epochs=200, seed=0)  # 200 Adam steps on 600 samples
+        after = np.mean((train._actor_mean(model, venv, observations) - labels) ** 2)
+        assert after < 0.1 * before
+    finally:
+        model.get_env().close()
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--imitate", "gradient"], "--imitate"),  # residual mode
+    (["--mode", "torque", "--algo", "sac", "--imitate", "gradient"], "--imitate"),
+    (["--mode", "torque", "--imitation-rounds", "0"], "--imitation-rounds"),
+    (["--total-timesteps", "0"], "--total-timesteps"),  # only an imitated policy may skip PPO
+])
+def test_imitation_options_are_validated(argv, match, capsys):
+    with pytest.raises(SystemExit):
+        train.parse_args(argv)
+    assert match in capsys.readouterr().err
