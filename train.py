@@ -36,6 +36,7 @@ import numpy as np
 import baselines
 import ee_formation_env
 from baselines.extras import require
+from baselines.features import FEATURE_SETS, FeaturePolicy, make_feature_env
 from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
 
@@ -46,6 +47,15 @@ EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training rese
 DEFAULT_TIMESTEPS = {"residual": 600_000, "torque": 2_500_000}
 TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 5.0}
 TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.3}  # rad; None: the scenario's
+# Torque mode's observation features (baselines/features.py: edge errors in tolerances, log-scaled, from the
+# agent's own observation) and PPO settings; residual mode keeps the raw observation and the common settings.
+OBS_FEATURES = {"residual": "none", "torque": "log-error"}
+GAMMA = {"residual": 0.99, "torque": 0.99}
+LOG_STD_INIT = {"residual": -1.0, "torque": -1.0}
+PPO_SETTINGS = {
+    "residual": dict(net_arch=[64, 64], n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
+    "torque": dict(net_arch=[128, 128], n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
+}
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
 
@@ -77,9 +87,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--train-initial-q-noise", type=float, default=None,
                         help="half-width of the uniform noise on the initial joint positions while training, rad "
                              f"(default {TRAIN_INITIAL_Q_NOISE}, None: the scenario's; evaluation uses the scenario's)")
-    parser.add_argument("--gamma", type=float, default=0.99, help="discount per control step")
-    parser.add_argument("--log-std-init", type=float, default=-1.0,
-                        help="initial log standard deviation of the Gaussian policy (ppo)")
+    parser.add_argument("--gamma", type=float, default=None, help=f"discount per control step (default {GAMMA})")
+    parser.add_argument("--log-std-init", type=float, default=None,
+                        help=f"initial log standard deviation of the Gaussian policy (ppo; default {LOG_STD_INIT})")
+    parser.add_argument("--obs-features", choices=FEATURE_SETS, default=None,
+                        help="features appended to each agent's observation, computed from it alone "
+                             f"(baselines/features.py; default {OBS_FEATURES})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
@@ -97,6 +110,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
     if args.train_initial_q_noise is None:
         args.train_initial_q_noise = TRAIN_INITIAL_Q_NOISE[args.mode]
+    if args.gamma is None:
+        args.gamma = GAMMA[args.mode]
+    if args.log_std_init is None:
+        args.log_std_init = LOG_STD_INIT[args.mode]
+    if args.obs_features is None:
+        args.obs_features = OBS_FEATURES[args.mode]
     if args.total_timesteps < 1 or args.n_envs < 1 or args.eval_episodes < 1:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
@@ -109,6 +128,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--correction-penalty: expected a value in [0, 1]")
     if not 0 < args.gamma <= 1:
         parser.error("--gamma: expected a value in (0, 1]")
+    if not math.isfinite(args.log_std_init):
+        parser.error("--log-std-init: expected a finite number")
     if (args.train_initial_q_noise is not None and args.train_initial_q_noise < 0) or args.train_episode_seconds <= 0:
         parser.error("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
     return args
@@ -149,8 +170,9 @@ def training_overrides(args: argparse.Namespace | dict[str, Any]) -> dict[str, A
 
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:
     """A picklable factory of the env the learner steps."""
-    return functools.partial(make_training_env, args.scenario, overrides, args.mode, args.reference,
-                             args.residual_scale, args.correction_penalty, args.residual_gate)
+    return functools.partial(make_feature_env, args.obs_features, make_training_env, args.scenario, overrides,
+                             args.mode, args.reference, args.residual_scale, args.correction_penalty,
+                             args.residual_gate)
 
 
 # ------------------------------------------------------------------------------------------ learned policy
@@ -205,11 +227,14 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
     else:
         predict = _rllib_predictor(run_dir)
     learned = LearnedPolicy(predict, normalizer)
+    features = config.get("obs_features", "none")  # runs saved before the option had none
+    per_agent = {agent: learned if features == "none" else
+                 FeaturePolicy(learned, env.observation_layout(agent), features) for agent in env.possible_agents}
     if config["mode"] == "torque":
-        return {agent: learned for agent in env.possible_agents}
+        return per_agent
     references = baselines.make_policies(config["reference"], env)
     gate = config.get("residual_gate", False)
-    return {agent: ResidualPolicy(references[agent], learned, config["residual_scale"],
+    return {agent: ResidualPolicy(references[agent], per_agent[agent], config["residual_scale"],
                                   env.observation_layout(agent) if gate else None)
             for agent in env.possible_agents}
 
@@ -255,17 +280,25 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
     # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
     # policy starts far from "no correction" and a torque policy saturates its joints half of the time.
-    policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64])
+    settings = PPO_SETTINGS[args.mode]
+    policy_kwargs: dict[str, Any] = dict(net_arch=list(settings["net_arch"]))
     if args.algo == "ppo":
         policy_kwargs["log_std_init"] = args.log_std_init
     common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
                   tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
     if args.algo == "ppo":
+        rate = settings["learning_rate"]
+        # A linear decay to 0 over the run (SB3 passes the remaining progress, 1 -> 0) settles the final policy.
+        learning_rate = functools.partial(_linear_schedule, rate) if settings["learning_rate_decay"] else rate
         # 128 steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults.
-        return PPO("MlpPolicy", venv, n_steps=128, batch_size=1024, n_epochs=5, learning_rate=3e-4,
-                   gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
+        return PPO("MlpPolicy", venv, n_steps=128, batch_size=1024, n_epochs=settings["n_epochs"],
+                   learning_rate=learning_rate, gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
     return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
                learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
+
+
+def _linear_schedule(initial: float, progress_remaining: float) -> float:
+    return initial * progress_remaining
 
 
 def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:

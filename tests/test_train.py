@@ -31,6 +31,7 @@ def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
     assert any((run_dir / "tensorboard").iterdir())
     config = json.loads((run_dir / "config.json").read_text())
     assert config["mode"] == mode and config["algo"] == algo and config["scenario_data"]["arms"]
+    assert config["obs_features"] == train.OBS_FEATURES[mode]  # what the evaluation applies again
     comparison = _comparison(run_dir)
     assert set(comparison["results"]) == {"learned", *baselines.POLICIES}
     for summary in comparison["results"].values():
@@ -53,11 +54,23 @@ def test_bad_arguments_fail_before_training(tmp_path):
         train.main(["--total-timesteps", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         train.main(["--residual-scale", "2", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--obs-features", "squared", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--log-std-init", "nan", "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="scenario"):
         train.main(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="not found"):
         train.main(["--eval-only", str(tmp_path / "missing")])
     assert not (tmp_path / "x").exists()
+
+
+def test_mode_defaults_and_explicit_values():
+    torque = train.parse_args(["--mode", "torque"])
+    assert (torque.obs_features, torque.gamma, torque.log_std_init) == (
+        train.OBS_FEATURES["torque"], train.GAMMA["torque"], train.LOG_STD_INIT["torque"])
+    residual = train.parse_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2"])
+    assert (residual.obs_features, residual.gamma, residual.log_std_init) == ("log-error", 0.9, -2.0)
 
 
 def test_rllib_smoke_run(tmp_path):
