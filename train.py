@@ -51,6 +51,7 @@ TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.3}  # rad; None: the scen
 # agent's own observation) and PPO settings; residual mode keeps the raw observation and the common settings.
 OBS_FEATURES = {"residual": "none", "torque": "log-error"}
 GAMMA = {"residual": 0.99, "torque": 0.99}
+HOLD_PENALTY = {"residual": 0.0, "torque": 0.5}  # baselines/shaping.py: charge joint speed once in formation
 LOG_STD_INIT = {"residual": -1.0, "torque": -1.0}
 PPO_SETTINGS = {
     "residual": dict(net_arch=[64, 64], n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
@@ -93,6 +94,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--obs-features", choices=FEATURE_SETS, default=None,
                         help="features appended to each agent's observation, computed from it alone "
                              f"(baselines/features.py; default {OBS_FEATURES})")
+    parser.add_argument("--hold-penalty", type=float, default=None,
+                        help="training only: subtract this times min(1, |dq| / 0.2 rad/s) from an agent's reward "
+                             "on steps where it is in formation (baselines/shaping.py), in [0, 1]; "
+                             f"default {HOLD_PENALTY}")
+    parser.add_argument("--max-train-seconds", type=float, default=None,
+                        help="sb3: stop training after this wall time, s, even if --total-timesteps is not reached "
+                             "(default: no limit)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
@@ -116,6 +124,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.log_std_init = LOG_STD_INIT[args.mode]
     if args.obs_features is None:
         args.obs_features = OBS_FEATURES[args.mode]
+    if args.hold_penalty is None:
+        args.hold_penalty = HOLD_PENALTY[args.mode]
     if args.total_timesteps < 1 or args.n_envs < 1 or args.eval_episodes < 1:
         parser.error("--total-timesteps, --n-envs and --eval-episodes must be >= 1")
     if not 0 < args.residual_scale <= 1:
@@ -128,6 +138,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--correction-penalty: expected a value in [0, 1]")
     if not 0 < args.gamma <= 1:
         parser.error("--gamma: expected a value in (0, 1]")
+    if not 0 <= args.hold_penalty <= 1:
+        parser.error("--hold-penalty: expected a value in [0, 1]")
+    if args.max_train_seconds is not None and not args.max_train_seconds > 0:
+        parser.error("--max-train-seconds: expected a value > 0")
     if not math.isfinite(args.log_std_init):
         parser.error("--log-std-init: expected a finite number")
     if (args.train_initial_q_noise is not None and args.train_initial_q_noise < 0) or args.train_episode_seconds <= 0:
@@ -172,7 +186,7 @@ def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = Non
     """A picklable factory of the env the learner steps."""
     return functools.partial(make_feature_env, args.obs_features, make_training_env, args.scenario, overrides,
                              args.mode, args.reference, args.residual_scale, args.correction_penalty,
-                             args.residual_gate)
+                             args.residual_gate, hold_penalty=args.hold_penalty)
 
 
 # ------------------------------------------------------------------------------------------ learned policy
@@ -309,6 +323,8 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
     checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
                                      save_path=str(out_dir / "checkpoints"), name_prefix="model")
     callbacks = [checkpoints]
+    if args.max_train_seconds is not None:
+        callbacks.append(_time_limit_callback(args.max_train_seconds))
     if not args.no_progress:
         callbacks.append(_progress_callback(_collected_steps(args.total_timesteps, model, venv.num_envs)))
     started = time.time()
@@ -321,6 +337,20 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
         out_dir / "obs_normalizer.pkl")
     venv.close()
     _write_learning_curve_from_monitor(out_dir)
+
+
+def _time_limit_callback(seconds: float) -> Any:
+    """Ends ``learn`` at the first step after ``seconds`` of wall time (from the start of training)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class TimeLimit(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.deadline = time.time() + seconds
+
+        def _on_step(self) -> bool:
+            return time.time() < self.deadline
+
+    return TimeLimit()
 
 
 def _collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:

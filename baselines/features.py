@@ -40,9 +40,10 @@ def feature_size(layout: ObservationLayout, features: str) -> int:
     return layout.n_slots * layout.error_width + layout.dim + 3 * layout.n_joints
 
 
-def log_error_features(layout: ObservationLayout, observation: np.ndarray,
-                       position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
-    """The appended entries of the ``"log-error"`` set (module docstring) for one observation."""
+def error_ratios(layout: ObservationLayout, observation: np.ndarray,
+                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """Each neighbour slot's edge error in success tolerances, ``(slots, w)`` (0 for padding), and the mask of
+    real slots, read from one observation."""
     parts = layout.split(observation)
     real = parts.mask > 0.5
     errors = parts.edge_errors  # (slots, w)
@@ -50,7 +51,14 @@ def log_error_features(layout: ObservationLayout, observation: np.ndarray,
         tolerances = 2.0 * np.maximum(parts.desired[:, :1], 1e-9) * position_tolerance
     else:
         tolerances = np.full(errors.shape, position_tolerance)
-    ratios = np.where(real[:, None], errors / tolerances, 0.0)
+    return np.where(real[:, None], errors / tolerances, 0.0), real
+
+
+def log_error_features(layout: ObservationLayout, observation: np.ndarray,
+                       position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
+    """The appended entries of the ``"log-error"`` set (module docstring) for one observation."""
+    parts = layout.split(observation)
+    ratios, _ = error_ratios(layout, observation, position_tolerance)
     if layout.error_width == 1:
         lengths = np.linalg.norm(parts.relative_positions, axis=1, keepdims=True)
         units = parts.relative_positions / np.maximum(lengths, 1e-9)
@@ -136,10 +144,15 @@ class FeaturePolicy:
         return self.policy(self.transform(observation))
 
 
-def make_feature_env(features: str, factory: Callable[..., Any], *args: Any) -> Any:
-    """``factory(*args)`` wrapped in :class:`FeatureEnv` (the env itself for ``"none"``); module-level so that
+def make_feature_env(features: str, factory: Callable[..., Any], *args: Any, hold_penalty: float = 0.0) -> Any:
+    """``factory(*args)``, its rewards shaped by :class:`baselines.shaping.HoldShapingEnv` if ``hold_penalty``
+    > 0, wrapped in :class:`FeatureEnv` (not for ``"none"``); module-level so that
     ``functools.partial(make_feature_env, ...)`` pickles into worker processes."""
+    from baselines.shaping import HoldShapingEnv
+
     env = factory(*args)
+    if hold_penalty > 0:
+        env = HoldShapingEnv(env, hold_penalty)
     return env if features == "none" else FeatureEnv(env, features)
 
 

@@ -58,6 +58,10 @@ def test_bad_arguments_fail_before_training(tmp_path):
         train.main(["--obs-features", "squared", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         train.main(["--log-std-init", "nan", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--hold-penalty", "1.5", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--max-train-seconds", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="scenario"):
         train.main(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="not found"):
@@ -65,12 +69,23 @@ def test_bad_arguments_fail_before_training(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+def test_max_train_seconds_stops_training_early(tmp_path):
+    run_dir = tmp_path / "run"
+    assert train.main(["--total-timesteps", "10000000", "--max-train-seconds", "2", "--mode", "torque",
+                       "--out", str(run_dir), *FAST]) == 0
+    timing = json.loads((run_dir / "timing.json").read_text())
+    assert timing["agent_steps"] < 10_000_000 and timing["train_seconds"] < 30
+    assert (run_dir / "model.zip").is_file() and (run_dir / "comparison.json").is_file()
+
+
 def test_mode_defaults_and_explicit_values():
     torque = train.parse_args(["--mode", "torque"])
-    assert (torque.obs_features, torque.gamma, torque.log_std_init) == (
-        train.OBS_FEATURES["torque"], train.GAMMA["torque"], train.LOG_STD_INIT["torque"])
-    residual = train.parse_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2"])
-    assert (residual.obs_features, residual.gamma, residual.log_std_init) == ("log-error", 0.9, -2.0)
+    assert (torque.obs_features, torque.gamma, torque.log_std_init, torque.hold_penalty) == (
+        train.OBS_FEATURES["torque"], train.GAMMA["torque"], train.LOG_STD_INIT["torque"], train.HOLD_PENALTY["torque"])
+    residual = train.parse_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2",
+                                 "--hold-penalty", "0.25"])
+    assert (residual.obs_features, residual.gamma, residual.log_std_init, residual.hold_penalty) == (
+        "log-error", 0.9, -2.0, 0.25)
 
 
 def test_rllib_smoke_run(tmp_path):
