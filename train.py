@@ -37,17 +37,36 @@ import numpy as np
 import baselines
 import ee_formation_env
 from baselines.extras import require
+from baselines.features import FEATURE_SETS, FeaturePolicy, make_feature_env
 from baselines.metrics import format_table, run_episode, summarize
 from baselines.residual import ResidualPolicy, make_training_env
+from baselines.shaping import SPEED_SCALE
 
 EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
 # Training design (README, "Training"): short episodes give many starts per budget (the references settle in
 # ~1 s); torque mode also widens the start distribution. The comparison runs the scenario's own episodes (30 s)
 # and start noise.
-DEFAULT_TIMESTEPS = {"residual": 600_000, "torque": 2_500_000}
-TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 5.0}
-TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.3}  # rad; None: the scenario's
-# Torque mode starts from demonstrations of a reference (README, "Training"): DAgger rounds, each this many
+DEFAULT_TIMESTEPS = {"residual": 600_000, "torque": 5_000_000}
+TRAIN_EPISODE_SECONDS = {"residual": 3.0, "torque": 10.0}
+TRAIN_INITIAL_Q_NOISE = {"residual": None, "torque": 0.1}  # rad; None: the scenario's
+# Torque mode's observation features (baselines/features.py: edge errors in tolerances, log-scaled, from the
+# agent's own observation) and PPO settings; residual mode keeps the raw observation and the common settings.
+OBS_FEATURES = {"residual": "none", "torque": "log-error"}
+GAMMA = {"residual": 0.99, "torque": 0.99}
+# baselines/shaping.py: charge joint speed once in formation (training only; the learning curve's returns are
+# the shaped ones, the comparison uses the env's reward and metrics)
+HOLD_PENALTY = {"residual": 0.0, "torque": 0.5}
+LOG_STD_INIT = {"residual": -1.0, "torque": -2.0}
+PPO_SETTINGS = {
+    "residual": dict(net_arch=[64, 64], n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
+    "torque": dict(net_arch=[128, 128], n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
+}
+# Rollout layout per mode (README, "Training"): residual mode steps 32 envs in 2 worker processes, 32 steps per
+# slot (throughput); torque mode keeps the layout its documented run used (8 envs in-process, 128 steps).
+N_ENVS = {"residual": 32, "torque": 8}
+N_STEPS = {"residual": 32, "torque": 128}
+N_WORKERS = {"residual": 2, "torque": 0}
+# --imitate: start from demonstrations of a reference (README, "Training"): DAgger rounds, each this many
 # training episodes, the learner driving this share of the steps after the first round, then PPO.
 IMITATION_ROUNDS = 3
 IMITATION_EPISODES = 60
@@ -75,8 +94,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                              "that it fades out at the goal (default on)")
     parser.add_argument("--imitate", choices=(*baselines.MODEL_BASED_POLICIES, "none"), default=None,
                         help="torque mode: start the policy as a copy of this reference controller, learned from its "
-                             "demonstrations (DAgger) before PPO (default gradient; none: learn from the reward "
-                             "alone); residual mode: none only")
+                             "demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
+                             "residual mode: none only")
     parser.add_argument("--imitation-rounds", type=int, default=IMITATION_ROUNDS,
                         help="--imitate: demonstration rounds (the first driven by the reference, the next ones "
                              "partly by the learner)")
@@ -86,21 +105,31 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--backend", choices=("sb3", "rllib"), default="sb3")
     parser.add_argument("--total-timesteps", type=int, default=None,
                         help=f"agent steps (all agents count); default {DEFAULT_TIMESTEPS}")
-    parser.add_argument("--n-envs", type=int, default=32, help="parallel envs (each with all its agents)")
-    parser.add_argument("--n-steps", type=int, default=32,
+    parser.add_argument("--n-envs", type=int, default=None,
+                        help=f"parallel envs (each with all its agents; default {N_ENVS})")
+    parser.add_argument("--n-steps", type=int, default=None,
                         help="ppo: steps per env slot per update (an update learns from n_steps x n_envs x agents "
-                             "agent steps: 4,096 with the defaults on 4 agents)")
-    parser.add_argument("--n-workers", type=int, default=2,
-                        help="worker processes for the envs (default 2, one per core of a 2-core machine; 0 = step "
-                             "them in this process)")
+                             f"agent steps: 4,096 with either mode's defaults on 4 agents; default {N_STEPS})")
+    parser.add_argument("--n-workers", type=int, default=None,
+                        help=f"worker processes for the envs (0 = step them in this process; default {N_WORKERS})")
     parser.add_argument("--train-episode-seconds", type=float, default=None,
                         help=f"episode length while training, s (default {TRAIN_EPISODE_SECONDS})")
     parser.add_argument("--train-initial-q-noise", type=float, default=None,
                         help="half-width of the uniform noise on the initial joint positions while training, rad "
                              f"(default {TRAIN_INITIAL_Q_NOISE}, None: the scenario's; evaluation uses the scenario's)")
-    parser.add_argument("--gamma", type=float, default=0.99, help="discount per control step")
-    parser.add_argument("--log-std-init", type=float, default=-1.0,
-                        help="initial log standard deviation of the Gaussian policy (ppo)")
+    parser.add_argument("--gamma", type=float, default=None, help=f"discount per control step (default {GAMMA})")
+    parser.add_argument("--log-std-init", type=float, default=None,
+                        help=f"initial log standard deviation of the Gaussian policy (ppo; default {LOG_STD_INIT})")
+    parser.add_argument("--obs-features", choices=FEATURE_SETS, default=None,
+                        help="features appended to each agent's observation, computed from it alone "
+                             f"(baselines/features.py; default {OBS_FEATURES})")
+    parser.add_argument("--hold-penalty", type=float, default=None,
+                        help=f"training only: subtract this times min(1, |dq| / {SPEED_SCALE} rad/s) from an agent's "
+                             "reward on steps where it is in formation (baselines/shaping.py), in [0, 1]; "
+                             f"default {HOLD_PENALTY}")
+    parser.add_argument("--max-train-seconds", type=float, default=None,
+                        help="sb3: stop training after this wall time, s, even if --total-timesteps is not reached "
+                             "(default: no limit)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="run directory (default runs/<name>)")
     parser.add_argument("--eval-only", metavar="RUN_DIR", default=None, help="evaluate a saved run only")
@@ -112,18 +141,31 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--address", default=None, help="rllib: address of an existing Ray cluster")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
-    if args.imitate is None:  # torque-mode PPO on SB3 starts from a reference's demonstrations by default
-        args.imitate = "gradient" if (args.mode, args.backend, args.algo) == ("torque", "sb3", "ppo") else "none"
+    if args.imitate is None:
+        args.imitate = "none"
     if args.total_timesteps is None:
         args.total_timesteps = DEFAULT_TIMESTEPS[args.mode] if args.imitate == "none" else IMITATION_TIMESTEPS
     if args.train_episode_seconds is None:
         args.train_episode_seconds = TRAIN_EPISODE_SECONDS[args.mode]
     if args.train_initial_q_noise is None:
         args.train_initial_q_noise = TRAIN_INITIAL_Q_NOISE[args.mode]
+    if args.gamma is None:
+        args.gamma = GAMMA[args.mode]
+    if args.log_std_init is None:
+        args.log_std_init = LOG_STD_INIT[args.mode]
+    if args.obs_features is None:  # an imitated policy sees what its reference sees
+        args.obs_features = OBS_FEATURES[args.mode] if args.imitate == "none" else "none"
+    for name, table in (("n_envs", N_ENVS), ("n_steps", N_STEPS), ("n_workers", N_WORKERS)):
+        if getattr(args, name) is None:
+            setattr(args, name, table[args.mode])
+    if args.hold_penalty is None:
+        args.hold_penalty = HOLD_PENALTY[args.mode]
     if args.total_timesteps < (0 if args.imitate != "none" else 1):
         parser.error("--total-timesteps must be >= 1 (>= 0 with --imitate: the imitated policy as it is)")
     if args.n_envs < 1 or args.n_steps < 1 or args.eval_episodes < 1:
         parser.error("--n-envs, --n-steps and --eval-episodes must be >= 1")
+    if args.imitate != "none" and args.obs_features != "none":
+        parser.error("--obs-features: expected none with --imitate (the policy sees what its reference sees)")
     if not 0 < args.residual_scale <= 1:
         parser.error("--residual-scale: expected a value in (0, 1]")
     if args.imitate != "none" and (args.mode != "torque" or args.backend != "sb3" or args.algo != "ppo"):
@@ -138,6 +180,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--correction-penalty: expected a value in [0, 1]")
     if not 0 < args.gamma <= 1:
         parser.error("--gamma: expected a value in (0, 1]")
+    if not 0 <= args.hold_penalty <= 1:
+        parser.error("--hold-penalty: expected a value in [0, 1]")
+    if args.max_train_seconds is not None and not args.max_train_seconds > 0:
+        parser.error("--max-train-seconds: expected a value > 0")
+    if not math.isfinite(args.log_std_init):
+        parser.error("--log-std-init: expected a finite number")
     if (args.train_initial_q_noise is not None and args.train_initial_q_noise < 0) or args.train_episode_seconds <= 0:
         parser.error("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
     return args
@@ -178,8 +226,9 @@ def training_overrides(args: argparse.Namespace | dict[str, Any]) -> dict[str, A
 
 def env_factory(args: argparse.Namespace, overrides: dict[str, Any] | None = None) -> Callable[[], Any]:
     """A picklable factory of the env the learner steps."""
-    return functools.partial(make_training_env, args.scenario, overrides, args.mode, args.reference,
-                             args.residual_scale, args.correction_penalty, args.residual_gate)
+    return functools.partial(make_feature_env, args.obs_features, make_training_env, args.scenario, overrides,
+                             args.mode, args.reference, args.residual_scale, args.correction_penalty,
+                             args.residual_gate, hold_penalty=args.hold_penalty)
 
 
 # ------------------------------------------------------------------------------------------ learned policy
@@ -234,11 +283,14 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
     else:
         predict = _rllib_predictor(run_dir)
     learned = LearnedPolicy(predict, normalizer)
+    features = config.get("obs_features", "none")  # runs saved before the option had none
+    per_agent = {agent: learned if features == "none" else
+                 FeaturePolicy(learned, env.observation_layout(agent), features) for agent in env.possible_agents}
     if config["mode"] == "torque":
-        return {agent: learned for agent in env.possible_agents}
+        return per_agent
     references = baselines.make_policies(config["reference"], env)
     gate = config.get("residual_gate", False)
-    return {agent: ResidualPolicy(references[agent], learned, config["residual_scale"],
+    return {agent: ResidualPolicy(references[agent], per_agent[agent], config["residual_scale"],
                                   env.observation_layout(agent) if gate else None)
             for agent in env.possible_agents}
 
@@ -285,19 +337,27 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
     # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
     # policy starts far from "no correction" and a torque policy saturates its joints half of the time.
+    settings = PPO_SETTINGS[args.mode]
     # A copy of a reference controller (--imitate) needs a wider actor than learning from the reward did.
-    policy_kwargs: dict[str, Any] = dict(net_arch=[64, 64] if args.imitate == "none" else [256, 256])
+    policy_kwargs: dict[str, Any] = dict(net_arch=list(settings["net_arch"]) if args.imitate == "none" else [256, 256])
     if args.algo == "ppo":
         policy_kwargs["log_std_init"] = args.log_std_init
     common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
                   tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
     if args.algo == "ppo":
-        # n_steps x (n_envs x agents) slots per update: 4096 agent steps with the defaults. Many envs and short
-        # rollouts: the learner's per-step cost (one forward pass for every slot) is paid once for 128 slots.
-        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=min(1024, args.n_steps * venv.num_envs), n_epochs=5, learning_rate=3e-4,
-                   gamma=args.gamma, gae_lambda=0.95, clip_range=0.2, **common)
+        rate = settings["learning_rate"]
+        # A linear decay to 0 over the run (SB3 passes the remaining progress, 1 -> 0) settles the final policy.
+        learning_rate = functools.partial(_linear_schedule, rate) if settings["learning_rate_decay"] else rate
+        # n_steps x (n_envs x agents) slots per update: 4,096 agent steps with either mode's defaults.
+        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=min(1024, args.n_steps * venv.num_envs),
+                   n_epochs=settings["n_epochs"], learning_rate=learning_rate, gamma=args.gamma, gae_lambda=0.95,
+                   clip_range=0.2, **common)
     return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
                learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
+
+
+def _linear_schedule(initial: float, progress_remaining: float) -> float:
+    return initial * progress_remaining
 
 
 def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
@@ -310,6 +370,8 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
     checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
                                      save_path=str(out_dir / "checkpoints"), name_prefix="model")
     callbacks = [checkpoints]
+    if args.max_train_seconds is not None:
+        callbacks.append(_time_limit_callback(args.max_train_seconds))
     if not args.no_progress:
         callbacks.append(_progress_callback(_collected_steps(args.total_timesteps, model, venv.num_envs)))
     started = time.time()
@@ -408,6 +470,20 @@ def _fit_actor(model: Any, venv: Any, observations: np.ndarray, labels: np.ndarr
             loss.backward()
             optimizer.step()
     return float(loss.detach())
+
+
+def _time_limit_callback(seconds: float) -> Any:
+    """Ends ``learn`` at the first step after ``seconds`` of wall time (from the start of training)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class TimeLimit(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.deadline = time.time() + seconds
+
+        def _on_step(self) -> bool:
+            return time.time() < self.deadline
+
+    return TimeLimit()
 
 
 def _collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:

@@ -36,6 +36,7 @@ def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
     assert any((run_dir / "tensorboard").iterdir())
     config = json.loads((run_dir / "config.json").read_text())
     assert config["mode"] == mode and config["algo"] == algo and config["scenario_data"]["arms"]
+    assert config["obs_features"] == train.OBS_FEATURES[mode]  # what the evaluation applies again
     comparison = _comparison(run_dir)
     assert set(comparison["results"]) == {"learned", *baselines.POLICIES}
     for summary in comparison["results"].values():
@@ -58,11 +59,38 @@ def test_bad_arguments_fail_before_training(tmp_path):
         train.main(["--total-timesteps", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         train.main(["--residual-scale", "2", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--obs-features", "squared", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--log-std-init", "nan", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--hold-penalty", "1.5", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        train.main(["--max-train-seconds", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="scenario"):
         train.main(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="not found"):
         train.main(["--eval-only", str(tmp_path / "missing")])
     assert not (tmp_path / "x").exists()
+
+
+def test_max_train_seconds_stops_training_early(tmp_path):
+    run_dir = tmp_path / "run"
+    assert train.main(["--total-timesteps", "10000000", "--max-train-seconds", "2", "--mode", "torque",
+                       "--out", str(run_dir), *FAST]) == 0
+    timing = json.loads((run_dir / "timing.json").read_text())
+    assert timing["agent_steps"] < 10_000_000 and timing["train_seconds"] < 30
+    assert (run_dir / "model.zip").is_file() and (run_dir / "comparison.json").is_file()
+
+
+def test_mode_defaults_and_explicit_values():
+    torque = train.parse_args(["--mode", "torque"])
+    assert (torque.obs_features, torque.gamma, torque.log_std_init, torque.hold_penalty) == (
+        train.OBS_FEATURES["torque"], train.GAMMA["torque"], train.LOG_STD_INIT["torque"], train.HOLD_PENALTY["torque"])
+    residual = train.parse_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2",
+                                 "--hold-penalty", "0.25"])
+    assert (residual.obs_features, residual.gamma, residual.log_std_init, residual.hold_penalty) == (
+        "log-error", 0.9, -2.0, 0.25)
 
 
 def test_rllib_smoke_run(tmp_path):
@@ -86,9 +114,10 @@ def test_progress_total_is_what_sb3_collects():
 
 
 def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
-    """--imitate (the torque-mode default): DAgger rounds, the actor fitted to the reference's actions."""
+    """--imitate: DAgger rounds, the actor fitted to the reference's actions."""
     run_dir = tmp_path / "run"
-    args = ["--mode", "torque", "--total-timesteps", "0", "--out", str(run_dir), *FAST, "--imitation-rounds", "2"]
+    args = ["--mode", "torque", "--imitate", "gradient", "--total-timesteps", "0", "--out", str(run_dir), *FAST,
+            "--imitation-rounds", "2"]
     assert train.main(args) == 0
     imitation = json.loads((run_dir / "imitation.json").read_text())
     assert imitation["reference"] == "gradient" and [r["round"] for r in imitation["rounds"]] == [0, 1]
@@ -99,7 +128,8 @@ def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
 
 
 def test_the_fitted_actor_follows_the_reference_actions():
-    args = train.parse_args(["--mode", "torque", "--n-envs", "1", "--n-workers", "0", "--no-progress"])
+    args = train.parse_args(["--mode", "torque", "--imitate", "gradient", "--n-envs", "1", "--n-workers", "0",
+                             "--no-progress"])
     model = train.build_sb3_model(args, None)
     try:
         env = make_training_env("planar_square", {"episode_seconds": 0.5}, "torque")
@@ -119,6 +149,7 @@ def test_the_fitted_actor_follows_the_reference_actions():
     (["--mode", "torque", "--algo", "sac", "--imitate", "gradient"], "--imitate"),
     (["--mode", "torque", "--imitation-rounds", "0"], "--imitation-rounds"),
     (["--total-timesteps", "0"], "--total-timesteps"),  # only an imitated policy may skip PPO
+    (["--mode", "torque", "--imitate", "gradient", "--obs-features", "log-error"], "--obs-features"),
 ])
 def test_imitation_options_are_validated(argv, match, capsys):
     with pytest.raises(SystemExit):
