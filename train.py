@@ -1,16 +1,17 @@
 """Train a shared formation policy and compare it with the reference controllers on the same metrics.
 
     python train.py                                   # default: residual PPO on planar_square, 3-9 min on 2 cores
-    python train.py --mode torque                     # the policy outputs the torques itself (imitation)
+    python train.py --mode torque                     # the policy outputs the torques itself
     python train.py --backend rllib --total-timesteps 20000
     python train.py --eval-only runs/<name>           # re-evaluate a saved run
 
 One policy is shared by every agent, each acting on its own local observation (decentralized execution).
 ``--mode residual`` (default): the policy's output, scaled by ``--residual-scale``, is added to a reference
 controller's action (``--reference``); rewards are scaled by ``1 - correction_penalty * mean(residual^2)``.
-``--mode torque``: the policy outputs normalized joint torques; by default it starts as a copy of a reference
-controller learned from its demonstrations (``--imitate``, DAgger), and PPO adds ``--total-timesteps`` (none
-by default). The training design (episode length, start noise, PPO settings) is in README, "Training".
+``--mode torque``: the policy outputs normalized joint torques, learned from the reward (with log-scaled error
+features and, in training, a hold penalty); or, with ``--imitate REFERENCE``, it starts as a copy of a
+reference controller learned from its demonstrations (DAgger), and PPO adds ``--total-timesteps`` (none by
+default). The training design (episode length, start noise, PPO settings) is in README, "Training".
 
 Every run writes to ``--out`` (default ``runs/<name>``): ``config.json``, the model and its observation
 normalization, TensorBoard logs, checkpoints, ``learning_curve.csv``, and the comparison against every
