@@ -55,18 +55,10 @@ def test_saved_model_reloads_and_reproduces_its_evaluation(tmp_path):
 
 
 def test_bad_arguments_fail_before_training(tmp_path):
-    with pytest.raises(SystemExit):
-        train.main(["--total-timesteps", "0", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit):
-        train.main(["--residual-scale", "2", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit):
-        train.main(["--obs-features", "squared", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit):
-        train.main(["--log-std-init", "nan", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit):
-        train.main(["--hold-penalty", "1.5", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit):
-        train.main(["--max-train-seconds", "0", "--out", str(tmp_path / "x")])
+    for bad in (["--total-timesteps", "0"], ["--residual-scale", "2"], ["--obs-features", "squared"],
+                ["--log-std-init", "nan"], ["--hold-penalty", "1.5"], ["--max-train-seconds", "0"]):
+        with pytest.raises(SystemExit):
+            train.main([*bad, "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="scenario"):
         train.main(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="not found"):
