@@ -48,10 +48,11 @@ Rules, each evaluated at sampled configurations (seeded) plus the initial one:
    value that measured best on the random planar scenarios (``benchmarks/random_scenarios.py``: 0.25 and
    0.1 are slower, 1.0 shrinks the springs' linear range, ``F / (4 K_P d^2)`` in edge-length error, so
    far that the saturated springs, which pull with constant force whatever the error, dominate).
-4. **Internal model and adaptation**: ``K_I = 1 1/s`` when gravity loads the joints, else 0 (a larger
-   K_I, meant to learn gravity faster from the weak saturated springs, made the stiff spatial loops
-   oscillate); ``alpha`` makes law-III's adaptation rate ``alpha |Z|^2`` at most 1 1/s at the saturated
-   gradient ``|e_hat| = F_i / K_P``: ``alpha = 1 / (max_q |Z(q, u)|^2 (F_i / K_P)^2)`` over unit directions u.
+4. **Internal model and adaptation**: ``K_I = min(5, 0.1 / dt) 1/s`` when gravity loads the joints, else 0
+   (``INTERNAL_MODEL_GAIN``); with the arm's saturated gradient ``|e_hat| <= sum_k F_k / K_P``, ``Gamma``
+   lets the ``Z^T dq`` term move a_hat by at most 10 % of ``|a|`` over one reach of travel
+   (``ESTIMATE_CHANGE``), and ``alpha`` keeps the decay rate ``Gamma alpha |Z|^2`` at most 0.1 1/s
+   (``ADAPTATION_RATE``), ``|Z|^2`` the largest over sampled q and unit directions u.
 5. **Gradient-rate damping** ``K_R = 1.5 dt`` (``Gains.rate_gain``, ``baselines.controllers``): the spring
    acts on ``e_hat + K_R d(e_hat)/dt``. For one mode (mass m, stiffness k, damping d, ``kappa = k dt^2 / m``,
    ``beta = d dt / m``, control held over the step, e_hat differenced over one step; :func:`mode_decay`)
