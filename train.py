@@ -62,11 +62,13 @@ PPO_SETTINGS = {
     "residual": dict(net_arch=[64, 64], n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
     "torque": dict(net_arch=[128, 128], n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
 }
-# Rollout layout per mode (README, "Training"): residual mode steps 32 envs in 2 worker processes, 32 steps per
-# slot (throughput); torque mode keeps the layout its documented run used (8 envs in-process, 128 steps).
+# Rollout layout per mode (README, "Training"): residual mode steps 32 envs, 32 steps per slot (throughput): 14 in
+# one worker process while the learner's process steps the other 18 (on 2 cores the learner's own work per step
+# then overlaps the worker's); torque mode keeps the layout its documented run used (8 envs in-process, 128 steps).
 N_ENVS = {"residual": 32, "torque": 8}
 N_STEPS = {"residual": 32, "torque": 128}
-N_WORKERS = {"residual": 2, "torque": 0}
+N_WORKERS = {"residual": 1, "torque": 0}
+IN_PROCESS_ENVS = {"residual": 18, "torque": 0}  # of the n_envs, with worker processes: stepped by the learner
 # --imitate: start from demonstrations of a reference (README, "Training"): DAgger rounds, each this many
 # training episodes, the learner driving this share of the steps after the first round, then PPO.
 IMITATION_ROUNDS = 3
@@ -113,6 +115,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                              f"agent steps: 4,096 with either mode's defaults on 4 agents; default {N_STEPS})")
     parser.add_argument("--n-workers", type=int, default=None,
                         help=f"worker processes for the envs (0 = step them in this process; default {N_WORKERS})")
+    parser.add_argument("--in-process-envs", type=int, default=None,
+                        help="with worker processes: how many of the envs the learner's process steps while the "
+                             f"workers step the others (default {IN_PROCESS_ENVS}; 0 without workers)")
     parser.add_argument("--train-episode-seconds", type=float, default=None,
                         help=f"episode length while training, s (default {TRAIN_EPISODE_SECONDS})")
     parser.add_argument("--train-initial-q-noise", type=float, default=None,
@@ -159,6 +164,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     for name, table in (("n_envs", N_ENVS), ("n_steps", N_STEPS), ("n_workers", N_WORKERS)):
         if getattr(args, name) is None:
             setattr(args, name, table[args.mode])
+    if args.in_process_envs is None:  # the mode's share, where it leaves the workers envs to step
+        share = IN_PROCESS_ENVS[args.mode]
+        args.in_process_envs = share if args.n_workers > 0 and share < args.n_envs else 0
     if args.hold_penalty is None:
         args.hold_penalty = HOLD_PENALTY[args.mode]
     if args.total_timesteps < (0 if args.imitate != "none" else 1):
@@ -175,6 +183,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         parser.error("--imitation-rounds and --imitation-episodes must be >= 1")
     if args.n_workers < 0 or args.eval_workers < 0:
         parser.error("--n-workers and --eval-workers must be >= 0")
+    if args.in_process_envs and not (args.n_workers > 0 and 0 < args.in_process_envs < args.n_envs):
+        parser.error("--in-process-envs: expected 0, or with --n-workers >= 1 a number below --n-envs")
     if args.backend == "rllib" and args.algo != "ppo":
         parser.error("--backend rllib supports --algo ppo only")
     if not 0 <= args.correction_penalty <= 1:
@@ -333,7 +343,8 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
     factory = env_factory(args, training_overrides(args))
     # No per-step infos cross the worker pipes: the learner reads none (the VecEnv adds what SB3 needs).
-    venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers, info_keys=())
+    venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers, info_keys=(),
+                              in_process_envs=args.in_process_envs)
     venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / "monitor.csv"))
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
     # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual

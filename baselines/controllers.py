@@ -532,6 +532,9 @@ class PolicyTeam:
             else:
                 self._single.append(agent)
         self._batches = [(agents, ControllerBatch([self.policies[a] for a in agents])) for agents in groups.values()]
+        row = {agent: k for k, agent in enumerate(self.policies)}  # each agent's row in act_on_stack's stacks
+        self._batch_rows = [np.array([row[a] for a in agents]) for agents, _ in self._batches]
+        self._single_rows = [(row[agent], agent) for agent in self._single]
 
     def reset(self) -> None:
         for policy in self.policies.values():
@@ -542,4 +545,24 @@ class PolicyTeam:
         actions = {agent: self.policies[agent](observations[agent]) for agent in self._single}
         for agents, batch in self._batches:
             actions.update(zip(agents, batch(np.stack([observations[agent] for agent in agents]))))
+        return actions
+
+    def act_on_stack(self, observations: np.ndarray) -> np.ndarray:
+        """Every agent's action (k, n) (normalized, float32) from a stack (k, size) of their observations, both
+        in the order the policies were given; the same actions as :meth:`__call__`. Every agent must have the
+        same number n of joints (and of observation entries)."""
+        if len(observations) != len(self.policies):
+            raise ValueError(f"observations: expected a stack of {len(self.policies)} rows (one per agent), "
+                             f"got {len(observations)}")
+        actions = None
+        for rows, (_, batch) in zip(self._batch_rows, self._batches):
+            stacked = batch(observations[rows])
+            if actions is None:
+                actions = np.empty((len(observations), stacked.shape[1]), dtype=np.float32)
+            actions[rows] = stacked
+        for row, agent in self._single_rows:
+            action = np.asarray(self.policies[agent](observations[row]), dtype=np.float32)
+            if actions is None:
+                actions = np.empty((len(observations), len(action)), dtype=np.float32)
+            actions[row] = action
         return actions

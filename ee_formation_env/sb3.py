@@ -33,6 +33,10 @@ class _EnvGroup:
         self.envs = [factory() for factory in factories]
         self.agents = list(self.envs[0].possible_agents)
         self.info_keys = None if info_keys is None else tuple(info_keys)
+        # Envs of a class with a group_stepper are stepped together through it (SharedPolicyVecEnv's docstring).
+        group_stepper = getattr(type(self.envs[0]), "group_stepper", None)
+        same_class = all(type(env) is type(self.envs[0]) for env in self.envs)
+        self.group = group_stepper(self.envs) if group_stepper is not None and same_class else None
 
     def _slot_info(self, info: dict) -> dict:
         if self.info_keys is None:
@@ -49,10 +53,13 @@ class _EnvGroup:
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
         n = len(self.agents)
+        env_actions = [{agent: actions[e * n + k] for k, agent in enumerate(self.agents)} for e in range(len(self.envs))]
+        if self.group is not None:
+            results = self.group.step(env_actions)
+        else:
+            results = [env.step(action) for env, action in zip(self.envs, env_actions)]
         observations, rewards, dones, infos = [], [], [], []
-        for e, env in enumerate(self.envs):
-            obs, reward, terminated, truncated, info = env.step(
-                {agent: actions[e * n + k] for k, agent in enumerate(self.agents)})
+        for env, (obs, reward, terminated, truncated, info) in zip(self.envs, results):
             ended = not env.agents
             slot_infos = [self._slot_info(info[a]) for a in self.agents]
             if ended:
@@ -102,17 +109,30 @@ class SharedPolicyVecEnv(VecEnv):
     """``n_envs`` formation envs as a VecEnv of ``n_envs * n_agents`` agent slots.
 
     ``n_workers = 0`` steps every env in this process; ``n_workers = k`` spreads them over ``k`` worker
-    processes (``spawn`` start method, so each builds a fresh PyBullet client).
+    processes (``spawn`` start method, so each builds a fresh PyBullet client), except the first
+    ``in_process_envs`` envs, stepped in this process while the workers step theirs: the learner's own work
+    per step (the policy's forward pass, normalization, the rollout buffer) then overlaps the workers' instead
+    of leaving a core idle.
     ``info_keys``: the env info entries each slot's info keeps (None, the default: all of them). Training
     needs none of them (SB3 reads only the ``terminal_observation`` and ``TimeLimit.truncated`` this VecEnv
     adds), and with worker processes every entry kept is pickled through a pipe on every step.
+
+    An env class may provide ``group_stepper``: a class built from the envs of one process whose
+    ``step(actions)`` (one action dict per env) steps them all and returns each env's step result, exactly as
+    its own ``step`` would. The envs of such a class are stepped through it (the residual envs of
+    :mod:`baselines.residual` evaluate every env's reference controllers in one batch).
     """
 
-    def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None):
+    def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None,
+                 in_process_envs: int = 0):
         if not factories:
             raise ValueError("factories: expected at least one env factory")
         if not isinstance(n_workers, int) or n_workers < 0:
             raise ValueError(f"n_workers: expected an integer >= 0, got {n_workers!r}")
+        if not isinstance(in_process_envs, int) or not 0 <= in_process_envs < len(factories) or \
+                (in_process_envs and not n_workers):
+            raise ValueError(f"in_process_envs: expected an integer in [0, {len(factories) - 1}], and 0 without "
+                             f"worker processes, got {in_process_envs!r}")
         if info_keys is not None and (isinstance(info_keys, str) or not all(isinstance(k, str) for k in info_keys)):
             raise TypeError(f"info_keys: expected None or a sequence of info key names, got {info_keys!r}")
         probe = factories[0]()
@@ -130,16 +150,15 @@ class SharedPolicyVecEnv(VecEnv):
         if any(s != spaces[0] for s in spaces):
             raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
         self.n_envs = len(factories)
-        self.n_workers = min(n_workers, self.n_envs)
+        self.n_workers = min(n_workers, self.n_envs - in_process_envs)
+        self.n_local = self.n_envs if self.n_workers == 0 else in_process_envs  # envs stepped in this process
         self._local: _EnvGroup | None = None
         self._connections: list[Connection] = []
         self._processes: list[multiprocessing.Process] = []
         self._envs_per_worker: list[int] = []
-        if self.n_workers == 0:
-            self._local = _EnvGroup(factories, info_keys)
-        else:
+        if self.n_workers:
             context = multiprocessing.get_context("spawn")
-            chunks = np.array_split(np.arange(self.n_envs), self.n_workers)
+            chunks = np.array_split(np.arange(self.n_local, self.n_envs), self.n_workers)
             for chunk in chunks:
                 parent, child = context.Pipe()
                 process = context.Process(target=_worker, args=(child, [factories[i] for i in chunk], info_keys),
@@ -149,8 +168,9 @@ class SharedPolicyVecEnv(VecEnv):
                 self._connections.append(parent)
                 self._processes.append(process)
                 self._envs_per_worker.append(len(chunk))
-            for connection in self._connections:
-                self._receive(connection)
+        if self.n_local:  # built while the workers build theirs
+            self._local = _EnvGroup(factories[:self.n_local], info_keys)
+        self._receive_workers()
         self._render_mode = probe_render_mode
         self._pending: np.ndarray | None = None
         super().__init__(self.n_envs * len(self.agents), spaces[0][0], spaces[0][1])
@@ -159,12 +179,11 @@ class SharedPolicyVecEnv(VecEnv):
     def reset(self) -> np.ndarray:
         n = len(self.agents)
         env_seeds = [self._seeds[e * n] for e in range(self.n_envs)]
-        if self._local is not None:
-            observations, infos = self._local.reset(env_seeds)
-        else:
-            results = self._call_workers("reset", self._split_per_worker(env_seeds))
-            observations = np.concatenate([r[0] for r in results])
-            infos = [info for r in results for info in r[1]]
+        self._send_workers("reset", self._split_per_worker(env_seeds[self.n_local:]))
+        results = [] if self._local is None else [self._local.reset(env_seeds[:self.n_local])]
+        results += self._receive_workers()
+        observations = np.concatenate([r[0] for r in results])
+        infos = [info for r in results for info in r[1]]
         self.reset_infos = infos
         self._reset_seeds()
         self._reset_options()
@@ -175,11 +194,15 @@ class SharedPolicyVecEnv(VecEnv):
 
     def step_wait(self):
         actions, self._pending = self._pending, None
-        if self._local is not None:
-            return self._local.step(actions)
         n = len(self.agents)
-        splits = np.cumsum([count * n for count in self._envs_per_worker])[:-1]
-        results = self._call_workers("step", np.split(actions, splits))
+        if not self._connections:
+            return self._local.step(actions)
+        # The workers step their envs while this process steps its own (if any).
+        splits = np.cumsum([count * n for count in (self.n_local, *self._envs_per_worker)])[:-1]
+        local_actions, *worker_actions = np.split(actions, splits)
+        self._send_workers("step", worker_actions)
+        results = [] if self._local is None else [self._local.step(local_actions)]
+        results += self._receive_workers()
         return (np.concatenate([r[0] for r in results]), np.concatenate([r[1] for r in results]),
                 np.concatenate([r[2] for r in results]), [info for r in results for info in r[3]])
 
@@ -201,11 +224,9 @@ class SharedPolicyVecEnv(VecEnv):
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         if attr_name == "render_mode":
             return [self._render_mode] * self.num_envs
-        if self._local is not None:
-            per_env = [getattr(env, attr_name) for env in self._local.envs]
-        else:
-            per_env = [value for values in self._call_workers("get_attr", [attr_name] * self.n_workers)
-                       for value in values]
+        per_env = [] if self._local is None else [getattr(env, attr_name) for env in self._local.envs]
+        per_env += [value for values in self._call_workers("get_attr", [attr_name] * self.n_workers)
+                    for value in values]
         per_slot = [value for value in per_env for _ in self.agents]
         return [per_slot[i] for i in self._get_indices(indices)]
 
@@ -231,8 +252,14 @@ class SharedPolicyVecEnv(VecEnv):
         return out
 
     def _call_workers(self, command: str, payloads: Sequence[Any]) -> list[Any]:
+        self._send_workers(command, payloads)
+        return self._receive_workers()
+
+    def _send_workers(self, command: str, payloads: Sequence[Any]) -> None:
         for connection, payload in zip(self._connections, payloads):
             connection.send((command, payload))
+
+    def _receive_workers(self) -> list[Any]:
         return [self._receive(connection) for connection in self._connections]
 
     @staticmethod

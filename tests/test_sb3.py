@@ -131,6 +131,36 @@ def test_worker_processes_build_their_own_worlds():
         venv.close()
 
 
+def test_envs_in_process_beside_workers_step_as_all_in_process():
+    """One env stepped by this process while a worker steps two: the same rollout as all three in-process
+    (residual envs: each process steps its envs as one group)."""
+    factory = _factory(episode_seconds=0.05)
+    residual = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05}, "residual")
+    for factories in ([factory] * 3, [residual] * 3):
+        split = SharedPolicyVecEnv(factories, n_workers=1, in_process_envs=1)
+        in_process = SharedPolicyVecEnv(factories, n_workers=0)
+        try:
+            assert split.n_local == 1 and len(split._local.envs) == 1 and len(split.worker_pids()) == 1
+            split.seed(0)
+            in_process.seed(0)
+            np.testing.assert_array_equal(split.reset(), in_process.reset())
+            assert split.get_attr("scenario") == in_process.get_attr("scenario")
+            actions = np.random.default_rng(0).uniform(-1, 1, (split.num_envs, 2)).astype(np.float32)
+            for _ in range(6):  # across an auto-reset
+                left, right = split.step(actions), in_process.step(actions)
+                for part in range(3):
+                    np.testing.assert_array_equal(left[part], right[part])
+        finally:
+            split.close()
+            in_process.close()
+
+
+@pytest.mark.parametrize("n_workers,in_process_envs", [(1, -1), (1, 2), (1, 1.5), (0, 1)])
+def test_bad_in_process_envs_are_rejected_before_any_worker_starts(n_workers, in_process_envs):
+    with pytest.raises(ValueError, match=r"in_process_envs: expected an integer in \[0, 1\], and 0 without worker"):
+        SharedPolicyVecEnv([_factory(), _factory()], n_workers=n_workers, in_process_envs=in_process_envs)
+
+
 def test_worker_errors_surface_in_the_parent():
     bad = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05}, "torque")
     venv = SharedPolicyVecEnv([bad], n_workers=1)

@@ -56,7 +56,8 @@ def test_saved_model_reloads_and_reproduces_its_evaluation(tmp_path):
 
 def test_bad_arguments_fail_before_training(tmp_path):
     for bad in (["--total-timesteps", "0"], ["--residual-scale", "2"], ["--obs-features", "squared"],
-                ["--log-std-init", "nan"], ["--hold-penalty", "1.5"], ["--max-train-seconds", "0"]):
+                ["--log-std-init", "nan"], ["--hold-penalty", "1.5"], ["--max-train-seconds", "0"],
+                ["--in-process-envs", "32"], ["--n-workers", "0", "--in-process-envs", "4"]):
         with pytest.raises(SystemExit):
             train.main([*bad, "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="scenario"):
@@ -83,6 +84,9 @@ def test_mode_defaults_and_explicit_values():
                                  "--hold-penalty", "0.25"])
     assert (residual.obs_features, residual.gamma, residual.log_std_init, residual.hold_penalty) == (
         "log-error", 0.9, -2.0, 0.25)
+    # The learner steps its share of the envs only beside worker processes.
+    assert residual.in_process_envs == train.IN_PROCESS_ENVS["residual"] > 0 and torque.in_process_envs == 0
+    assert train.parse_args(["--n-workers", "0"]).in_process_envs == 0
 
 
 def test_rllib_smoke_run(tmp_path):

@@ -254,6 +254,27 @@ def test_a_team_batches_like_robots_and_calls_other_policies_one_by_one(make_env
     assert not np.any(PolicyTeam(mixed)(observations)["arm_1"])
 
 
+def test_a_team_acts_on_a_stack_as_on_a_dict(make_env):
+    """act_on_stack (rows in the order the policies were given) gives what __call__ gives, a policy outside
+    any batch (zero) included; a stack of the wrong height is a ValueError."""
+    env = make_env("planar_square", episode_seconds=0.1)
+    policies = baselines.make_policies("adaptive_jacobian", env)
+    twins = baselines.make_policies("adaptive_jacobian", env)
+    team = PolicyTeam(dict(policies, arm_2=baselines.make_policy("zero", env, "arm_2")))
+    twin_team = PolicyTeam(dict(twins, arm_2=baselines.make_policy("zero", env, "arm_2")))
+    observations, _ = env.reset(seed=1)
+    for _ in range(3):  # the internal states move alike
+        stacked = team.act_on_stack(np.stack([observations[agent] for agent in env.possible_agents]))
+        expected = twin_team(observations)
+        assert stacked.dtype == np.float32 and stacked.shape == (4, 2)
+        for row, agent in zip(stacked, env.possible_agents):
+            assert row.tobytes() == expected[agent].tobytes()
+        assert not np.any(stacked[2])
+        observations, *_ = env.step(dict(zip(env.possible_agents, stacked)))
+    with pytest.raises(ValueError, match="observations: expected a stack of 4 rows"):
+        team.act_on_stack(np.stack([observations["arm_0"]]))
+
+
 def test_a_batch_rejects_controllers_it_cannot_stack(make_env):
     env = make_env("planar_square")
     gradient = baselines.make_policy("gradient", env, "arm_0")
