@@ -56,8 +56,9 @@ from benchmarks.scenarios import planar_ring, spatial_ring  # noqa: E402
 SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset")
 ARM_COUNTS = (2, 4, 8, 16)
 # train.py runs whose training throughput is measured: the default run first (the target applies to it).
-TRAINING_CASES = ((), ("--n-workers", "0"), ("--n-envs", "8", "--n-steps", "128", "--n-workers", "0"), ("--mode", "torque"),
-                  ("--mode", "torque", "--n-workers", "0"))
+# The others: every env in worker processes, every env in-process, the first layout (8 envs x 128 steps), torque mode.
+TRAINING_CASES = ((), ("--n-workers", "2", "--in-process-envs", "0"), ("--n-workers", "0"),
+                  ("--n-envs", "8", "--n-steps", "128", "--n-workers", "0"), ("--mode", "torque"))
 DEFAULT_JSON = "results/benchmarks.json"
 
 
@@ -321,9 +322,12 @@ def bench_training(budget: Budget, extra_args: Sequence[str] = ()) -> list[dict[
         model.get_env().close()
     agent_steps = budget.training_updates * per_update
     description = " ".join(extra_args) or "defaults"
-    return [{"section": "sb3_training", "case": f"train.py ({description}): {args.mode} mode, {args.n_envs} envs, "
-                                                f"{args.n_workers} worker processes",
+    layout = (f"{args.n_envs} envs in-process" if not args.n_workers else
+              f"{args.n_envs} envs: {args.in_process_envs} in-process, the others in {args.n_workers} worker "
+              f"process{'es' if args.n_workers > 1 else ''}")
+    return [{"section": "sb3_training", "case": f"train.py ({description}): {args.mode} mode, {layout}",
              "scenario": args.scenario, "mode": args.mode, "n_envs": args.n_envs, "n_workers": args.n_workers,
+             "in_process_envs": args.in_process_envs,
              "agent_steps": agent_steps, "seconds": times, "agent_steps_per_s": agent_steps / min(times)}]
 
 
