@@ -730,7 +730,8 @@ def _plot(run_dir: Path, results: dict[str, Any], label: str, error_unit: str) -
     ticks = [label if n == "learned" else n for n in names]
     rows = np.arange(len(names))
     figure, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1.2, 1, 1]})
-    curve = np.loadtxt(run_dir / "learning_curve.csv", delimiter=",", skiprows=1, ndmin=2)
+    lines = (run_dir / "learning_curve.csv").read_text().splitlines()[1:]  # none when no PPO step ran (--imitate)
+    curve = np.loadtxt(lines, delimiter=",", ndmin=2) if lines else np.empty((0, 2))
     if curve.size:
         axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.4, label="episode")
         if len(curve) >= 10:
