@@ -80,7 +80,8 @@ class ResidualActionEnv:
     """A parallel env whose actions are residuals on top of one reference controller per agent.
 
     Observations and spaces are the wrapped env's; each agent's reward is the env's times
-    :func:`correction_factor` of its residual.
+    :func:`correction_factor` of its residual. Several such envs step together through
+    :class:`ResidualGroup`, their ``group_stepper`` (as :class:`ee_formation_env.sb3.SharedPolicyVecEnv` does).
     """
 
     def __init__(self, env: Any, reference: str = "adaptive_jacobian", scale: float = 0.1,
