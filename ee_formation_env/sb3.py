@@ -179,9 +179,8 @@ class SharedPolicyVecEnv(VecEnv):
     def reset(self) -> np.ndarray:
         n = len(self.agents)
         env_seeds = [self._seeds[e * n] for e in range(self.n_envs)]
-        self._send_workers("reset", self._split_per_worker(env_seeds[self.n_local:]))
-        results = [] if self._local is None else [self._local.reset(env_seeds[:self.n_local])]
-        results += self._receive_workers()
+        results = self._step_everywhere("reset", self._split_per_worker(env_seeds[self.n_local:]),
+                                        lambda: self._local.reset(env_seeds[:self.n_local]))
         observations = np.concatenate([r[0] for r in results])
         infos = [info for r in results for info in r[1]]
         self.reset_infos = infos
@@ -197,12 +196,9 @@ class SharedPolicyVecEnv(VecEnv):
         n = len(self.agents)
         if not self._connections:
             return self._local.step(actions)
-        # The workers step their envs while this process steps its own (if any).
         splits = np.cumsum([count * n for count in (self.n_local, *self._envs_per_worker)])[:-1]
         local_actions, *worker_actions = np.split(actions, splits)
-        self._send_workers("step", worker_actions)
-        results = [] if self._local is None else [self._local.step(local_actions)]
-        results += self._receive_workers()
+        results = self._step_everywhere("step", worker_actions, lambda: self._local.step(local_actions))
         return (np.concatenate([r[0] for r in results]), np.concatenate([r[1] for r in results]),
                 np.concatenate([r[2] for r in results]), [info for r in results for info in r[3]])
 
@@ -250,6 +246,16 @@ class SharedPolicyVecEnv(VecEnv):
             out.append(list(items[start:start + count]))
             start += count
         return out
+
+    def _step_everywhere(self, command: str, worker_payloads: Sequence[Any], local_call: Callable[[], Any]) -> list[Any]:
+        """Send ``command`` to the workers, run ``local_call`` on this process's envs (if any) while they work,
+        then collect: this process's result first, then each worker's."""
+        self._send_workers(command, worker_payloads)
+        try:
+            local = [] if self._local is None else [local_call()]
+        finally:
+            remote = self._receive_workers()  # read even if local_call raised: the pipes stay in step
+        return local + remote
 
     def _call_workers(self, command: str, payloads: Sequence[Any]) -> list[Any]:
         self._send_workers(command, payloads)
