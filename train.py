@@ -16,7 +16,7 @@ default). The training design (episode length, start noise, PPO settings) is in 
 Every run writes to ``--out`` (default ``runs/<name>``): ``config.json``, the model and its observation
 normalization, TensorBoard logs, checkpoints, ``learning_curve.csv``, and the comparison against every
 reference policy on held-out seeds (``comparison.json``, ``comparison.md``, ``comparison.png``), computed by
-``baselines.metrics`` exactly as ``python -m baselines.evaluate`` does.
+``ee_formation_env.baselines.metrics`` exactly as ``python -m ee_formation_env.baselines.evaluate`` does.
 """
 
 from __future__ import annotations
@@ -35,13 +35,13 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-import baselines
+from ee_formation_env import baselines
 import ee_formation_env
-from baselines.extras import require
-from baselines.features import FEATURE_SETS, FeaturePolicy, make_feature_env
-from baselines.metrics import format_table, run_episode, summarize
-from baselines.residual import ResidualPolicy, make_training_env
-from baselines.shaping import SPEED_SCALE
+from ee_formation_env.baselines.extras import require
+from ee_formation_env.baselines.learned.features import FEATURE_SETS, FeaturePolicy, make_feature_env
+from ee_formation_env.baselines.metrics import format_table, run_episode, summarize
+from ee_formation_env.baselines.learned.residual import ResidualPolicy, make_training_env
+from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
 
 EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
 # Training design (README, "Training"): short episodes give many starts per budget (the references settle in
@@ -336,7 +336,7 @@ def build_sb3_model(args: argparse.Namespace, out_dir: Path | None) -> Any:
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-    from ee_formation_env.sb3 import SharedPolicyVecEnv
+    from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
 
     import torch
 
@@ -401,12 +401,12 @@ def train_sb3(args: argparse.Namespace, out_dir: Path) -> None:
 
 def imitate(model: Any, args: argparse.Namespace, out_dir: Path) -> None:
     """Start ``model``'s policy as a copy of the reference ``args.imitate``: DAgger rounds of demonstrations
-    in the training env (:func:`baselines.imitation.demonstrations`), the actor's mean fitted to the
+    in the training env (:func:`ee_formation_env.baselines.learned.imitation.demonstrations`), the actor's mean fitted to the
     reference's actions after each round, the observation normalization set from the data; then PPO's
     exploration noise is narrowed to ``IMITATION_LOG_STD``. Writes ``imitation.json``."""
     import torch
 
-    from baselines.imitation import demonstrations
+    from ee_formation_env.baselines.learned.imitation import demonstrations
 
     venv = model.get_env()  # VecNormalize: the policy sees normalized observations
     env = make_training_env(args.scenario, training_overrides(args), "torque")

@@ -4,20 +4,23 @@
     env = ee_formation_env.parallel_env("planar_square")
     policies = {agent: baselines.make_policy("adaptive_jacobian", env, agent) for agent in env.possible_agents}
 
-See :mod:`baselines.controllers` for the laws and :mod:`baselines.gains` for default gains and the rule
+See :mod:`ee_formation_env.baselines.reference.controllers` for the laws and :mod:`ee_formation_env.baselines.reference.gains` for default gains and the rule
 that derives them for any robot.
 """
 
 from __future__ import annotations
 
+if __name__ != "ee_formation_env.baselines":  # the folder is installed inside the env's package, under one name
+    raise ImportError(f"this folder is the package ee_formation_env.baselines: import that, not {__name__!r}")
+
 from typing import Any, Mapping
 
 import numpy as np
 
-from baselines.controllers import (AdaptiveJacobianController, AgentModel, ApproxJacobianController, Gains,
+from ee_formation_env.baselines.reference.controllers import (AdaptiveJacobianController, AgentModel, ApproxJacobianController, Gains,
                                    GradientController, RandomPolicy, ZeroPolicy)
-from baselines.dynamics import nominal_dynamics
-from baselines.gains import default_gains
+from ee_formation_env.baselines.reference.dynamics import nominal_dynamics
+from ee_formation_env.baselines.reference.gains import default_gains
 from ee_formation_env.env import FormationEnv
 
 _CONTROLLERS = {
@@ -58,10 +61,10 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
     """A reference policy for one agent: ``reset()`` and ``__call__(observation) -> action``.
 
     ``gains``: a :class:`Gains`, or a dict of overrides of the defaults for this scenario
-    (:func:`baselines.gains.default_gains`). ``a_hat0``: initial kinematic estimate (default: the nominal
+    (:func:`ee_formation_env.baselines.reference.gains.default_gains`). ``a_hat0``: initial kinematic estimate (default: the nominal
     URDF's parameters). ``options``: controller options: ``anti_windup`` (``approx_jacobian`` and
     ``adaptive_jacobian``), ``projection`` and ``parameter_bounds`` (``adaptive_jacobian``; default box
-    ``[0.5, 2] x`` the nominal parameters), see :mod:`baselines.controllers`. ``seed`` seeds ``random``.
+    ``[0.5, 2] x`` the nominal parameters), see :mod:`ee_formation_env.baselines.reference.controllers`. ``seed`` seeds ``random``.
     """
     if name not in POLICIES:
         raise ValueError(f"policy: unknown policy {name!r}; available: {list(POLICIES)}")

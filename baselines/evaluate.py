@@ -1,11 +1,11 @@
 """Evaluate reference policies on seeded episodes and print a metrics table.
 
-    python -m baselines.evaluate --scenario planar_square --policy adaptive_jacobian --episodes 10 --seed 0
-    python -m baselines.evaluate --scenario spatial_tetrahedron --policy all --json results.json
-    python -m baselines.evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
+    python -m ee_formation_env.baselines.evaluate --scenario planar_square --policy adaptive_jacobian --episodes 10 --seed 0
+    python -m ee_formation_env.baselines.evaluate --scenario spatial_tetrahedron --policy all --json results.json
+    python -m ee_formation_env.baselines.evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
 
 Episode ``k`` uses reset seed ``seed + k``, so every policy sees the same initial states. Metrics are
-defined in :mod:`baselines.metrics` (the same module ``train.py`` uses).
+defined in :mod:`ee_formation_env.baselines.metrics` (the same module ``train.py`` uses).
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 import ee_formation_env
-from baselines import POLICIES, make_policies
-from baselines.extras import require
-from baselines.metrics import (DEFAULT_POSITION_TOLERANCE, EpisodeMetrics, format_table, metric_definitions,
+from ee_formation_env.baselines import POLICIES, make_policies
+from ee_formation_env.baselines.extras import require
+from ee_formation_env.baselines.metrics import (DEFAULT_POSITION_TOLERANCE, EpisodeMetrics, format_table, metric_definitions,
                                run_episode, summarize)
 from ee_formation_env.env import FormationEnv
 
@@ -30,7 +30,7 @@ from ee_formation_env.env import FormationEnv
 class EpisodeVideo:
     """Frames of one episode, rendered every ``stride`` env steps so that the video plays at simulated speed.
 
-    Use :meth:`capture` as :func:`baselines.metrics.run_episode`'s ``on_step`` (plus once after the reset),
+    Use :meth:`capture` as :func:`ee_formation_env.baselines.metrics.run_episode`'s ``on_step`` (plus once after the reset),
     then :meth:`write`.
     """
 
@@ -70,7 +70,7 @@ def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
                     position_tolerance: float = DEFAULT_POSITION_TOLERANCE, overrides: dict | None = None,
                     policy_kwargs: dict | None = None, video_dir: Path | None = None,
                     on_episode: Callable[[str, int, EpisodeMetrics], None] | None = None) -> dict[str, Any]:
-    """Summary (see :func:`baselines.metrics.summarize`) of ``policy`` over seeded episodes.
+    """Summary (see :func:`ee_formation_env.baselines.metrics.summarize`) of ``policy`` over seeded episodes.
 
     ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``),
     rendered as ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode.
@@ -109,7 +109,7 @@ def _overrides(pairs: Sequence[str]) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m baselines.evaluate", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m ee_formation_env.baselines.evaluate", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="table columns (mean over episodes unless said otherwise):\n"
                                             + metric_definitions())

@@ -1,4 +1,4 @@
-"""Episode metrics: the one definition used by ``baselines.evaluate``, ``baselines.reproduce`` and ``train.py``.
+"""Episode metrics: the one definition used by ``ee_formation_env.baselines.evaluate``, ``studies.reproduce`` and ``train.py``.
 
 A policy here is anything with ``reset()`` and ``__call__(observation) -> action`` (normalized torques),
 one per agent. :func:`run_episode` rolls one seeded episode and returns :class:`EpisodeMetrics`.
@@ -13,7 +13,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from baselines.controllers import PolicyTeam
+from ee_formation_env.baselines.reference.controllers import PolicyTeam
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
 
@@ -183,7 +183,7 @@ class MetricColumn:
         return f"{self.title} ({self.unit})" if self.unit else self.title
 
 
-#: The metrics tables' columns, defined once: used by :func:`format_table`, ``python -m baselines.evaluate
+#: The metrics tables' columns, defined once: used by :func:`format_table`, ``python -m ee_formation_env.baselines.evaluate
 #: --help`` and the README. Each cell is a mean over episodes unless its meaning says otherwise.
 METRIC_COLUMNS: tuple[MetricColumn, ...] = (
     MetricColumn("success_rate", "success", "%", "share of episodes whose formation error fell below the tolerance "

@@ -16,11 +16,11 @@ Sections:
   ``setJointMotorControlArray`` loop;
 - ``env_step``: ``env.step`` with zero actions at ``frame_skip`` 1 and at the scenario's default;
 - ``closed_loop``: ``env.step`` plus the ``adaptive_jacobian`` controller on every agent;
-- ``sb3_rollout``: ``PPO.collect_rollouts`` through :class:`~ee_formation_env.sb3.SharedPolicyVecEnv`
+- ``sb3_rollout``: ``PPO.collect_rollouts`` through :class:`~ee_formation_env.integrations.sb3.SharedPolicyVecEnv`
   with 2 worker processes (and in-process, for comparison);
 - ``sb3_training``: ``model.learn`` of ``train.py``'s default configuration (the same model, envs and PPO
   settings, built by ``train.build_sb3_model``): training throughput in agent steps/s, updates included;
-- ``scaling``: 2, 4, 8 and 16 arms on a minimally rigid graph (:mod:`benchmarks.scenarios`), 2-DOF planar
+- ``scaling``: 2, 4, 8 and 16 arms on a minimally rigid graph (:mod:`ee_formation_env.generators`), 2-DOF planar
   and 7-DOF spatial arms: raw floor, ``env.step`` at ``frame_skip`` 1, and reset cost;
 - ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios.
 
@@ -51,7 +51,7 @@ from ee_formation_env.env import FormationEnv
 
 if __package__ in (None, ""):  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from benchmarks.scenarios import planar_ring, spatial_ring  # noqa: E402
+from ee_formation_env.generators import planar_ring, spatial_ring  # noqa: E402
 
 SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset")
 ARM_COUNTS = (2, 4, 8, 16)
@@ -142,8 +142,8 @@ def time_env_steps(env: FormationEnv, steps: int, seed: int = 0) -> float:
 def time_closed_loop(env: FormationEnv, policies: dict[str, Any], steps: int, seed: int = 0,
                      batched: bool = True) -> float:
     """Seconds for ``steps`` env steps with one controller per agent acting on its observation: evaluated as
-    one :class:`baselines.controllers.PolicyTeam` (``batched``, as ``run_episode`` does) or agent by agent."""
-    from baselines.controllers import PolicyTeam
+    one :class:`ee_formation_env.baselines.reference.controllers.PolicyTeam` (``batched``, as ``run_episode`` does) or agent by agent."""
+    from ee_formation_env.baselines.reference.controllers import PolicyTeam
 
     team = PolicyTeam(policies)
     act = team if batched else (lambda observations: {a: policies[a](observations[a]) for a in env.agents})
@@ -238,7 +238,7 @@ def bench_scenario(name: str, budget: Budget) -> list[dict[str, Any]]:
 def bench_closed_loop(name: str, seconds: float, budget: Budget, raw_rate: float) -> list[dict[str, Any]]:
     """Section (c): env plus ``adaptive_jacobian`` on every agent, ``seconds`` of simulated time; the team
     evaluated in batches (as ``run_episode`` does) and agent by agent."""
-    import baselines
+    from ee_formation_env import baselines
 
     env = _make_env(name)
     try:
@@ -266,7 +266,7 @@ def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> li
         import torch
         from stable_baselines3 import PPO
 
-        from ee_formation_env.sb3 import SharedPolicyVecEnv
+        from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
     except ImportError as error:  # the optional "train" extra
         return [{"section": "sb3_rollout", "case": f"{name}: skipped ({error})", "skipped": True}]
     torch.set_num_threads(1)

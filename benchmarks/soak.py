@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pybullet
 
-import baselines
+from ee_formation_env import baselines
 import ee_formation_env
 
 

@@ -30,5 +30,5 @@ def register_all() -> None:
         if gymnasium_id(name) not in gymnasium.registry:
             # max_episode_steps: the built-in episode length in env steps (the env truncates there too);
             # gymnasium.make(..., episode_seconds=T) with a longer T also needs max_episode_steps.
-            gymnasium.register(gymnasium_id(name), entry_point="ee_formation_env.centralized:CentralizedFormationEnv",
+            gymnasium.register(gymnasium_id(name), entry_point="ee_formation_env.integrations.centralized:CentralizedFormationEnv",
                                kwargs={"scenario": name}, max_episode_steps=load_scenario(name).max_steps)

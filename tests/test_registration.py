@@ -15,7 +15,7 @@ from pettingzoo.utils.env import AECEnv
 
 import ee_formation_env
 from ee_formation_env import BUILTIN_SCENARIOS, FormationEnv
-from ee_formation_env.centralized import CentralizedFormationEnv
+from ee_formation_env.integrations.centralized import CentralizedFormationEnv
 from ee_formation_env.registration import gymnasium_id, pettingzoo_id, register_all
 
 
@@ -30,7 +30,7 @@ def test_every_builtin_is_registered(name):
     assert pettingzoo_id(name) in pettingzoo.parallel_registry
     spec = gymnasium.spec(gymnasium_id(name))
     assert spec.kwargs == {"scenario": name}
-    assert spec.entry_point == "ee_formation_env.centralized:CentralizedFormationEnv"
+    assert spec.entry_point == "ee_formation_env.integrations.centralized:CentralizedFormationEnv"
 
 
 def test_register_all_is_idempotent():

@@ -156,6 +156,15 @@ print(rollout_digest(ee_formation_env.parallel_env({scenario!r}, episode_seconds
 """
 
 
+# The digests of ``rollout_digest`` as the env computed them before the package was reorganized: a change of
+# the env's behaviour (physics, observation, reward or their order) changes them. Float results are those of
+# x86-64 with SSE2, the machines the project is tested on.
+PINNED_ROLLOUT_DIGESTS = {
+    "planar_square": "a51c832600bac9ee75078ca7ff11e1500bcc006cdb30237e24ad421902797bf8",
+    "spatial_tetrahedron": "f232a521eb4980cdeff8a1887592daf767dca03cfa81fc515c91701606faf3f9",
+}
+
+
 @pytest.mark.parametrize("scenario", ["planar_square", "spatial_tetrahedron"])
 def test_same_seed_is_bit_identical_in_another_process_and_after_other_history(scenario):
     code = _IN_ANOTHER_PROCESS.format(tests=os.path.dirname(__file__), scenario=scenario)
@@ -165,7 +174,7 @@ def test_same_seed_is_bit_identical_in_another_process_and_after_other_history(s
         env.reset(seed=99)  # a different history first
         for _ in range(10):
             env.step({a: np.full(env.action_space(a).shape, 0.3) for a in env.agents})
-        assert rollout_digest(env) == other_process
+        assert rollout_digest(env) == other_process == PINNED_ROLLOUT_DIGESTS[scenario]
 
 
 # ---------------------------------------------------------------------------------------- interpreter exit

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-import baselines
-from baselines.metrics import formation_tolerance, run_episode
+from ee_formation_env import baselines
+from ee_formation_env.baselines.metrics import formation_tolerance, run_episode
 from ee_formation_env.reward import RewardConfig, agent_error_ratios, edge_tolerances, rewards_from_ratios
 
 

@@ -1,0 +1,1 @@
+"""Learning tools: training envs (residual, features, shaping), imitation, backends, loading and comparison."""

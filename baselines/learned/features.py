@@ -1,0 +1,161 @@
+"""Observation features with resolution near the goal, for a learned torque policy.
+
+The raw observation holds edge errors in formation units (m^2 for distance formations: up to tens) and
+joint angles in rad. Normalized by their running statistics, the last centimetre (the success tolerance: 1 cm
+on 3 m edges, ~0.3 % of the scale) is invisible to a policy network. :func:`log_error_features` appends
+quantities computed from the agent's *own* observation only, so that a shared policy stays decentralized:
+
+- per neighbour slot, the edge error in success tolerances ``r = e / tol`` through ``sign(r) log1p(|r|)``
+  (0 for padding slots); ``tol = 2 d* delta`` (distance) or ``delta`` (displacement, per axis), as in the
+  reward and :func:`ee_formation_env.baselines.learned.residual.error_gate`;
+- the direction in which the end-effector should move, ``g = -sum_j r_ij u_ij`` (``u_ij`` the unit vector
+  of ``z_ij``, distance formations) or ``g = -sum_j r_ij`` (displacement), in the agent's base frame, as
+  ``g / |g| * log1p(|g|)``: the gradient of the formation potential in tolerance units, log-scaled;
+- ``sin q`` and ``cos q`` of every joint (the Jacobian is a trigonometric function of q);
+- every joint velocity as ``sign(dq) log1p(|dq| / velocity_scale)``, so that damping near rest is resolved.
+
+The same transform runs in training (:class:`FeatureEnv`, around the env the learner steps) and evaluation
+(:class:`FeaturePolicy`, around the learned per-agent policy); ``train.py`` saves its name in the run's config.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Mapping
+
+import gymnasium
+import numpy as np
+
+from ee_formation_env.observation import ObservationLayout
+from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
+
+FEATURE_SETS = ("none", "log-error")
+VELOCITY_SCALE = 0.05  # rad/s: joint speeds below this are resolved linearly by the log feature
+
+
+def feature_size(layout: ObservationLayout, features: str) -> int:
+    """How many entries ``features`` appends to an observation of ``layout``."""
+    _check(features)
+    if features == "none":
+        return 0
+    return layout.n_slots * layout.error_width + layout.dim + 3 * layout.n_joints
+
+
+def error_ratios(layout: ObservationLayout, observation: np.ndarray,
+                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """Each neighbour slot's edge error in success tolerances, ``(slots, w)`` (0 for padding), and the mask of
+    real slots, read from one observation."""
+    parts = layout.split(observation)
+    real = parts.mask > 0.5
+    errors = parts.edge_errors  # (slots, w)
+    if layout.error_width == 1:
+        tolerances = 2.0 * np.maximum(parts.desired[:, :1], 1e-9) * position_tolerance
+    else:
+        tolerances = np.full(errors.shape, position_tolerance)
+    return np.where(real[:, None], errors / tolerances, 0.0), real
+
+
+def log_error_features(layout: ObservationLayout, observation: np.ndarray,
+                       position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
+    """The appended entries of the ``"log-error"`` set (module docstring) for one observation."""
+    parts = layout.split(observation)
+    ratios, _ = error_ratios(layout, observation, position_tolerance)
+    if layout.error_width == 1:
+        lengths = np.linalg.norm(parts.relative_positions, axis=1, keepdims=True)
+        units = parts.relative_positions / np.maximum(lengths, 1e-9)
+        gradient = -np.sum(ratios * units, axis=0)
+    else:
+        gradient = -np.sum(ratios, axis=0)
+    norm = float(np.linalg.norm(gradient))
+    direction = gradient / norm * np.log1p(norm) if norm > 0 else np.zeros_like(gradient)
+    return np.concatenate([
+        np.sign(ratios.ravel()) * np.log1p(np.abs(ratios.ravel())),
+        direction,
+        np.sin(parts.q), np.cos(parts.q),
+        np.sign(parts.dq) * np.log1p(np.abs(parts.dq) / VELOCITY_SCALE),
+    ])
+
+
+def transform(layout: ObservationLayout, features: str) -> Callable[[np.ndarray], np.ndarray]:
+    """``observation -> observation with the features appended`` (float32), or the identity for ``"none"``."""
+    _check(features)
+    if features == "none":
+        return lambda observation: observation
+
+    def apply(observation: np.ndarray) -> np.ndarray:
+        extra = log_error_features(layout, observation)
+        return np.concatenate([np.asarray(observation, dtype=np.float32), extra.astype(np.float32)])
+
+    return apply
+
+
+def feature_space(space: gymnasium.spaces.Box, layout: ObservationLayout, features: str) -> gymnasium.spaces.Box:
+    """The observation space with the features' bounds appended."""
+    n = feature_size(layout, features)
+    if n == 0:
+        return space
+    low = np.concatenate([space.low, np.full(n, -np.inf, dtype=np.float32)]).astype(np.float32)
+    high = np.concatenate([space.high, np.full(n, np.inf, dtype=np.float32)]).astype(np.float32)
+    return gymnasium.spaces.Box(low, high, dtype=np.float32)
+
+
+class FeatureEnv:
+    """A parallel env whose observations carry the features appended; everything else is the wrapped env's."""
+
+    def __init__(self, env: Any, features: str = "log-error"):
+        _check(features)
+        self.env, self.features = env, features
+        self._transforms = {agent: transform(env.observation_layout(agent), features) for agent in env.possible_agents}
+        self._spaces = {agent: feature_space(env.observation_space(agent), env.observation_layout(agent), features)
+                        for agent in env.possible_agents}
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "env":  # not set yet (e.g. during unpickling): no delegation loop
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self._spaces[agent]
+
+    def _apply(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {agent: self._transforms[agent](obs) for agent, obs in observations.items()}
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        observations, infos = self.env.reset(seed=seed, options=options)
+        return self._apply(observations), infos
+
+    def step(self, actions: Mapping[str, np.ndarray]):
+        observations, rewards, terminations, truncations, infos = self.env.step(actions)
+        return self._apply(observations), rewards, terminations, truncations, infos
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class FeaturePolicy:
+    """A per-agent policy on featured observations, called with the env's raw observation."""
+
+    def __init__(self, policy: Any, layout: ObservationLayout, features: str):
+        self.policy, self.transform = policy, transform(layout, features)
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return self.policy(self.transform(observation))
+
+
+def make_feature_env(features: str, factory: Callable[..., Any], *args: Any, hold_penalty: float = 0.0) -> Any:
+    """``factory(*args)``, its rewards shaped by :class:`ee_formation_env.baselines.learned.shaping.HoldShapingEnv` if ``hold_penalty``
+    > 0, wrapped in :class:`FeatureEnv` (not for ``"none"``); module-level so that
+    ``functools.partial(make_feature_env, ...)`` pickles into worker processes."""
+    from ee_formation_env.baselines.learned.shaping import HoldShapingEnv
+
+    env = factory(*args)
+    if hold_penalty > 0:
+        env = HoldShapingEnv(env, hold_penalty)
+    return env if features == "none" else FeatureEnv(env, features)
+
+
+def _check(features: str) -> None:
+    if features not in FEATURE_SETS:
+        raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {features!r}")

@@ -1,0 +1,65 @@
+"""Training-side reward shaping for learned torque policies: hold still once in formation.
+
+The env's reward depends on the edge errors only, so it is blind to a rigid motion of the whole formation
+(a distance formation may translate and rotate freely). A torque policy trained on it reached the formation
+to ~0.05 tolerances in 1 s, but left the arms moving at ~0.1-0.4 rad/s along that motion: nothing in the
+reward damps it (the references damp every joint, ``-K_D dq``), and after 10-15 s an elbow drifted into its
+singularity and the formation broke (0 % success over 30 s). :class:`HoldShapingEnv` charges the agent's
+own joint speed on the steps where it is in formation:
+
+``r_i' = r_i - hold_penalty * [every incident edge of i within tolerance] * min(1, |dq_i| / SPEED_SCALE)``
+
+read from agent i's own observation. With ``hold_penalty <= 1`` an in-formation step still earns more
+than any step outside it (the env gives >= 1 + 0.65 inside, < 1 outside), so leaving the formation never
+pays and every reward stays >= 0; reaching is not slowed, since nothing is charged before the tolerance.
+Evaluation always uses the env's own reward and metrics.
+
+``SPEED_SCALE``: with the penalty full from 0.2 rad/s, a policy trained for 30 min held every held-out
+formation to < 0.1 tolerances for 10-20 s, but its arms still coasted at ~0.02 rad/s with ~zero torque (a
+penalty of 0.05 per step at that speed taught no damping) until the formation broke between 20 and 30 s.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from ee_formation_env.baselines.learned.features import error_ratios
+
+SPEED_SCALE = 0.05  # rad/s: joint speed (2-norm over the arm's joints) at which the penalty is full
+
+
+def hold_penalty_factor(layout: Any, observation: np.ndarray) -> float:
+    """``[every real slot within tolerance] * min(1, |dq| / SPEED_SCALE)`` for one observation."""
+    ratios, real = error_ratios(layout, observation)
+    if not np.all(np.abs(ratios[real]) <= 1.0):
+        return 0.0
+    return min(1.0, float(np.linalg.norm(layout.split(observation).dq)) / SPEED_SCALE)
+
+
+class HoldShapingEnv:
+    """A parallel env whose rewards carry the hold penalty (module docstring); all else is the wrapped env's."""
+
+    def __init__(self, env: Any, hold_penalty: float):
+        if not 0 <= hold_penalty <= 1:
+            raise ValueError(f"hold_penalty: expected a value in [0, 1], got {hold_penalty!r}")
+        self.env, self.hold_penalty = env, float(hold_penalty)
+        self._layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents}
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "env":  # not set yet (e.g. during unpickling): no delegation loop
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, actions: Mapping[str, np.ndarray]):
+        observations, rewards, terminations, truncations, infos = self.env.step(actions)
+        shaped = {agent: reward - self.hold_penalty * hold_penalty_factor(self._layouts[agent], observations[agent])
+                  for agent, reward in rewards.items()}
+        return observations, shaped, terminations, truncations, infos
+
+    def close(self) -> None:
+        self.env.close()

@@ -1,0 +1,568 @@
+"""The paper's three distributed formation controllers, each acting on one agent's observation only.
+
+Every controller sees: its own observation (neighbour displacements, desired relations and edge errors
+in its base frame, its joint states), its own *nominal* robot model (kinematic chain from the URDF,
+nominal dynamics), its own gravity direction (its mounting) and its torque limits. It returns the env's
+normalized action ``tau / torque_limits`` (not clipped, so the env reports the saturation it causes).
+
+With ``e_hat_i = 2 sum_j e_ij z_ij`` (distance) or ``sum_j (z_ij - z*_ij)`` (displacement), in the
+agent's base frame (paper Sec. V):
+
+- ``gradient`` (Theorem 3.1, law-I): ``u = -K_P J^T(q, a) e_hat - K_D dq + G(q)``.
+- ``approx_jacobian`` (Proposition 4.1, law-II): ``u = -K_P J^T(q, a_hat) e_hat - K_D dq + K_I eta`` with
+  the fixed estimate ``a_hat`` and the internal model ``d(eta)/dt = -K_I eta + u``.
+- ``adaptive_jacobian`` (Theorem 4.2, law-III): law-II plus
+  ``d(a_hat)/dt = -Gamma Z^T(q, e_hat) [alpha Z(q, e_hat) a_hat - dq]``, projected onto a parameter box;
+  the printed law has ``Gamma = 1`` (``Gains.adaptation_gain``, the default). A scalar Gamma > 0 only
+  rescales the estimate's term ``|a_tilde|^2 / Gamma`` of the Lyapunov function, as usual in adaptive
+  control. Why it is there: along any descent of the formation potential ``e_hat^T dx < 0``, and the
+  ``Z^T dq`` term moves a_hat by ``a_hat^T Z^T dq = e_hat^T J(q, a_hat) dq``, so the estimate shrinks in
+  proportion to the potential released (m^3 of e_hat times metres travelled): with Gamma = 1 a far
+  start drives it to the lower bound of its box within a second whatever alpha is.
+
+Saturated springs (``Gains.spring_force`` = F finite; ``inf``, the default, is the paper's law): every
+edge is a virtual spring whose force saturates. Distance formations replace the potential
+``V = 1/2 sum_k e_k^2`` (whose gradient is the paper's e_hat) by ``V_F = sum_k rho_k(e_k)`` with the
+Huber function ``rho_k(e) = e^2 / 2`` for ``|e| <= c_k``, ``c_k |e| - c_k^2 / 2`` beyond, of level
+``c_k = F / (2 K_P d_k)``, so ``e_hat_i = 2 sum_j clip(e_ij, -c_ij, c_ij) z_ij``; displacement formations
+scale each ``e_k`` to length at most ``F / K_P``. Every law then uses this e_hat (law-III also in its
+regressor ``Z(q, e_hat)``). Why this form:
+
+- ``-K_P J^T e_hat`` is still the gradient field of one potential (``K_P V_F`` in joint space), with one
+  scalar K_P, as Theorems 3.1 and 4.2 assume; ``V_F`` has the same minimizers as ``V`` and coincides
+  with it where every ``|e_k| <= c_k``, so near the target the laws are the printed ones.
+- Far from the target each edge pulls with at most ``F |z_k| / d_k`` (F at the desired length) instead of
+  a force growing with the cube of the error, so a gain that is fast near the target no longer asks
+  far away for torques the actuators cannot give (which, clipped, also removes the damping).
+- Both ends of an edge know ``d_k`` (their observation), K_P and F, so they use the same ``c_k``:
+  the law stays distributed.
+
+Each law is written once, for a stack of agents (``batch_torques``): :class:`ControllerBatch` evaluates the
+agents that share a law, a chain and an observation layout in one set of numpy calls, and
+:class:`PolicyTeam` (used by :func:`ee_formation_env.baselines.metrics.run_episode` and the residual training env) groups a
+team's policies into such batches. A controller called alone is a batch of one, and gives bit for bit the
+same actions and internal states (tested): at these sizes a numpy call costs about the same for 1 agent as
+for 16, so a 4-agent team is ~4x cheaper to evaluate in one batch. The Jacobian-transpose term uses the
+regressor, ``J(q, a)^T e_hat = Z(q, e_hat) a``, so law-III's adaptation and its torque share one chain
+evaluation.
+
+Gradient-rate damping (``Gains.rate_gain`` = K_R > 0; 0, the default, is the paper's law): the spring
+term acts on ``e_hat + K_R d(e_hat)/dt``, the derivative taken as the backward difference of the agent's
+own e_hat over one control step (its observation at two steps: no neighbour velocity is needed), so
+``u = -K_P J^T (e_hat + K_R d(e_hat)/dt) - K_D dq + ...``; law-III adapts with e_hat itself. Why:
+
+- ``-K_P J^T e_hat`` is unchanged (the gradient of one potential, one scalar K_P); the added term is,
+  in continuous time, the damping ``-K_R K_P J^T S(x) J dq`` (S the Hessian of the formation potential
+  in x), proportional to the formation's stiffness, positive semi-definite near the target.
+- The control is held over each step, so a spring acts on a state half a step old on average: a
+  negative damping ``K dt / 2`` per mode of stiffness K. Joint damping K_D must outweigh it on the
+  stiffest mode, and then over-damps the softest ones (their rate is about K / K_D): on an ill-conditioned
+  formation (stiffness eigenvalues 1e4 apart) they take minutes. The rate term damps each mode in
+  proportion to its own stiffness, which cancels the lag (K_R > dt / 2), so K_D can be ten times lower
+  (:mod:`ee_formation_env.baselines.reference.gains`).
+
+Internal states are integrated once per env step (the control step ``dt``): ``eta`` by explicit Euler,
+``a_hat`` by a linearly implicit Euler step, ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq``, because
+``alpha Z^T Z`` is stiff (rates of ~2000 1/s on the paper's planar arms, unstable for explicit Euler at
+any control step above 1 ms) while the implicit step has the same fixed points and is stable for all dt.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ee_formation_env.formation import agent_gradient
+from ee_formation_env.kinematics import SerialChain
+from ee_formation_env.observation import ObservationLayout, ObservationParts
+from ee_formation_env.baselines.reference.dynamics import NominalDynamics
+
+
+@dataclass(frozen=True)
+class Gains:
+    """Controller gains.
+
+    ``kp``: formation gain (N m per m^3 of e_hat for distance formations, per m for displacement), a scalar
+    (a per-joint array is accepted only without saturation, and then ``-K_P J^T e_hat`` is no gradient
+    field); ``kd``: joint damping, N m s/rad, scalar or per joint; ``ki``: internal-model gain, 1/s, scalar or
+    per joint; ``alpha``: adaptation gain of law-III (1 / (m^4 s) for distance formations);
+    ``adaptation_gain``: Gamma of law-III (module docstring; 1, the default, is the printed law);
+    ``spring_force``: saturation force (N) of each edge's virtual spring at its desired length
+    (module docstring, "Saturated springs"), one number for every edge or one per neighbour slot (the
+    agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law;
+    ``rate_gain``: K_R, s, of the gradient-rate damping (module docstring, "Gradient-rate damping"); 0, the
+    default, is the paper's law.
+    """
+
+    kp: Any = 5.0
+    kd: Any = 20.0
+    ki: Any = 0.0
+    alpha: float = 0.02
+    spring_force: Any = math.inf
+    adaptation_gain: float = 1.0
+    rate_gain: float = 0.0
+
+    def with_updates(self, **changes: Any) -> "Gains":
+        allowed = sorted(field.name for field in fields(self))
+        unknown = set(changes) - set(allowed)
+        if unknown:
+            raise ValueError(f"gains: unknown key(s) {sorted(unknown)}; allowed: {allowed}")
+        return replace(self, **changes)
+
+    def validated(self, n_joints: int) -> "Gains":
+        """Check shapes and signs; ``ValueError`` naming the gain otherwise."""
+        for name in ("kp", "kd", "ki"):
+            value = np.asarray(getattr(self, name), dtype=np.float64)
+            if value.shape not in ((), (n_joints,)):
+                raise ValueError(f"gains.{name}: expected a scalar or {n_joints} per-joint values, got shape {value.shape}")
+            if not np.all(np.isfinite(value)) or np.any(value < 0):
+                raise ValueError(f"gains.{name}: expected finite values >= 0, got {getattr(self, name)!r}")
+        if not np.isfinite(self.alpha) or self.alpha < 0:
+            raise ValueError(f"gains.alpha: expected a finite value >= 0, got {self.alpha!r}")
+        if isinstance(self.adaptation_gain, bool) or not isinstance(self.adaptation_gain, (int, float)) \
+                or not (self.adaptation_gain > 0 and math.isfinite(self.adaptation_gain)):
+            raise ValueError(f"gains.adaptation_gain: expected a finite value > 0, got {self.adaptation_gain!r}")
+        if isinstance(self.rate_gain, bool) or not isinstance(self.rate_gain, (int, float)) \
+                or not (self.rate_gain >= 0 and math.isfinite(self.rate_gain)):
+            raise ValueError(f"gains.rate_gain: expected a finite value >= 0 s, got {self.rate_gain!r}")
+        try:
+            forces = np.asarray(self.spring_force, dtype=np.float64)
+        except (TypeError, ValueError):
+            forces = np.array(np.nan)
+        if isinstance(self.spring_force, bool) or forces.ndim > 1 or forces.size == 0 or np.any(np.isnan(forces)) \
+                or np.any(forces <= 0):
+            raise ValueError("gains.spring_force: expected forces > 0 N (inf: no saturation), one number or one "
+                             f"per neighbour slot, got {self.spring_force!r}")
+        if np.any(np.isfinite(forces)) and np.ndim(self.kp) != 0:
+            raise ValueError("gains.kp: a saturated spring (finite spring_force) needs a scalar formation gain, "
+                             f"got {self.kp!r}")
+        return self
+
+
+@dataclass(frozen=True)
+class AgentModel:
+    """What one agent knows about itself: nominal kinematics and dynamics, mounting, limits, control step."""
+
+    layout: ObservationLayout
+    formation_kind: str
+    chain: SerialChain  # nominal kinematic model
+    dynamics: NominalDynamics  # nominal dynamic model
+    gravity_in_base: np.ndarray  # m/s^2
+    torque_limits: np.ndarray  # N m
+    control_dt: float  # s
+
+
+DEFAULT_BOUNDS_SCALE = (0.5, 2.0)  # default parameter_bounds: these multiples of the nominal parameters
+
+
+def parameter_box(nominal: np.ndarray, parameter_bounds: Any, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) arrays (m) from ``parameter_bounds``; ``ValueError`` naming the field on bad input.
+
+    ``None``: ``[0.5, 2] x`` the nominal parameters (per component, keeping each one's sign). Otherwise a
+    pair ``(lower, upper)``, each a number or one value per kinematic parameter ``names``.
+    """
+    if parameter_bounds is None:
+        ends = np.stack([DEFAULT_BOUNDS_SCALE[0] * nominal, DEFAULT_BOUNDS_SCALE[1] * nominal])
+        return ends.min(axis=0), ends.max(axis=0)
+    if not isinstance(parameter_bounds, (tuple, list)) or len(parameter_bounds) != 2:
+        raise ValueError(f"parameter_bounds: expected a pair (lower, upper), got {parameter_bounds!r}")
+    ends = []
+    for label, value in zip(("lower", "upper"), parameter_bounds):
+        try:
+            array = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"parameter_bounds.{label}: expected numbers, got {value!r}") from None
+        if array.shape not in ((), nominal.shape):
+            raise ValueError(f"parameter_bounds.{label}: expected a number or {len(nominal)} values "
+                             f"{list(names)}, got shape {array.shape}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"parameter_bounds.{label}: expected finite values, got {value!r}")
+        ends.append(np.broadcast_to(array, nominal.shape).copy())
+    lower, upper = ends
+    if np.any(lower > upper):
+        k = int(np.flatnonzero(lower > upper)[0])
+        raise ValueError(f"parameter_bounds: lower {lower[k]:g} > upper {upper[k]:g} for parameter {names[k]}")
+    return lower, upper
+
+
+class FormationController:
+    """One agent's controller: its model, gains and internal state.
+
+    The laws are written once, for a stack of agents (:meth:`batch_torques`, evaluated by
+    :class:`ControllerBatch`); calling a controller on one observation evaluates a batch of one.
+    """
+
+    name = "formation_controller"
+
+    def __init__(self, agent: AgentModel, gains: Gains, a_hat0: np.ndarray | None = None):
+        self.agent = agent
+        self.gains = gains.validated(agent.chain.n_joints)
+        self.a_hat0 = np.array(agent.chain.nominal_params if a_hat0 is None else a_hat0, dtype=np.float64)
+        if self.a_hat0.shape != agent.chain.nominal_params.shape:
+            raise ValueError(
+                f"a_hat0: expected {len(agent.chain.nominal_params)} values {list(agent.chain.param_names)}, "
+                f"got {self.a_hat0.shape}"
+            )
+        self._kp = np.asarray(gains.kp, dtype=np.float64)
+        self._kd = np.asarray(gains.kd, dtype=np.float64)
+        self._ki = np.asarray(gains.ki, dtype=np.float64)
+        forces = np.asarray(gains.spring_force, dtype=np.float64)
+        n_slots = agent.layout.n_slots
+        if forces.ndim == 1 and len(forces) > n_slots:
+            raise ValueError(f"gains.spring_force: expected at most {n_slots} per-slot forces, got {len(forces)}")
+        self._spring_force = np.full(n_slots, np.inf)  # N per neighbour slot; padding slots never matter
+        if forces.ndim == 0:
+            self._spring_force[:] = float(forces)
+        else:
+            self._spring_force[:len(forces)] = forces
+        self._alone: ControllerBatch | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """Clear internal state (start of an episode)."""
+        self._previous_e_hat: np.ndarray | None = None  # gradient-rate damping's one state
+
+    def options(self) -> tuple:
+        """The law's options; controllers batched together must share them."""
+        return ()
+
+    def gradient(self, parts: ObservationParts) -> np.ndarray:
+        """e_hat_i in the base frame, padded to 3 components (edge errors saturated if ``spring_force`` is finite)."""
+        return self._batch_of_one().gradients(_stacked(parts))[0]
+
+    def saturated_errors(self, edge_errors: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        """Edge errors (slots, w) clipped at each spring's saturation level (:meth:`ControllerBatch.saturated_errors`)."""
+        return self._batch_of_one().saturated_errors(edge_errors[None], desired[None])[0]
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return self._batch_of_one()(np.asarray(observation)[None])[0]
+
+    def _batch_of_one(self) -> "ControllerBatch":
+        if self._alone is None:
+            self._alone = ControllerBatch([self])
+        return self._alone
+
+    @classmethod
+    def batch_torques(cls, batch: "ControllerBatch", parts: ObservationParts) -> np.ndarray:
+        """The law: torques (k, n), N m, of the batch's k agents from their observation parts (leading axis k)."""
+        raise NotImplementedError
+
+
+class GradientController(FormationController):
+    """Theorem 3.1 (law-I): exact nominal Jacobian and gravity compensation, no internal state."""
+
+    name = "gradient"
+
+    @classmethod
+    def batch_torques(cls, batch: "ControllerBatch", parts: ObservationParts) -> np.ndarray:
+        spring = batch.spring_gradients(batch.gradients(parts))
+        regressors = batch.chain.regressor_batch(parts.q, spring)  # J(q, a)^T spring = Z(q, spring) a
+        gravity = np.stack([member.agent.dynamics.gravity_torque(q, member.agent.gravity_in_base)
+                            for member, q in zip(batch.members, parts.q)])
+        return -batch.kp * (regressors @ batch.a_hat0[:, :, None])[:, :, 0] - batch.kd * parts.dq + gravity
+
+
+class ApproxJacobianController(FormationController):
+    """Proposition 4.1 (law-II): fixed estimate a_hat, internal model eta against unknown gravity.
+
+    ``anti_windup=True`` feeds the internal model the torque the actuators can apply,
+    ``d(eta)/dt = -K_I eta + clip(u, -tau_max, tau_max)``, instead of the commanded ``u``: under torque
+    limits the printed model integrates torque that is never applied, and ``K_I eta`` then holds the
+    commanded torque beyond the limits long after the error has gone (integrator windup). With the
+    clipped input ``|K_I eta|`` stays within the limits. Without saturation both are the printed law.
+    """
+
+    name = "approx_jacobian"
+
+    def __init__(self, agent: AgentModel, gains: Gains, a_hat0: np.ndarray | None = None, anti_windup: bool = False):
+        if not isinstance(anti_windup, bool):
+            raise TypeError(f"anti_windup: expected a bool, got {type(anti_windup).__name__}")
+        self.anti_windup = anti_windup
+        super().__init__(agent, gains, a_hat0)
+
+    def reset(self) -> None:
+        super().reset()
+        self.eta = np.zeros(self.agent.chain.n_joints)
+        self.a_hat = self.a_hat0.copy()
+
+    def options(self) -> tuple:
+        return (self.anti_windup,)
+
+    @classmethod
+    def batch_torques(cls, batch: "ControllerBatch", parts: ObservationParts) -> np.ndarray:
+        e_hat = batch.gradients(parts)
+        spring = batch.spring_gradients(e_hat)
+        if spring is e_hat:  # no rate damping: one regressor serves the adaptation and the torque
+            regressors = spring_regressors = batch.chain.regressor_batch(parts.q, e_hat)
+        else:  # both in one call: Z(q, e_hat) adapts, Z(q, spring) a_hat = J(q, a_hat)^T spring pulls
+            both = batch.chain.regressor_batch(np.concatenate([parts.q, parts.q]), np.concatenate([e_hat, spring]))
+            regressors, spring_regressors = both[:len(e_hat)], both[len(e_hat):]
+        eta = batch.gather("eta")
+        a_hat = cls.adapt(batch, parts, regressors, batch.gather("a_hat"))
+        u = -batch.kp * (spring_regressors @ a_hat[:, :, None])[:, :, 0] - batch.kd * parts.dq + batch.ki * eta
+        applied = np.clip(u, -batch.torque_limits, batch.torque_limits) if batch.members[0].anti_windup else u
+        batch.scatter("eta", eta + batch.control_dt * (-batch.ki * eta + applied))
+        batch.scatter("a_hat", a_hat)
+        return u
+
+    @classmethod
+    def adapt(cls, batch: "ControllerBatch", parts: ObservationParts, regressors: np.ndarray,
+              a_hat: np.ndarray) -> np.ndarray:
+        """The estimates (k, p) after this step: law-II keeps them fixed."""
+        return a_hat
+
+
+class AdaptiveJacobianController(ApproxJacobianController):
+    """Theorem 4.2 (law-III): law-II with the adaptive kinematic estimate.
+
+    ``projection=True`` (default) clips a_hat after each update onto the known parameter set
+    ``parameter_bounds`` = (lower, upper), m, one value per kinematic parameter (or a number for all);
+    default ``[0.5, 2] x`` the nominal URDF parameters. The paper assumes the true parameters lie in a
+    known compact set; without the projection the printed law has a spurious equilibrium at ``a_hat = 0``
+    that captures it far from the target (``docs/physics.md``, "The printed adaptive law stalls far from
+    the target"). ``projection=False`` is the printed law.
+    ``a_hat0`` must lie in the box. :attr:`boundary_fraction` is the fraction of control steps (since the
+    last reset) after which some component of a_hat sat on the boundary of the box.
+    """
+
+    name = "adaptive_jacobian"
+
+    def __init__(self, agent: AgentModel, gains: Gains, a_hat0: np.ndarray | None = None,
+                 projection: bool = True, parameter_bounds: Any = None, anti_windup: bool = False):
+        super().__init__(agent, gains, a_hat0, anti_windup=anti_windup)
+        self.projection = bool(projection)
+        names = agent.chain.param_names
+        self.param_low, self.param_high = parameter_box(np.asarray(agent.chain.nominal_params), parameter_bounds, names)
+        outside = (self.a_hat0 < self.param_low) | (self.a_hat0 > self.param_high)
+        if self.projection and outside.any():
+            k = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"a_hat0: {names[k]} = {self.a_hat0[k]:g} lies outside parameter_bounds "
+                             f"[{self.param_low[k]:g}, {self.param_high[k]:g}]")
+
+    def reset(self) -> None:
+        super().reset()
+        self.adaptation_steps = 0
+        self.boundary_steps = 0
+
+    def options(self) -> tuple:
+        return (self.anti_windup, self.projection)
+
+    @property
+    def boundary_fraction(self) -> float:
+        """Fraction of adaptation steps that ended with a_hat on the box boundary (0 before any step)."""
+        return self.boundary_steps / self.adaptation_steps if self.adaptation_steps else 0.0
+
+    @classmethod
+    def adapt(cls, batch: "ControllerBatch", parts: ObservationParts, regressors: np.ndarray,
+              a_hat: np.ndarray) -> np.ndarray:
+        """One linearly implicit Euler step of the adaptive law (module docstring), then the projection."""
+        transposed = regressors.transpose(0, 2, 1)  # Z^T, (k, p, n)
+        step = batch.control_dt * batch.adaptation_gain  # (k,)
+        system = batch.identity + (step * batch.alpha)[:, None, None] * (transposed @ regressors)
+        a_hat = np.linalg.solve(system, (a_hat + step[:, None] * (transposed @ parts.dq[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
+        for member in batch.members:
+            member.adaptation_steps += 1
+        if batch.members[0].projection:
+            np.clip(a_hat, batch.param_low, batch.param_high, out=a_hat)
+            on_boundary = np.any((a_hat == batch.param_low) | (a_hat == batch.param_high), axis=1)
+            for member, boundary in zip(batch.members, on_boundary):
+                member.boundary_steps += int(boundary)
+        return a_hat
+
+
+class ControllerBatch:
+    """Controllers of one law, one kinematic chain, one observation layout and one control step, evaluated
+    together: ``batch(observations)`` maps a stack (k, size) of their observations to their normalized
+    actions (k, n), with one set of numpy calls for the whole stack instead of one per agent (at these sizes
+    a call costs about the same for 1 agent or 16). Gains, limits and estimates may differ per agent; the
+    internal states stay on the controllers, so a controller gives the same actions alone or in a batch.
+    """
+
+    def __init__(self, controllers: Sequence[FormationController]):
+        if not controllers:
+            raise ValueError("controllers: expected at least one controller")
+        first = controllers[0]
+        for other in controllers[1:]:
+            if (type(other) is not type(first) or other.agent.chain is not first.agent.chain
+                    or other.agent.layout != first.agent.layout or other.agent.formation_kind != first.agent.formation_kind
+                    or other.agent.control_dt != first.agent.control_dt or other.options() != first.options()):
+                raise ValueError("controllers: a batch needs one law, one kinematic chain, one observation layout, "
+                                 "one control step and the same options")
+        self.members = list(controllers)
+        self.law = type(first)
+        self.chain, self.layout, self.kind = first.agent.chain, first.agent.layout, first.agent.formation_kind
+        self.control_dt = first.agent.control_dt
+        n = self.chain.n_joints
+        self.kp = np.stack([np.broadcast_to(c._kp, (n,)) for c in controllers])  # (k, n)
+        self.kd = np.stack([np.broadcast_to(c._kd, (n,)) for c in controllers])  # (k, n), N m s/rad
+        self.ki = np.stack([np.broadcast_to(c._ki, (n,)) for c in controllers])  # (k, n), 1/s
+        self.spring_force = np.stack([c._spring_force for c in controllers])  # (k, slots), N
+        self.saturated = bool(np.any(np.isfinite(self.spring_force)))  # then each kp is a scalar (Gains.validated)
+        self.torque_limits = np.stack([c.agent.torque_limits for c in controllers]).astype(np.float64)  # (k, n)
+        self.a_hat0 = np.stack([c.a_hat0 for c in controllers])  # (k, p)
+        self.alpha = np.array([c.gains.alpha for c in controllers], dtype=np.float64)
+        self.adaptation_gain = np.array([c.gains.adaptation_gain for c in controllers], dtype=np.float64)
+        self.rate_gain = np.array([c.gains.rate_gain for c in controllers], dtype=np.float64)  # (k,), s
+        self.identity = np.eye(self.chain.n_params)
+        self._states: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}  # gather/scatter cache
+        if isinstance(first, AdaptiveJacobianController):
+            self.param_low = np.stack([c.param_low for c in controllers])
+            self.param_high = np.stack([c.param_high for c in controllers])
+
+    def gather(self, name: str) -> np.ndarray:
+        """The members' internal state ``name`` stacked (k, ...): the array :meth:`scatter` last wrote while
+        every member still holds its row of it, else a fresh stack (e.g. after a reset)."""
+        stacked, rows = self._states.get(name, (None, ()))
+        if stacked is not None and all(getattr(member, name) is row for member, row in zip(self.members, rows)):
+            return stacked
+        return np.stack([getattr(member, name) for member in self.members])
+
+    def scatter(self, name: str, stacked: np.ndarray) -> None:
+        """Give each member its row of ``stacked`` as its internal state ``name``."""
+        rows = list(stacked)
+        for member, row in zip(self.members, rows):
+            setattr(member, name, row)
+        self._states[name] = (stacked, rows)
+
+    def __call__(self, observations: np.ndarray) -> np.ndarray:
+        parts = self.layout.split(observations)
+        return (self.law.batch_torques(self, parts) / self.torque_limits).astype(np.float32)
+
+    def gradients(self, parts: ObservationParts) -> np.ndarray:
+        """e_hat (k, 3) in each base frame, padded to 3 components (edge errors saturated if ``spring_force``
+        is finite)."""
+        mask = parts.mask[:, :, None]
+        errors = self.saturated_errors(parts.edge_errors * mask, parts.desired * mask)
+        e_hat = agent_gradient(self.kind, parts.relative_positions * mask,
+                               errors[:, :, 0] if self.kind == "distance" else errors)
+        padded = np.zeros((len(e_hat), 3))
+        padded[:, :e_hat.shape[1]] = e_hat
+        return padded
+
+    def spring_gradients(self, e_hat: np.ndarray) -> np.ndarray:
+        """``e_hat + K_R (e_hat - e_hat_prev) / dt`` (k, 3): what the spring term ``-K_P J^T (.)`` acts on
+        (module docstring, "Gradient-rate damping"); remembers ``e_hat`` as each member's previous value.
+        ``e_hat`` itself (the same object) when no member has a rate gain; a member's first step after a
+        reset has no previous value and gets its ``e_hat``."""
+        if not np.any(self.rate_gain):
+            return e_hat
+        previous = np.stack([current if member._previous_e_hat is None else member._previous_e_hat
+                             for member, current in zip(self.members, e_hat)])
+        for member, current, rate in zip(self.members, e_hat, self.rate_gain):
+            if rate:  # a member without the term keeps no state, alone or in a batch
+                member._previous_e_hat = current
+        return e_hat + (self.rate_gain / self.control_dt)[:, None] * (e_hat - previous)
+
+    def saturated_errors(self, edge_errors: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        """Edge errors (k, slots, w) clipped at each spring's saturation level (module docstring); unchanged
+        if unsaturated.
+
+        Distance: ``clip(e_k, -c_k, c_k)`` with ``c_k = F / (2 K_P d_k)``; displacement: ``e_k`` scaled to
+        length at most ``F / K_P``. Padding slots (``d_k = 0``) carry zero errors and stay zero; an agent
+        with K_P = 0 is never saturated.
+        """
+        if not self.saturated:
+            return edge_errors
+        force = self.spring_force[:, :, None]  # (k, slots, 1), N
+        kp = self.kp[:, :1, None]  # (k, 1, 1): scalar per agent
+        with np.errstate(divide="ignore"):
+            if self.kind == "distance":
+                lengths = np.abs(desired)
+                level = np.where(lengths > 0, force / (2.0 * kp * np.maximum(lengths, 1e-12)), 0.0)
+                return np.clip(edge_errors, -level, level)
+            norms = np.linalg.norm(edge_errors, axis=2, keepdims=True)
+            return edge_errors * np.minimum(1.0, (force / kp) / np.maximum(norms, 1e-300))
+
+
+def _stacked(parts: ObservationParts) -> ObservationParts:
+    """One agent's parts as a batch of one."""
+    return ObservationParts(*(getattr(parts, field.name)[None] for field in fields(ObservationParts)))
+
+
+class ZeroPolicy:
+    """Zero torque: the arms fall or drift (a lower reference)."""
+
+    name = "zero"
+
+    def __init__(self, n_joints: int):
+        self.n_joints = n_joints
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return np.zeros(self.n_joints, dtype=np.float32)
+
+
+class RandomPolicy:
+    """Uniform random normalized torques from a seeded generator (re-seeded by ``reset``)."""
+
+    name = "random"
+
+    def __init__(self, n_joints: int, seed: int = 0):
+        self.n_joints, self.seed = n_joints, seed
+        self.reset()
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, self.n_joints).astype(np.float32)
+
+
+class PolicyTeam:
+    """Every agent's policy of one env, called on all observations at once: agents whose controllers can
+    share a :class:`ControllerBatch` (same law, chain, layout and options) are evaluated in one batch; any
+    other policy (``zero``, ``random``, a learned one) is called agent by agent. Gives each agent exactly
+    the action its own policy gives alone.
+    """
+
+    def __init__(self, policies: Mapping[str, Any]):
+        self.policies = dict(policies)
+        groups: dict[tuple, list[str]] = {}
+        self._single: list[str] = []
+        for agent, policy in self.policies.items():
+            if isinstance(policy, FormationController):
+                key = (type(policy), id(policy.agent.chain), policy.agent.layout, policy.agent.formation_kind,
+                       policy.agent.control_dt, policy.options())
+                groups.setdefault(key, []).append(agent)
+            else:
+                self._single.append(agent)
+        self._batches = [(agents, ControllerBatch([self.policies[a] for a in agents])) for agents in groups.values()]
+        row = {agent: k for k, agent in enumerate(self.policies)}  # each agent's row in act_on_stack's stacks
+        self._batch_rows = [np.array([row[a] for a in agents]) for agents, _ in self._batches]
+        self._single_rows = [(row[agent], agent) for agent in self._single]
+
+    def reset(self) -> None:
+        for policy in self.policies.values():
+            policy.reset()
+
+    def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Every agent's action (normalized, float32) from its observation."""
+        actions = {agent: self.policies[agent](observations[agent]) for agent in self._single}
+        for agents, batch in self._batches:
+            actions.update(zip(agents, batch(np.stack([observations[agent] for agent in agents]))))
+        return actions
+
+    def act_on_stack(self, observations: np.ndarray) -> np.ndarray:
+        """Every agent's action (k, n) (normalized, float32) from a stack (k, size) of their observations, both
+        in the order the policies were given; the same actions as :meth:`__call__`. Every agent must have the
+        same number n of joints (and of observation entries)."""
+        if len(observations) != len(self.policies):
+            raise ValueError(f"observations: expected a stack of {len(self.policies)} rows (one per agent), "
+                             f"got {len(observations)}")
+        actions = None
+        for rows, (_, batch) in zip(self._batch_rows, self._batches):
+            stacked = batch(observations[rows])
+            if actions is None:
+                actions = np.empty((len(observations), stacked.shape[1]), dtype=np.float32)
+            actions[rows] = stacked
+        for row, agent in self._single_rows:
+            action = np.asarray(self.policies[agent](observations[row]), dtype=np.float32)
+            if actions is None:
+                actions = np.empty((len(observations), len(action)), dtype=np.float32)
+            actions[row] = action
+        return actions

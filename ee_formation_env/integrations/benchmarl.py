@@ -1,0 +1,107 @@
+"""BenchMARL tasks for the formation env (the ``torchrl`` extra).
+
+    from benchmarl.algorithms import MappoConfig
+    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.models.mlp import MlpConfig
+    from ee_formation_env.integrations.benchmarl import EEFormationTask
+
+    task = EEFormationTask.PLANAR_SQUARE.get_task()                       # the scenario as built in
+    task = EEFormationTask.PLANAR_SQUARE.get_task({"episode_seconds": 5.0})  # with scenario overrides
+    Experiment(task=task, algorithm_config=MappoConfig.get_from_yaml(), model_config=MlpConfig.get_from_yaml(),
+               critic_model_config=MlpConfig.get_from_yaml(), seed=0, config=ExperimentConfig.get_from_yaml()).run()
+
+A task's config is a dict of scenario overrides (any top-level scenario key), plus optionally ``scenario``:
+a scenario file or dict to use instead of the member's built-in scenario (e.g. a mixed-robot team). Groups
+are :func:`ee_formation_env.integrations.torchrl.group_map`'s: one per robot kind.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Dict, List, Optional
+
+from benchmarl.environments.common import Task, TaskClass
+from torchrl.data import Composite
+from torchrl.envs import EnvBase
+
+from ee_formation_env.scenario import load_scenario
+from ee_formation_env.integrations.torchrl import make_torchrl_env
+
+
+class EEFormationTaskClass(TaskClass):
+    """How BenchMARL builds and reads one formation task."""
+
+    def _scenario_and_overrides(self) -> tuple[Any, dict[str, Any]]:
+        overrides = dict(self.config)
+        return overrides.pop("scenario", self.name.lower()), overrides
+
+    def get_env_fun(self, num_envs: int, continuous_actions: bool, seed: Optional[int],
+                    device: Any) -> Callable[[], EnvBase]:
+        if not continuous_actions:
+            raise ValueError("continuous_actions: the formation env has continuous (torque) actions only")
+        scenario, overrides = self._scenario_and_overrides()
+        return lambda: make_torchrl_env(scenario, seed=seed, device=device, **overrides)
+
+    def supports_continuous_actions(self) -> bool:
+        return True
+
+    def supports_discrete_actions(self) -> bool:
+        return False
+
+    def max_steps(self, env: EnvBase) -> int:
+        scenario, overrides = self._scenario_and_overrides()
+        return load_scenario(scenario, **overrides).max_steps
+
+    def has_render(self, env: EnvBase) -> bool:
+        return False
+
+    def group_map(self, env: EnvBase) -> Dict[str, List[str]]:
+        return env.group_map
+
+    def _group_entries(self, env: EnvBase, keep: str) -> Composite:
+        spec = env.observation_spec.clone()
+        for group in self.group_map(env):
+            for key in list(spec[group].keys()):
+                if key != keep:
+                    del spec[group][key]
+        if "state" in spec.keys():
+            del spec["state"]
+        return spec
+
+    def observation_spec(self, env: EnvBase) -> Composite:
+        return self._group_entries(env, "observation")
+
+    def info_spec(self, env: EnvBase) -> Optional[Composite]:
+        return self._group_entries(env, "info")
+
+    def state_spec(self, env: EnvBase) -> Optional[Composite]:
+        if "state" in env.observation_spec.keys():
+            return Composite({"state": env.observation_spec["state"].clone()})
+        return None
+
+    def action_spec(self, env: EnvBase) -> Composite:
+        return env.full_action_spec
+
+    def action_mask_spec(self, env: EnvBase) -> Optional[Composite]:
+        return None
+
+    @staticmethod
+    def env_name() -> str:
+        return "ee_formation"
+
+
+class EEFormationTask(Task):
+    """The built-in scenarios as BenchMARL tasks (``ee_formation_env.scenario.BUILTIN_SCENARIOS``)."""
+
+    PLANAR_SQUARE = None
+    PLANAR_SQUARE_DISPLACEMENT = None
+    PLANAR_SQUARE_ROTATED = None
+    SPATIAL_TETRAHEDRON = None
+    SPATIAL_TETRAHEDRON_DISPLACEMENT = None
+
+    @staticmethod
+    def associated_class():
+        return EEFormationTaskClass
+
+    def get_task(self, config: Optional[Dict[str, Any]] = None) -> TaskClass:
+        """This task with ``config`` (scenario overrides; none: the built-in scenario as it is)."""
+        return self.associated_class()(name=self.name, config=dict(config or {}))

@@ -1,0 +1,282 @@
+"""A stable-baselines3 VecEnv over formation envs, for one policy shared by every agent.
+
+Each agent of each env is one slot of the VecEnv (``num_envs = n_envs * n_agents``), acting on its own
+local observation: decentralized execution with parameter sharing. Written for this project rather than
+taken from SuperSuit 3.11, which gets these wrong (``docs/physics.md``, "SuperSuit and SB3: why the project
+has its own VecEnv"), and each is tested:
+
+- timeouts bootstrap: a truncated episode sets ``info["TimeLimit.truncated"]`` and
+  ``info["terminal_observation"]``, a terminated one does not claim truncation;
+- ``seed()`` works (``PPO(seed=...)`` calls it) and every env gets its own seed;
+- every env builds its own PyBullet client, in its own worker process when ``n_workers > 0``, so rollouts
+  use several cores.
+
+Requires stable-baselines3 (the ``train`` extra). Agents must be homogeneous (same spaces).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from multiprocessing.connection import Connection
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
+
+EnvFactory = Callable[[], Any]  # () -> a PettingZoo ParallelEnv (picklable for worker processes)
+
+
+class _EnvGroup:
+    """Envs stepped in one process: flattens agents into slots and auto-resets finished episodes."""
+
+    def __init__(self, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None = None):
+        self.envs = [factory() for factory in factories]
+        self.agents = list(self.envs[0].possible_agents)
+        self.info_keys = None if info_keys is None else tuple(info_keys)
+        # Envs of a class with a group_stepper are stepped together through it (SharedPolicyVecEnv's docstring).
+        group_stepper = getattr(type(self.envs[0]), "group_stepper", None)
+        same_class = all(type(env) is type(self.envs[0]) for env in self.envs)
+        self.group = group_stepper(self.envs) if group_stepper is not None and same_class else None
+
+    def _slot_info(self, info: dict) -> dict:
+        if self.info_keys is None:
+            return dict(info)
+        return {key: info[key] for key in self.info_keys}
+
+    def reset(self, seeds: Sequence[int | None]) -> tuple[np.ndarray, list[dict]]:
+        observations, infos = [], []
+        for env, seed in zip(self.envs, seeds):
+            obs, info = env.reset(seed=seed)
+            observations.extend(obs[a] for a in self.agents)
+            infos.extend(self._slot_info(info[a]) for a in self.agents)
+        return np.stack(observations), infos
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+        n = len(self.agents)
+        env_actions = [{agent: actions[e * n + k] for k, agent in enumerate(self.agents)} for e in range(len(self.envs))]
+        if self.group is not None:
+            results = self.group.step(env_actions)
+        else:
+            results = [env.step(action) for env, action in zip(self.envs, env_actions)]
+        observations, rewards, dones, infos = [], [], [], []
+        for env, (obs, reward, terminated, truncated, info) in zip(self.envs, results):
+            ended = not env.agents
+            slot_infos = [self._slot_info(info[a]) for a in self.agents]
+            if ended:
+                for k, agent in enumerate(self.agents):
+                    slot_infos[k]["terminal_observation"] = obs[agent]
+                    # Truncation is not termination: SB3 bootstraps only when this is True.
+                    slot_infos[k]["TimeLimit.truncated"] = bool(truncated[agent]) and not bool(terminated[agent])
+                obs, _ = env.reset()
+            observations.extend(obs[a] for a in self.agents)
+            rewards.extend(reward[a] for a in self.agents)
+            dones.extend([ended] * n)
+            infos.extend(slot_infos)
+        return np.stack(observations), np.asarray(rewards, dtype=np.float32), np.asarray(dones), infos
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None) -> None:
+    group = None
+    try:
+        group = _EnvGroup(factories, info_keys)
+        connection.send(("ok", None))
+        while True:
+            command, payload = connection.recv()
+            if command == "reset":
+                connection.send(("ok", group.reset(payload)))
+            elif command == "step":
+                connection.send(("ok", group.step(payload)))
+            elif command == "get_attr":
+                connection.send(("ok", [getattr(env, payload) for env in group.envs]))
+            elif command == "pid":
+                connection.send(("ok", multiprocessing.current_process().pid))
+            elif command == "close":
+                connection.send(("ok", None))
+                break
+    except Exception as error:  # report to the parent instead of dying silently
+        connection.send(("error", repr(error)))
+    finally:
+        if group is not None:
+            group.close()
+        connection.close()
+
+
+class SharedPolicyVecEnv(VecEnv):
+    """``n_envs`` formation envs as a VecEnv of ``n_envs * n_agents`` agent slots.
+
+    ``n_workers = 0`` steps every env in this process; ``n_workers = k`` spreads them over ``k`` worker
+    processes (``spawn`` start method, so each builds a fresh PyBullet client), except the first
+    ``in_process_envs`` envs, stepped in this process while the workers step theirs: the learner's own work
+    per step (the policy's forward pass, normalization, the rollout buffer) then overlaps the workers' instead
+    of leaving a core idle.
+    ``info_keys``: the env info entries each slot's info keeps (None, the default: all of them). Training
+    needs none of them (SB3 reads only the ``terminal_observation`` and ``TimeLimit.truncated`` this VecEnv
+    adds), and with worker processes every entry kept is pickled through a pipe on every step.
+
+    An env class may provide ``group_stepper``: a class built from the envs of one process whose
+    ``step(actions)`` (one action dict per env) steps them all and returns each env's step result, exactly as
+    its own ``step`` would. The envs of such a class are stepped through it (the residual envs of
+    :mod:`ee_formation_env.baselines.learned.residual` evaluate every env's reference controllers in one batch).
+    """
+
+    def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None,
+                 in_process_envs: int = 0):
+        if not factories:
+            raise ValueError("factories: expected at least one env factory")
+        if not isinstance(n_workers, int) or n_workers < 0:
+            raise ValueError(f"n_workers: expected an integer >= 0, got {n_workers!r}")
+        if not isinstance(in_process_envs, int) or not 0 <= in_process_envs < len(factories) or \
+                (in_process_envs and not n_workers):
+            raise ValueError(f"in_process_envs: expected an integer in [0, {len(factories) - 1}], and 0 without "
+                             f"worker processes, got {in_process_envs!r}")
+        if info_keys is not None and (isinstance(info_keys, str) or not all(isinstance(k, str) for k in info_keys)):
+            raise TypeError(f"info_keys: expected None or a sequence of info key names, got {info_keys!r}")
+        probe = factories[0]()
+        self.agents = list(probe.possible_agents)
+        spaces = [(probe.observation_space(a), probe.action_space(a)) for a in self.agents]
+        self.scenario = probe.scenario
+        probe_render_mode = probe.render_mode
+        if info_keys is not None:
+            _, probe_infos = probe.reset(seed=0)
+            unknown = sorted(set(info_keys) - set(probe_infos[self.agents[0]]))
+            if unknown:
+                probe.close()
+                raise ValueError(f"info_keys: unknown info key(s) {unknown}; the env's: {sorted(probe_infos[self.agents[0]])}")
+        probe.close()
+        if any(s != spaces[0] for s in spaces):
+            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
+        self.n_envs = len(factories)
+        self.n_workers = min(n_workers, self.n_envs - in_process_envs)
+        self.n_local = self.n_envs if self.n_workers == 0 else in_process_envs  # envs stepped in this process
+        self._local: _EnvGroup | None = None
+        self._connections: list[Connection] = []
+        self._processes: list[multiprocessing.Process] = []
+        self._envs_per_worker: list[int] = []
+        if self.n_workers:
+            context = multiprocessing.get_context("spawn")
+            chunks = np.array_split(np.arange(self.n_local, self.n_envs), self.n_workers)
+            for chunk in chunks:
+                parent, child = context.Pipe()
+                process = context.Process(target=_worker, args=(child, [factories[i] for i in chunk], info_keys),
+                                          daemon=True)
+                process.start()
+                child.close()
+                self._connections.append(parent)
+                self._processes.append(process)
+                self._envs_per_worker.append(len(chunk))
+        if self.n_local:  # built while the workers build theirs
+            self._local = _EnvGroup(factories[:self.n_local], info_keys)
+        self._receive_workers()
+        self._render_mode = probe_render_mode
+        self._pending: np.ndarray | None = None
+        super().__init__(self.n_envs * len(self.agents), spaces[0][0], spaces[0][1])
+
+    # -- VecEnv API -----------------------------------------------------------------------------------
+    def reset(self) -> np.ndarray:
+        n = len(self.agents)
+        env_seeds = [self._seeds[e * n] for e in range(self.n_envs)]
+        results = self._step_everywhere("reset", self._split_per_worker(env_seeds[self.n_local:]),
+                                        lambda: self._local.reset(env_seeds[:self.n_local]))
+        observations = np.concatenate([r[0] for r in results])
+        infos = [info for r in results for info in r[1]]
+        self.reset_infos = infos
+        self._reset_seeds()
+        self._reset_options()
+        return observations
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._pending = np.asarray(actions)
+
+    def step_wait(self):
+        actions, self._pending = self._pending, None
+        n = len(self.agents)
+        if not self._connections:
+            return self._local.step(actions)
+        splits = np.cumsum([count * n for count in (self.n_local, *self._envs_per_worker)])[:-1]
+        local_actions, *worker_actions = np.split(actions, splits)
+        results = self._step_everywhere("step", worker_actions, lambda: self._local.step(local_actions))
+        return (np.concatenate([r[0] for r in results]), np.concatenate([r[1] for r in results]),
+                np.concatenate([r[2] for r in results]), [info for r in results for info in r[3]])
+
+    def close(self) -> None:
+        if self._local is not None:
+            self._local.close()
+            self._local = None
+        for connection, process in zip(self._connections, self._processes):
+            try:
+                connection.send(("close", None))
+                connection.recv()
+            except (BrokenPipeError, EOFError, OSError):
+                pass
+            process.join(timeout=10)
+            if process.is_alive():
+                process.terminate()
+        self._connections, self._processes = [], []
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        if attr_name == "render_mode":
+            return [self._render_mode] * self.num_envs
+        per_env = [] if self._local is None else [getattr(env, attr_name) for env in self._local.envs]
+        per_env += [value for values in self._call_workers("get_attr", [attr_name] * self.n_workers)
+                    for value in values]
+        per_slot = [value for value in per_env for _ in self.agents]
+        return [per_slot[i] for i in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        raise NotImplementedError("set_attr: slots share an env; set attributes through the scenario instead")
+
+    def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs) -> list[Any]:
+        raise NotImplementedError("env_method: not supported by SharedPolicyVecEnv")
+
+    def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        return [False] * len(self._get_indices(indices))
+
+    def worker_pids(self) -> list[int]:
+        """Process ids of the worker processes (empty when stepping in-process)."""
+        return [int(pid) for pid in self._call_workers("pid", [None] * self.n_workers)] if self._connections else []
+
+    # -- internals ------------------------------------------------------------------------------------
+    def _split_per_worker(self, items: Sequence[Any]) -> list[list[Any]]:
+        out, start = [], 0
+        for count in self._envs_per_worker:
+            out.append(list(items[start:start + count]))
+            start += count
+        return out
+
+    def _step_everywhere(self, command: str, worker_payloads: Sequence[Any], local_call: Callable[[], Any]) -> list[Any]:
+        """Send ``command`` to the workers, run ``local_call`` on this process's envs (if any) while they work,
+        then collect: this process's result first, then each worker's."""
+        self._send_workers(command, worker_payloads)
+        try:
+            local = [] if self._local is None else [local_call()]
+        finally:
+            remote = self._receive_workers()  # read even if local_call raised: the pipes stay in step
+        return local + remote
+
+    def _call_workers(self, command: str, payloads: Sequence[Any]) -> list[Any]:
+        self._send_workers(command, payloads)
+        return self._receive_workers()
+
+    def _send_workers(self, command: str, payloads: Sequence[Any]) -> None:
+        for connection, payload in zip(self._connections, payloads):
+            connection.send((command, payload))
+
+    def _receive_workers(self) -> list[Any]:
+        return [self._receive(connection) for connection in self._connections]
+
+    @staticmethod
+    def _receive(connection: Connection) -> Any:
+        status, payload = connection.recv()
+        if status == "error":
+            raise RuntimeError(f"SharedPolicyVecEnv worker failed: {payload}")
+        return payload
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass

@@ -1,0 +1,414 @@
+"""Random scenarios: do the reference policies work out of the box on a scenario nobody tuned them for?
+
+    python -m studies.random_scenarios                      # 10 planar + 6 spatial scenarios, ~6 min
+    python -m studies.random_scenarios --planar 20 --spatial 0 --seed 1 --json out.json
+
+A seeded generator writes scenarios the way a new user would (plain scenario dicts, default physics and
+default gains), then every reference policy (``gradient``, ``approx_jacobian``, ``adaptive_jacobian``)
+runs each of them once from its ``initial_q`` (no reset noise). Printed per family and policy: the success
+rate, the mean and worst settling time of the successes, physics faults and arm contacts.
+
+- **planar** (:func:`planar_scenario`): 3 to 6 ``planar_2link`` arms with bases on a ring of radius
+  4-6 m (random ring offset, a random base yaw each), random initial q with the elbow away from its
+  singularities (|q2| in [0.4, pi - 0.4] rad), each target vertex inside its own arm's reach (0.8 to
+  2.6 m from its base; the arm reaches 3 m), a minimally rigid trilateration graph. 20 s episodes.
+- **spatial** (:func:`spatial_scenario`): 3 or 4 arms, each one of ``kuka_iiwa`` (``pybullet_data``
+  ``kuka_iiwa/model.urdf``, end-effector ``lbr_iiwa_link_7``), ``franka_panda`` (``franka_panda/panda.urdf``,
+  ``panda_hand``) and the built-in ``pera_arm``, mixed at random (heterogeneous teams), bases on a ring of
+  radius 0.45-0.65 m with random yaw; the hanging PERA-like arm is mounted 1 m up so that every arm reaches
+  the shared region. Initial and target end-effector positions are those of random joint configurations
+  (inside the joint limits, away from singularities) that put the end-effector in a shared region above the
+  ring's centre, so every target vertex is reachable by its own arm; both sets of poses are resampled until
+  every arm is 3 cm clear of the others (a draw that cannot be is redrawn, seeded). Complete graph (rigid in
+  3D for 3 or 4 agents), gravity on, 5 ms control steps (as the built-in spatial scenarios). 30 s episodes.
+
+A failed run is classified from its final state and its last seconds (:attr:`RunRecord.failure_kind`):
+a physics fault; arms still touching each other at the end (jammed); an arm at a singularity; the paper's gradient e_hat small while edges are off, either
+with the error on a plateau (at or near an undesired equilibrium of the distance formation, or a saddle
+the flow leaves only slowly) or still falling (converging slowly along a weak mode: an ill-conditioned
+shape, or an arm near its workspace boundary that can barely move its end-effector the way the error
+needs); or still converging (a transient, e_hat not small).
+
+**Success** means every edge length within :data:`EDGE_TOLERANCE` (1 cm) of its target at the end of the
+episode, with no physics fault; the **settling time** is the first time after which every edge stays
+within 1 cm until the end. Targets (checked and printed): planar >= 90 % of the scenarios for every
+formation law, spatial 100 %.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pybullet
+import pybullet_data
+
+import ee_formation_env
+from ee_formation_env.env import FormationEnv
+from ee_formation_env.scenario import ROBOTS
+from ee_formation_env.formation import rigidity_matrix
+from ee_formation_env.kinematics import chain_model, rpy_to_matrix
+
+if __package__ in (None, ""):  # run as a script: python benchmarks/random_scenarios.py
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from ee_formation_env.baselines import make_policies  # noqa: E402
+from ee_formation_env.generators import trilateration_edges  # noqa: E402
+
+EDGE_TOLERANCE = 0.01  # m: every edge length within this of its target counts as "in formation"
+PLANAR_SECONDS = 20.0
+SPATIAL_SECONDS = 30.0
+POLICIES = ("gradient", "approx_jacobian", "adaptive_jacobian")
+TARGETS = {"planar": 0.9, "spatial": 1.0}  # required success rate per family and policy
+SINGULAR_MARGIN = 0.02  # m: a final smallest Jacobian singular value below this counts as singular
+EQUILIBRIUM_RATIO = 0.05  # a final gradient ratio below this: e_hat small for the edge errors
+TREND_SECONDS = 5.0  # s: the error trend is measured over the last this many seconds
+PLATEAU_DROP = 0.1  # a max edge error that fell by less than this fraction over them is on a plateau
+
+# Spatial robots: (urdf, end-effector link, base height in m). The PERA-like arm hangs from its base.
+SPATIAL_ROBOTS: dict[str, tuple[str, str, float]] = {
+    "kuka_iiwa": (os.path.join(pybullet_data.getDataPath(), "kuka_iiwa", "model.urdf"), "lbr_iiwa_link_7", 0.0),
+    "franka_panda": (os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf"), "panda_hand", 0.0),
+    "pera_arm": (str(ROBOTS["pera_arm"].urdf), ROBOTS["pera_arm"].ee_link, 1.0),
+}
+_SPATIAL_REGION_HEIGHT = (0.35, 0.65)  # m, z range of the shared end-effector region
+_SPATIAL_REGION_RADIUS = 0.25  # m, horizontal radius of the shared region around the ring's centre
+_MIN_VERTEX_SPACING = 0.15  # m between any two end-effectors (initial) or target vertices
+_MIN_ARM_CLEARANCE = 0.03  # m between the collision shapes of two arms in their initial poses
+
+
+def planar_scenario(seed: int) -> dict[str, Any]:
+    """One random planar scenario (see the module docstring); the same ``seed`` gives the same dict."""
+    rng = np.random.default_rng([0, seed])
+    n_agents = int(rng.integers(3, 7))
+    radius = float(rng.uniform(4.0, 6.0))
+    offset = float(rng.uniform(-math.pi, math.pi))
+    link = 1.5  # m, both links of planar_2link
+    arms, targets = [], []
+    for i in range(n_agents):
+        angle = offset + 2 * math.pi * i / n_agents
+        base = np.array([radius * math.cos(angle), radius * math.sin(angle)])
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        elbow = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.4, math.pi - 0.4))
+        arms.append({"robot": "planar_2link", "base_position": [*base.tolist(), 0.0], "base_rpy": [0.0, 0.0, yaw],
+                     "initial_q": [float(rng.uniform(-math.pi, math.pi)), elbow]})
+        # Target vertex: 0.8-2.6 m from its own base, within +-60 deg of the direction to the ring's centre.
+        distance = float(rng.uniform(0.8, 2 * link - 0.4))
+        direction = angle + math.pi + float(rng.uniform(-math.pi / 3, math.pi / 3))
+        targets.append((base + distance * np.array([math.cos(direction), math.sin(direction)])).tolist())
+    return {"name": f"random_planar_{seed}", "arms": arms, "edges": trilateration_edges(n_agents, 2),
+            "shape": targets, "formation": "distance", "dim": 2, "initial_q_noise": 0.0,
+            "episode_seconds": PLANAR_SECONDS}
+
+
+def _sample_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, rng: np.random.Generator,
+                 taken: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A configuration (rad) of ``robot`` putting its end-effector (world, m) in the shared region."""
+    urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
+    chain = chain_model(urdf, ee_link)
+    rotation = rpy_to_matrix(np.array([0.0, 0.0, yaw]))
+    # Keep away from the joint limits (10 % margin) and from singular configurations.
+    span = chain.upper - chain.lower
+    for _ in range(50):
+        q = rng.uniform(chain.lower + 0.1 * span, chain.upper - 0.1 * span, size=(512, chain.n_joints))
+        ee = base + chain.forward_batch(q) @ rotation.T
+        inside = ((np.linalg.norm(ee[:, :2] - centre[:2], axis=1) <= _SPATIAL_REGION_RADIUS)
+                  & (ee[:, 2] >= _SPATIAL_REGION_HEIGHT[0]) & (ee[:, 2] <= _SPATIAL_REGION_HEIGHT[1]))
+        for k in np.flatnonzero(inside):
+            if all(np.linalg.norm(ee[k] - other) >= _MIN_VERTEX_SPACING for other in taken):
+                if np.linalg.svd(chain.jacobian(q[k]), compute_uv=False).min() >= 0.05:
+                    return q[k], ee[k]
+    raise LookupError(f"no configuration of {robot} reaches the shared region")
+
+
+class _ClearanceChecker:
+    """Loads arms into a private DIRECT PyBullet client to reject initial poses that touch another arm."""
+
+    def __init__(self) -> None:
+        self.client = pybullet.connect(pybullet.DIRECT)
+        self.bodies: list[int] = []
+
+    def place(self, robot: str, base: np.ndarray, yaw: float, q: np.ndarray) -> int:
+        urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
+        body = pybullet.loadURDF(urdf, base.tolist(), pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
+                                 useFixedBase=True, physicsClientId=self.client)
+        names = chain_model(urdf, ee_link).joint_names
+        for j in range(pybullet.getNumJoints(body, physicsClientId=self.client)):
+            name = pybullet.getJointInfo(body, j, physicsClientId=self.client)[1].decode()
+            if name in names:
+                pybullet.resetJointState(body, j, float(q[names.index(name)]), physicsClientId=self.client)
+        return body
+
+    def clear(self, body: int) -> bool:
+        """True if ``body`` is at least :data:`_MIN_ARM_CLEARANCE` from every arm placed before it."""
+        return all(not pybullet.getClosestPoints(body, other, _MIN_ARM_CLEARANCE, physicsClientId=self.client)
+                   for other in self.bodies)
+
+    def close(self) -> None:
+        pybullet.disconnect(self.client)
+
+
+def _clear_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, rng: np.random.Generator,
+                taken: list[np.ndarray], checker: _ClearanceChecker) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_sample_pose`, resampled until the arm clears every arm already placed in ``checker``."""
+    for _ in range(100):
+        q, ee = _sample_pose(robot, base, yaw, centre, rng, taken)
+        body = checker.place(robot, base, yaw, q)
+        if checker.clear(body):
+            checker.bodies.append(body)
+            return q, ee
+        pybullet.removeBody(body, physicsClientId=checker.client)
+    raise LookupError(f"no collision-free pose of {robot}")
+
+
+def spatial_scenario(seed: int) -> dict[str, Any]:
+    """One random spatial scenario (see the module docstring); the same ``seed`` gives the same dict.
+
+    A draw whose arms cannot all be posed clear of each other is redrawn (a seeded sequence of attempts).
+    """
+    for attempt in range(50):
+        try:
+            return _spatial_attempt(seed, np.random.default_rng([1, seed, attempt]))
+        except LookupError:
+            continue
+    raise RuntimeError(f"spatial_scenario({seed}): no valid draw in 50 attempts")
+
+
+def _spatial_attempt(seed: int, rng: np.random.Generator) -> dict[str, Any]:
+    """One draw of :func:`spatial_scenario` (LookupError if its arms cannot be posed)."""
+    n_agents = int(rng.integers(3, 5))
+    robots = [str(name) for name in rng.choice(list(SPATIAL_ROBOTS), size=n_agents)]
+    radius = float(rng.uniform(0.45, 0.65))
+    offset = float(rng.uniform(-math.pi, math.pi))
+    initial_checker, target_checker = _ClearanceChecker(), _ClearanceChecker()
+    try:
+        arms, targets = _pose_arms(robots, radius, offset, rng, initial_checker, target_checker)
+    finally:
+        initial_checker.close()
+        target_checker.close()
+    n_agents = len(robots)
+    edges = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
+    return {"name": f"random_spatial_{seed}", "arms": arms, "edges": edges,
+            "shape": [t.tolist() for t in targets], "formation": "distance", "dim": 3, "initial_q_noise": 0.0,
+            "frame_skip": 5, "episode_seconds": SPATIAL_SECONDS}
+
+
+def _pose_arms(robots: list[str], radius: float, offset: float, rng: np.random.Generator,
+               initial_checker: _ClearanceChecker, target_checker: _ClearanceChecker) -> tuple[list[dict], list]:
+    """Bases on the ring, collision-free initial poses and target vertices (LookupError if none found)."""
+    n_agents = len(robots)
+    centre = np.zeros(3)
+    arms, initial_ee, targets = [], [], []
+    for i, robot in enumerate(robots):
+        angle = offset + 2 * math.pi * i / n_agents
+        urdf, ee_link, height = SPATIAL_ROBOTS[robot]
+        base = np.array([radius * math.cos(angle), radius * math.sin(angle), height])
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        q0, ee0 = _clear_pose(robot, base, yaw, centre, rng, initial_ee, initial_checker)
+        _, target = _clear_pose(robot, base, yaw, centre, rng, targets, target_checker)
+        initial_ee.append(ee0)
+        targets.append(target)
+        arm = {"base_position": base.tolist(), "base_rpy": [0.0, 0.0, yaw], "initial_q": q0.tolist()}
+        arm.update({"robot": robot} if robot in ROBOTS else {"urdf": urdf, "ee_link": ee_link})
+        arms.append(arm)
+    return arms, targets
+
+
+@dataclass
+class RunRecord:
+    """One (scenario, policy) episode."""
+
+    family: str
+    scenario: str
+    n_agents: int
+    robots: str
+    policy: str
+    success: bool
+    settling_time: float  # s, nan if the edges never stay within tolerance to the end
+    final_max_edge_error: float  # m, largest |edge length - target| at the end
+    physics_fault: str
+    contact_steps: int
+    min_singularity_margin: float  # m, over the episode
+    final_singularity_margin: float  # m, smallest Jacobian singular value at the end
+    final_gradient_ratio: float  # max_i |e_hat_i| / (2 max_k |e_k| max_k |z_k|) at the end (0: an equilibrium)
+    final_max_joint_speed: float  # rad/s at the end
+    wall_s: float
+    final_error_trend: float = math.nan  # relative change of the max edge error over the last TREND_SECONDS
+    final_rigidity_ratio: float = math.nan  # sigma_min / sigma_max of the rigidity matrix at the end
+    final_contact: bool = False  # arms touching each other at the last step
+
+    @property
+    def failure_kind(self) -> str:
+        """Why a failed run failed, from its final state ("" for a success)."""
+        if self.success:
+            return ""
+        if self.physics_fault:
+            return "physics fault"
+        if self.final_contact:
+            return "arms jammed against each other (in contact at the end)"
+        if self.final_singularity_margin < SINGULAR_MARGIN:
+            return "an arm at a singularity (workspace boundary or folded)"
+        if self.final_gradient_ratio < EQUILIBRIUM_RATIO:
+            if not self.final_error_trend < -PLATEAU_DROP:
+                return ("at or near an undesired equilibrium of the distance formation (e_hat ~ 0, e != 0, the "
+                        "error on a plateau)")
+            return ("converging slowly along a weak mode (e_hat small for the edge errors, the error still "
+                    "falling)")
+        return "still converging at the horizon"
+
+
+def max_edge_length_error(env: FormationEnv) -> float:
+    """Largest |edge length - target length| over the edges (m), distance formations."""
+    z = env.graph.edge_vectors(env.end_effector_positions()[:, :env.dim])
+    return float(np.max(np.abs(np.linalg.norm(z, axis=1) - env.formation.desired)))
+
+
+def gradient_ratio(env: FormationEnv) -> float:
+    """``max_i |e_hat_i| / (2 max_k |e_k| max_k |z_k|)`` with the paper's (unsaturated) e_hat: near 0 when the
+    formation sits at an equilibrium of its gradient flow with nonzero edge errors."""
+    positions = env.end_effector_positions()[:, :env.dim]
+    z = env.graph.edge_vectors(positions)
+    errors = np.einsum("kd,kd->k", z, z) - env.formation.desired**2
+    e_hat = 2.0 * env.graph.incidence @ (errors[:, None] * z)  # (N, dim): sum over incident edges, signed
+    scale = 2.0 * np.max(np.abs(errors)) * np.max(np.linalg.norm(z, axis=1))
+    return float(np.max(np.linalg.norm(e_hat, axis=1)) / max(scale, 1e-300))
+
+
+def rigidity_ratio(env: FormationEnv) -> float:
+    """``sigma_min / sigma_max`` of the rigidity matrix at the current end-effector positions (its
+    ``n_edges``-th singular value: 0 where the realization is degenerate, small for an ill-conditioned one)."""
+    rigidity = rigidity_matrix(env.graph, env.end_effector_positions()[:, :env.dim])
+    values = np.linalg.svd(rigidity, compute_uv=False)
+    return float(values[min(rigidity.shape) - 1] / max(values[0], 1e-300))
+
+
+def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs: Any) -> RunRecord:
+    """Roll ``policy`` on ``scenario`` once (reset seed 0) and score it edge by edge."""
+    env = ee_formation_env.parallel_env(scenario)
+    try:
+        policies = make_policies(policy, env, **policy_kwargs)
+        observations, infos = env.reset(seed=0)
+        for p in policies.values():
+            p.reset()
+        dt = env.scenario.control_dt
+        errors, contacts, fault = [max_edge_length_error(env)], 0, ""
+        margin = min(info["singularity_margin"] for info in infos.values())
+        start = time.perf_counter()
+        while env.agents:
+            actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
+            observations, _, _, _, infos = env.step(actions)
+            first = next(iter(infos.values()))
+            if first["physics_fault"] and not fault:  # an int code; the env keeps the reason
+                fault = env.physics_fault_reason
+            contacts += int(any(info["contacts"] > 0 for info in infos.values()))
+            margin = min(margin, min(info["singularity_margin"] for info in infos.values()))
+            errors.append(max_edge_length_error(env))
+        wall = time.perf_counter() - start
+        series = np.asarray(errors)
+        above = np.flatnonzero(series >= EDGE_TOLERANCE)
+        settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
+        success = settle_index < len(series) and not fault
+        robots = ",".join(arm.robot or Path(arm.urdf).parent.name for arm in env.scenario.arms)
+        final_margin = min(info["singularity_margin"] for info in infos.values())
+        speed = max(float(np.max(np.abs(dq))) for dq in env.joint_velocities())
+        back = min(len(series) - 1, int(round(TREND_SECONDS / dt)))
+        trend = float(series[-1] / series[-1 - back] - 1.0) if back > 0 and series[-1 - back] > 0 else math.nan
+        return RunRecord(family, scenario["name"], env.scenario.n_agents, robots, policy, bool(success),
+                         settle_index * dt if success else math.nan, float(series[-1]), fault, contacts,
+                         float(margin), float(final_margin), gradient_ratio(env), speed, wall, trend,
+                         rigidity_ratio(env), any(info["contacts"] > 0 for info in infos.values()))
+    finally:
+        env.close()
+
+
+def summarize(records: Sequence[RunRecord]) -> list[dict[str, Any]]:
+    """One row per (family, policy): success rate, settling times, faults, contacts."""
+    rows = []
+    for family in ("planar", "spatial"):
+        for policy in POLICIES:
+            selected = [r for r in records if r.family == family and r.policy == policy]
+            if not selected:
+                continue
+            settled = [r.settling_time for r in selected if r.success]
+            rows.append({
+                "family": family, "policy": policy, "scenarios": len(selected),
+                "success_rate": float(np.mean([r.success for r in selected])),
+                "mean_settling_s": float(np.mean(settled)) if settled else math.nan,
+                "max_settling_s": float(np.max(settled)) if settled else math.nan,
+                "physics_faults": sum(bool(r.physics_fault) for r in selected),
+                "runs_with_contacts": sum(r.contact_steps > 0 for r in selected),
+                "target": TARGETS[family],
+                "target_met": float(np.mean([r.success for r in selected])) >= TARGETS[family],
+            })
+    return rows
+
+
+def format_rows(rows: Sequence[dict[str, Any]]) -> str:
+    """The summary as a markdown table."""
+    lines = ["| family | policy | scenarios | success | mean settle s | max settle s | faults | runs with contacts "
+             "| target | met |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for row in rows:
+        def seconds(value: float) -> str:
+            return "n/a" if math.isnan(value) else f"{value:.2f}"
+        met = "yes" if row["target_met"] else "NO"
+        lines.append(f"| {row['family']} | {row['policy']} | {row['scenarios']} | {row['success_rate']:.0%} "
+                     f"| {seconds(row['mean_settling_s'])} | {seconds(row['max_settling_s'])} "
+                     f"| {row['physics_faults']} | {row['runs_with_contacts']} | >= {row['target']:.0%} | {met} |")
+    return "\n".join(lines)
+
+
+def format_failures(records: Sequence[RunRecord]) -> str:
+    """One line per failed run, for the explanation of failures."""
+    lines = []
+    for r in records:
+        if not r.success:
+            lines.append(f"- {r.scenario} ({r.n_agents} arms: {r.robots}) {r.policy}: {r.failure_kind}; final max edge "
+                         f"error {r.final_max_edge_error:.3g} m, final smallest singular value "
+                         f"{r.final_singularity_margin:.3g} m, gradient ratio {r.final_gradient_ratio:.2g}, "
+                         f"error change over the last {TREND_SECONDS:g} s {r.final_error_trend:+.0%}, rigidity "
+                         f"sigma_min / sigma_max {r.final_rigidity_ratio:.2g}, "
+                         f"joint speed {r.final_max_joint_speed:.2g} rad/s, contact steps {r.contact_steps}"
+                         + (f", FAULT: {r.physics_fault}" if r.physics_fault else ""))
+    return "\n".join(lines) if lines else "(none)"
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Command-line entry: generate, run, print the table; return the results."""
+    parser = argparse.ArgumentParser(prog="python -m studies.random_scenarios", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--planar", type=int, default=10, help="number of planar scenarios (default 10)")
+    parser.add_argument("--spatial", type=int, default=6, help="number of spatial scenarios (default 6)")
+    parser.add_argument("--seed", type=int, default=0, help="first scenario seed (seeds seed .. seed + n - 1)")
+    parser.add_argument("--policy", action="append", choices=POLICIES, help="only this policy (repeatable)")
+    parser.add_argument("--json", type=Path, default=None, help="write every run and the summary here")
+    args = parser.parse_args(argv)
+    if args.planar < 0 or args.spatial < 0:
+        raise ValueError("--planar/--spatial: expected counts >= 0")
+    policies = args.policy or list(POLICIES)
+    scenarios = ([("planar", planar_scenario(args.seed + k)) for k in range(args.planar)]
+                 + [("spatial", spatial_scenario(args.seed + k)) for k in range(args.spatial)])
+    records = []
+    for family, scenario in scenarios:
+        for policy in policies:
+            record = run_one(scenario, family, policy)
+            records.append(record)
+            print(f"{record.scenario} {record.policy}: success={record.success} settle={record.settling_time:.2f} s "
+                  f"err={record.final_max_edge_error:.2e} m {record.physics_fault} ({record.wall_s:.1f} s)", flush=True)
+    rows = summarize(records)
+    print(format_rows(rows))
+    print("\nFailed runs:\n" + format_failures(records))
+    results = {"rows": rows, "runs": [{**asdict(r), "failure_kind": r.failure_kind} for r in records]}
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""Observation features: computed from the agent's own observation, the same in training and evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, FeaturePolicy, feature_size, log_error_features,
+                                make_feature_env, transform)
+from ee_formation_env.baselines.learned.residual import make_training_env
+
+
+def test_feature_env_appends_the_transform_of_each_agents_own_observation(make_env):
+    plain, wrapped = make_env("planar_square"), FeatureEnv(make_env("planar_square"), "log-error")
+    observations, _ = plain.reset(seed=3)
+    featured, _ = wrapped.reset(seed=3)
+    for _ in range(3):
+        for agent in plain.possible_agents:
+            layout = plain.observation_layout(agent)
+            raw = observations[agent]
+            assert featured[agent].shape == wrapped.observation_space(agent).shape
+            assert featured[agent].shape == (layout.size + feature_size(layout, "log-error"),)
+            np.testing.assert_array_equal(featured[agent][:layout.size], raw)
+            np.testing.assert_array_equal(featured[agent], transform(layout, "log-error")(raw))
+            assert wrapped.observation_space(agent).contains(featured[agent])
+        actions = {agent: np.full(2, 0.1, dtype=np.float32) for agent in plain.possible_agents}
+        observations, rewards, *_ = plain.step(actions)
+        featured, featured_rewards, *_ = wrapped.step(actions)
+        assert rewards == featured_rewards  # the env's reward, unchanged
+
+
+def test_features_resolve_the_error_in_tolerances_and_point_downhill(make_env):
+    env = make_env("planar_square")
+    layout = env.observation_layout(env.possible_agents[0])
+    observation, _ = env.reset(seed=0)
+    raw = observation[env.possible_agents[0]].astype(np.float64)
+    parts = layout.split(raw)
+    n_errors = layout.n_slots * layout.error_width
+    # At the goal (every edge error zero): error and direction features vanish.
+    at_goal = raw.copy()
+    at_goal[[k * layout.slot_size + layout.slot_size - 1 for k in range(layout.n_slots)]] = 0.0
+    features = log_error_features(layout, at_goal)
+    assert np.all(features[:n_errors + layout.dim] == 0.0)
+    # One edge 1 cm too long (one tolerance): log1p(1); the direction pulls the end-effector toward that neighbour.
+    one_long = at_goal.copy()
+    d = parts.desired[0, 0]
+    one_long[layout.slot_size - 1] = 2 * d * 0.01
+    features = log_error_features(layout, one_long)
+    assert features[0] == pytest.approx(np.log1p(1.0))
+    direction = features[n_errors:n_errors + layout.dim]
+    toward = -parts.relative_positions[0] / np.linalg.norm(parts.relative_positions[0])
+    np.testing.assert_allclose(direction, toward * np.log1p(1.0), atol=1e-12)
+    # "none" appends nothing.
+    assert feature_size(layout, "none") == 0 and transform(layout, "none")(raw) is raw
+
+
+def test_feature_policy_sees_what_training_saw(make_env):
+    env = make_env("planar_square")
+    agent = env.possible_agents[0]
+    layout = env.observation_layout(agent)
+    seen = []
+
+    class Recorder:
+        def reset(self) -> None:
+            pass
+
+        def __call__(self, observation):
+            seen.append(observation)
+            return np.zeros(2)
+
+    policy = FeaturePolicy(Recorder(), layout, "log-error")
+    observations, _ = env.reset(seed=1)
+    policy(observations[agent])
+    training_env = make_feature_env("log-error", make_training_env, "planar_square", {"episode_seconds": 0.3})
+    try:
+        featured, _ = training_env.reset(seed=1)
+        np.testing.assert_array_equal(seen[0], featured[agent])
+    finally:
+        training_env.close()
+
+
+def test_unknown_feature_set_is_rejected(make_env):
+    assert FEATURE_SETS == ("none", "log-error")
+    with pytest.raises(ValueError, match="obs_features"):
+        FeatureEnv(make_env("planar_square"), "squared")

@@ -1,0 +1,163 @@
+"""Residual mode: a zero correction is the reference, bit for bit; the regularization is on the correction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.residual import (ResidualActionEnv, ResidualGroup, ResidualPolicy, combine, correction_factor,
+                               error_gate, error_gates)
+
+
+class _Zero:
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return np.zeros(2, dtype=np.float32)
+
+
+@pytest.mark.parametrize("reference,gate", [("gradient", False), ("adaptive_jacobian", False), ("adaptive_jacobian", True)])
+def test_zero_correction_reproduces_the_reference_bit_for_bit(make_env, reference, gate):
+    plain, wrapped_env = make_env("planar_square", episode_seconds=0.3), make_env("planar_square", episode_seconds=0.3)
+    residual = ResidualActionEnv(wrapped_env, reference=reference, scale=0.3, gate=gate)
+    policies = baselines.make_policies(reference, plain)
+    observations, _ = plain.reset(seed=4)
+    residual_observations, _ = residual.reset(seed=4)
+    steps = 0
+    while plain.agents:
+        observations, rewards, *_ = plain.step({a: policies[a](observations[a]) for a in plain.agents})
+        residual_observations, residual_rewards, *_ = residual.step(
+            {a: np.zeros(2, dtype=np.float32) for a in plain.possible_agents})
+        for agent in plain.possible_agents:
+            assert observations[agent].tobytes() == residual_observations[agent].tobytes()
+            assert rewards[agent] == residual_rewards[agent]  # a zero correction costs nothing
+        steps += 1
+    assert steps == 30 and not residual.agents
+
+
+def test_residual_policy_with_zero_correction_is_the_reference(make_env):
+    env = make_env("planar_square")
+    references = baselines.make_policies("adaptive_jacobian", env)
+    twins = baselines.make_policies("adaptive_jacobian", env)
+    observations, _ = env.reset(seed=1)
+    for agent in env.possible_agents:
+        policy = ResidualPolicy(twins[agent], _Zero(), scale=0.5)
+        policy.reset()
+        references[agent].reset()
+        assert policy(observations[agent]).tobytes() == references[agent](observations[agent]).tobytes()
+
+
+def test_correction_penalty_scales_the_reward_by_the_correction_only(make_env):
+    plain = make_env("planar_square", episode_seconds=0.1)
+    residual = ResidualActionEnv(make_env("planar_square", episode_seconds=0.1), scale=0.1, correction_penalty=0.5)
+    plain_policies = baselines.make_policies("adaptive_jacobian", plain)
+    observations, _ = plain.reset(seed=0)
+    residual.reset(seed=0)
+    correction = np.array([1.0, -0.5], dtype=np.float32)
+    reference_actions = {a: plain_policies[a](observations[a]) for a in plain.agents}
+    _, plain_rewards, *_ = plain.step({a: combine(reference_actions[a], correction.astype(np.float64), 0.1)
+                                      for a in plain.agents})
+    _, rewards, *_ = residual.step({a: correction for a in plain.possible_agents})
+    for agent in plain.possible_agents:
+        assert rewards[agent] == pytest.approx(plain_rewards[agent] * (1 - 0.5 * np.mean(correction.astype(np.float64) ** 2)), rel=1e-12)
+    assert correction_factor(np.array([3.0, -3.0]), 1.0) == 0.0  # the correction is clipped: rewards stay >= 0
+    with pytest.raises(ValueError, match="correction_penalty"):
+        ResidualActionEnv(make_env("planar_square"), correction_penalty=1.5)
+
+
+@pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement"])
+def test_error_gate_is_the_agents_error_in_tolerances_capped_at_one(make_env, scenario):
+    env = make_env(scenario)
+    observations, _ = env.reset(seed=0)
+    layout = env.observation_layout("arm_0")
+    assert error_gate(layout, observations["arm_0"]) == 1.0  # the start is ~40 tolerances away
+    parts = layout.split(observations["arm_0"])
+    real = parts.mask > 0.5
+    scaled = observations["arm_0"].astype(np.float64).copy()
+    slots = scaled[:layout.n_slots * layout.slot_size].reshape(layout.n_slots, layout.slot_size)
+    errors = slots[:, 1 + layout.dim + layout.error_width:]
+    if layout.error_width == 1:  # every edge at a quarter of its tolerance 2 d delta
+        errors[real, 0] = 0.25 * 2.0 * parts.desired[real, 0] * 0.01
+    else:
+        errors[real] = 0.0
+        errors[real, 0] = 0.25 * 0.01
+    assert error_gate(layout, scaled) == pytest.approx(0.25)
+    errors[:] = 0.0
+    assert error_gate(layout, scaled) == 0.0  # at the goal the correction vanishes
+
+
+@pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement"])
+def test_error_gates_of_a_stack_are_each_agents_gate(make_env, scenario):
+    env = make_env(scenario)
+    observations, _ = env.reset(seed=2)
+    layout = env.observation_layout("arm_0")
+    stack = np.stack([observations[agent] for agent in env.possible_agents]).astype(np.float64)
+    slots = stack[:, :layout.n_slots * layout.slot_size].reshape(len(stack), layout.n_slots, layout.slot_size)
+    slots[:, :, 1 + layout.dim + layout.error_width:] *= 1e-4 * np.arange(1, len(stack) + 1)[:, None, None]
+    stack[:, :layout.n_slots * layout.slot_size] = slots.reshape(len(stack), -1)
+    gates = error_gates(layout, stack)
+    assert gates.shape == (len(stack),) and 0 < gates.min() < gates.max() < 1  # near the goal: gates below 1
+    for row, gate in zip(stack, gates):
+        assert gate == error_gate(layout, row)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"arm_0": np.zeros(3)}, r"actions\['arm_0'\]: expected shape \(2,\)"),
+    ({"arm_1": "left"}, r"actions\['arm_1'\]: expected a numeric array"),
+    ({"arm_2": np.array([np.nan, 0.0])}, r"actions\['arm_2'\]: expected finite values"),
+])
+def test_bad_residuals_get_the_envs_error_before_anything_moves(make_env, bad, match):
+    residual = ResidualActionEnv(make_env("planar_square"), scale=0.3, gate=True)
+    observations, _ = residual.reset(seed=0)
+    actions = {agent: np.zeros(2, dtype=np.float32) for agent in residual.possible_agents}
+    with pytest.raises(ValueError, match=match):
+        residual.step({**actions, **bad})
+    assert residual.env._step_count == 0
+    assert all(np.all(policy.eta == 0) for policy in residual.references.policies.values())  # nothing adapted
+    after, *_ = residual.step(actions)  # the wrapper is still usable
+    assert set(after) == set(observations)
+
+
+def _residual_envs(make_env, count, **overrides):
+    return [ResidualActionEnv(make_env("planar_square", **overrides), scale=0.3, gate=True) for _ in range(count)]
+
+
+def test_a_group_steps_each_env_as_its_own_step_would(make_env):
+    """Three envs stepped as a group and three twins stepped alone: bit-identical, across episode ends."""
+    grouped, alone = _residual_envs(make_env, 3, episode_seconds=0.05), _residual_envs(make_env, 3, episode_seconds=0.05)
+    group = ResidualGroup(grouped)
+    for seed, (env, twin) in enumerate(zip(grouped, alone)):
+        env.reset(seed=seed)
+        twin.reset(seed=seed)
+    rng = np.random.default_rng(0)
+    for _ in range(12):  # 5-step episodes: two resets each
+        actions = [{agent: rng.uniform(-1.5, 1.5, 2).astype(np.float32) for agent in env.possible_agents}
+                   for env in grouped]
+        for env, twin, env_actions, result in zip(grouped, alone, actions, group.step(actions)):
+            expected = twin.step(env_actions)
+            for agent in env.possible_agents:
+                assert result[0][agent].tobytes() == expected[0][agent].tobytes()
+                assert result[1][agent] == expected[1][agent]
+            assert result[2:4] == expected[2:4]
+            if not env.agents:
+                env.reset()
+                twin.reset()
+
+
+def test_a_group_checks_every_envs_actions_before_any_env_moves(make_env):
+    envs = _residual_envs(make_env, 2)
+    group = ResidualGroup(envs)
+    for env in envs:
+        env.reset(seed=0)
+    good = {agent: np.zeros(2, dtype=np.float32) for agent in envs[0].possible_agents}
+    with pytest.raises(ValueError, match=r"actions\['arm_2'\]: expected finite values"):
+        group.step([good, {**good, "arm_2": np.array([np.nan, 0.0])}])
+    assert all(env.env._step_count == 0 for env in envs)  # the first env did not move either
+    assert all(np.all(policy.eta == 0) for env in envs for policy in env.references.policies.values())
+    with pytest.raises(ValueError, match="one action dict per env"):
+        group.step([good])
+    with pytest.raises(TypeError, match="ResidualActionEnv"):
+        ResidualGroup([envs[0].env])
+    assert len(group.step([good, good])) == 2  # still usable

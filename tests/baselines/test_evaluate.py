@@ -1,0 +1,84 @@
+"""The ``python -m ee_formation_env.baselines.evaluate`` command line: table, --policy all, bad arguments, --help, --video."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from ee_formation_env.baselines import POLICIES
+from ee_formation_env.baselines.evaluate import main
+from ee_formation_env.baselines.metrics import METRIC_COLUMNS, metric_definitions
+
+SHORT = ["--episodes", "1", "--set", "episode_seconds=0.3"]
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+
+def _table_rows(output: str) -> dict[str, list[str]]:
+    rows = {}
+    for line in output.splitlines():
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        if line.startswith("| ") and cells[0] != "policy":
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_table_has_one_row_per_policy_and_every_column_with_its_unit(capsys, tmp_path):
+    assert main(["--policy", "gradient", *SHORT, "--json", str(tmp_path / "r.json")]) == 0
+    output = capsys.readouterr().out
+    header = next(line for line in output.splitlines() if line.startswith("| policy"))
+    assert header == "| policy | " + " | ".join(c.header for c in METRIC_COLUMNS) + " |"
+    assert "energy (N² m² s)" in header and "drift (m)" in header
+    rows = _table_rows(output)
+    assert list(rows) == ["gradient"] and len(rows["gradient"]) == len(METRIC_COLUMNS)
+    saved = json.loads((tmp_path / "r.json").read_text())
+    assert saved["episodes"] == 1 and saved["overrides"] == {"episode_seconds": 0.3}
+    assert len(saved["results"]["gradient"]["per_episode"]) == 1
+
+
+def test_policy_all_evaluates_every_policy(capsys):
+    assert main(["--policy", "all", *SHORT]) == 0
+    assert list(_table_rows(capsys.readouterr().out)) == list(POLICIES)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--episodes", "0"], "--episodes"),
+    (["--policy", "no_such_policy"], "unknown policy 'no_such_policy'"),
+    (["--set", "frame_skip"], "KEY=VALUE"),
+    (["--set", "no_such_key=1"], "no_such_key"),
+    (["--scenario", "no_such_scenario"], "no_such_scenario"),
+    (["--episodes", "two"], "invalid int value"),
+])
+def test_bad_arguments_give_a_clear_usage_error(capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert "usage:" in error and message in error
+
+
+def test_help_defines_every_column(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    for column in METRIC_COLUMNS:
+        assert column.header in help_text
+        assert " ".join(column.meaning.split()) in help_text
+
+
+def test_readme_shows_the_column_definitions():
+    assert metric_definitions(markdown=True) in README.read_text(encoding="utf-8")
+
+
+def test_video_writes_one_file_per_episode_at_simulated_speed(tmp_path):
+    imageio = pytest.importorskip("imageio")
+    videos = tmp_path / "videos"
+    assert main(["--policy", "zero", "--episodes", "2", "--set", "episode_seconds=0.5", "--video", str(videos)]) == 0
+    files = sorted(videos.iterdir())
+    assert [f.stem for f in files] == ["planar_square-zero-seed0", "planar_square-zero-seed1"]
+    frames = imageio.mimread(files[0], memtest=False)
+    # 50 env steps at 100 Hz, one frame every 3 steps (33.3 frames/s) plus the frame after the reset.
+    assert len(frames) == 17
+    assert frames[0].shape[0] >= 360 and frames[0].shape[1] >= 480 and frames[0].shape[2] == 3
+    assert frames[0].std() > 0  # not blank
