@@ -13,31 +13,34 @@ from __future__ import annotations
 if __name__ != "ee_formation_env.baselines":  # the folder is installed inside the env's package, under one name
     raise ImportError(f"this folder is the package ee_formation_env.baselines: import that, not {__name__!r}")
 
+import inspect
 from typing import Any, Mapping
 
 import numpy as np
 
-from ee_formation_env.baselines.reference.controllers import (AdaptiveJacobianController, AgentModel, ApproxJacobianController, Gains,
-                                   GradientController, RandomPolicy, ZeroPolicy)
+from ee_formation_env.baselines.reference.controllers import (AdaptiveJacobianController, AgentModel,
+                                                              ApproxJacobianController, FormationController, Gains,
+                                                              GradientController, RandomPolicy, ZeroPolicy)
 from ee_formation_env.baselines.reference.dynamics import nominal_dynamics
 from ee_formation_env.baselines.reference.gains import default_gains
 from ee_formation_env.env import FormationEnv
 
-_CONTROLLERS = {
-    "gradient": GradientController,
-    "approx_jacobian": ApproxJacobianController,
-    "adaptive_jacobian": AdaptiveJacobianController,
-}
-MODEL_BASED_POLICIES: tuple[str, ...] = tuple(_CONTROLLERS)  # the paper's laws I, II, III
-POLICIES: tuple[str, ...] = (*MODEL_BASED_POLICIES, "zero", "random")
-_OPTIONS = {  # controller options make_policy passes through
-    "gradient": (),
-    "approx_jacobian": ("anti_windup",),
-    "adaptive_jacobian": ("projection", "parameter_bounds", "anti_windup"),
-}
+#: The paper's laws I, II and III by name: the one registry of reference controllers (each class's ``name``).
+REFERENCE_CONTROLLERS: dict[str, type[FormationController]] = {
+    cls.name: cls for cls in (GradientController, ApproxJacobianController, AdaptiveJacobianController)}
+MODEL_BASED_POLICIES: tuple[str, ...] = tuple(REFERENCE_CONTROLLERS)
+POLICIES: tuple[str, ...] = (*MODEL_BASED_POLICIES, ZeroPolicy.name, RandomPolicy.name)
 
-__all__ = ["POLICIES", "MODEL_BASED_POLICIES", "Gains", "make_policy", "make_policies", "agent_model",
-           "default_gains"]
+
+def controller_options(name: str) -> tuple[str, ...]:
+    """The options of reference controller ``name``: the keyword arguments of its class after the gains and
+    the initial estimate (read from the class, so a new option needs no registration)."""
+    parameters = list(inspect.signature(REFERENCE_CONTROLLERS[name].__init__).parameters)
+    return tuple(parameters[parameters.index("a_hat0") + 1:])
+
+
+__all__ = ["POLICIES", "MODEL_BASED_POLICIES", "REFERENCE_CONTROLLERS", "Gains", "make_policy", "make_policies",
+           "make_controller", "controller_options", "agent_model", "default_gains"]
 
 
 def agent_model(env: FormationEnv, agent: str) -> AgentModel:
@@ -77,11 +80,21 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
         gains = default_gains(env.task, env.task.agent_index(agent)).with_updates(**dict(gains or {}))
     elif not isinstance(gains, Gains):
         raise TypeError(f"gains: expected a Gains, a dict or None, got {type(gains).__name__}")
-    unknown = set(options) - set(_OPTIONS[name])
+    return make_controller(name, model, gains, a_hat0, **options)
+
+
+def make_controller(name: str, model: AgentModel, gains: Gains, a_hat0: Any = None, **options: Any
+                    ) -> FormationController:
+    """Reference controller ``name`` on an explicit agent model and gains: the seam for a controller whose
+    nominal model differs from the env's (model-mismatch studies). :func:`make_policy` builds on it."""
+    if name not in REFERENCE_CONTROLLERS:
+        raise ValueError(f"controller: unknown controller {name!r}; available: {list(REFERENCE_CONTROLLERS)}")
+    allowed = controller_options(name)
+    unknown = set(options) - set(allowed)
     if unknown:
-        raise ValueError(f"options: {name} takes {list(_OPTIONS[name]) or 'no options'}, got {sorted(unknown)}")
-    return _CONTROLLERS[name](model, gains, None if a_hat0 is None else np.asarray(a_hat0, dtype=np.float64),
-                              **options)
+        raise ValueError(f"options: {name} takes {list(allowed) or 'no options'}, got {sorted(unknown)}")
+    return REFERENCE_CONTROLLERS[name](model, gains, None if a_hat0 is None else np.asarray(a_hat0, dtype=np.float64),
+                                       **options)
 
 
 def make_policies(name: str, env: FormationEnv, **kwargs: Any) -> dict[str, Any]:

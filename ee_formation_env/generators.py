@@ -1,4 +1,4 @@
-"""Scenarios with any number of arms on a rigid graph, for the scaling benchmarks.
+"""Scenario generators: shapes, rigid graphs and ring layouts with any number of arms (scaling benchmarks).
 
 Both families put the arm bases on a circle, each base facing the circle's centre, and use a
 trilateration graph (Henneberg type-I extensions): the first ``dim + 1`` vertices are fully connected and
@@ -25,6 +25,14 @@ _PLANAR_LINK = 1.5  # m, both links of planar_2link
 _PLANAR_REACH_USED = 2.0  # m, initial base-to-end-effector distance of a planar arm
 _PLANAR_BASE_SPACING = 3.5  # m between neighbouring bases on the circle (keeps the arms apart)
 _SPATIAL_BASE_SPACING = 0.6  # m
+
+
+def square_vertices(side: float, centre: tuple[float, float] = (3.0, 3.0)) -> list[list[float]]:
+    """The corners of a square of ``side`` m about ``centre`` (x, y) m, counter-clockwise from the lower left:
+    the shape of the built-in planar squares (3.0 m about (3, 3))."""
+    half = side / 2
+    cx, cy = centre
+    return [[cx - half, cy - half], [cx + half, cy - half], [cx + half, cy + half], [cx - half, cy + half]]
 
 
 def trilateration_edges(n_agents: int, dim: int) -> list[list[int]]:

@@ -36,7 +36,8 @@ from ee_formation_env.baselines.reference.controllers import Gains
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.reference.gains import PAPER_GAINS
 from ee_formation_env.baselines.metrics import EpisodeMetrics, run_episode
-from ee_formation_env.scenario import _square, builtin_scenario
+from ee_formation_env.generators import square_vertices
+from ee_formation_env.scenario import builtin_scenario
 
 try:
     import matplotlib
@@ -126,7 +127,7 @@ def run_specs(studies: Sequence[str], quick: bool = False) -> list[RunSpec]:
     """The runs of the selected studies (``quick``: horizons capped at :data:`QUICK_SECONDS`)."""
     planar_paper = dict(gains=PAPER_GAINS[2], a_hat0=(2.0, 2.0), projection=False, overrides=_PLANAR_PAPER)
     # The 4.0 m square with planar_square's own tuned gains (a shape override alone would derive new ones).
-    stall_shape = {"shape": _square(4.0), "controller_gains": builtin_scenario("planar_square")["controller_gains"]}
+    stall_shape = {"shape": square_vertices(4.0), "controller_gains": builtin_scenario("planar_square")["controller_gains"]}
     specs = {
         "planar": [
             RunSpec("planar_paper", "planar", PAPER, "planar_square", 30.0, **planar_paper),

@@ -57,13 +57,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import ee_formation_env  # noqa: E402
-from ee_formation_env.baselines import _CONTROLLERS, agent_model, make_policies  # noqa: E402
+from ee_formation_env.baselines import agent_model, make_controller, make_policies  # noqa: E402
 from ee_formation_env.baselines.reference.controllers import Gains  # noqa: E402
 from ee_formation_env.baselines.reference.dynamics import nominal_dynamics  # noqa: E402
 from ee_formation_env.baselines.metrics import run_episode  # noqa: E402
 from ee_formation_env.formation import rigidity_matrix  # noqa: E402
 from ee_formation_env.kinematics import chain_model  # noqa: E402
-from ee_formation_env.scenario import ROBOTS, _square, builtin_scenario, load_scenario  # noqa: E402
+from ee_formation_env.generators import square_vertices
+from ee_formation_env.scenario import ROBOTS, builtin_scenario, load_scenario  # noqa: E402
 
 STUDIES = ("mismatch", "separating", "stall", "windup", "spatial")
 KINDS = ("uniform", "lengths", "offsets", "zero_component")
@@ -157,7 +158,7 @@ def run_planar(scenario: dict[str, Any] | str, law: str, seconds: float, gains: 
             model = replace(agent_model(env, agent), chain=nominal_chain,
                             dynamics=nominal_dynamics(nominal_urdf, nominal_chain.joint_names))
             estimate = None if a_hat0 is None else np.asarray(a_hat0, dtype=np.float64)
-            policies[agent] = _CONTROLLERS[LAWS[law]](model, gains, estimate, **options)
+            policies[agent] = make_controller(LAWS[law], model, gains, estimate, **options)
         estimates = [np.stack([getattr(p, "a_hat", p.a_hat0) for p in policies.values()])]
 
         def log(_: Any) -> None:
@@ -236,7 +237,7 @@ def stall_study(seconds: float, sides: Sequence[float], alphas: Sequence[float],
     for kp in gains_kp:
         for side in sides:
             for alpha in alphas:
-                scenario = {**_planar_square_data(), "shape": _square(side), "initial_q_noise": 0.0}
+                scenario = {**_planar_square_data(), "shape": square_vertices(side), "initial_q_noise": 0.0}
                 scenario.pop("controller_gains", None)
                 row = run_planar(scenario, "law-III", seconds, replace(PLANAR_GAINS, kp=kp, alpha=alpha),
                                  a_hat0=(2.0, 2.0), projection=False)
@@ -259,7 +260,7 @@ def windup_study(seconds: float) -> list[dict[str, Any]]:
         env = ee_formation_env.parallel_env("spatial_tetrahedron", torque_limits=limits, episode_seconds=seconds,
                                             initial_q_noise=0.0)
         try:
-            policies = {agent: _CONTROLLERS["approx_jacobian"](agent_model(env, agent), gains, anti_windup=anti_windup)
+            policies = {agent: make_controller("approx_jacobian", agent_model(env, agent), gains, anti_windup=anti_windup)
                         for agent in env.possible_agents}
             integral = []
 
