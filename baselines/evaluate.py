@@ -1,8 +1,10 @@
 """Evaluate reference policies on seeded episodes and print a metrics table.
 
-    python -m ee_formation_env.baselines.evaluate --scenario planar_square --policy adaptive_jacobian --episodes 10 --seed 0
-    python -m ee_formation_env.baselines.evaluate --scenario spatial_tetrahedron --policy all --json results.json
-    python -m ee_formation_env.baselines.evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
+    ee-formation evaluate --scenario planar_square --policy adaptive_jacobian --episodes 10 --seed 0
+    ee-formation evaluate --scenario spatial_tetrahedron --policy all --json results.json
+    ee-formation evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
+
+(``python -m ee_formation_env.baselines.evaluate`` is the same command.)
 
 Episode ``k`` uses reset seed ``seed + k``, so every policy sees the same initial states. Metrics are
 defined in :mod:`ee_formation_env.baselines.metrics` (the same module ``train.py`` uses).
@@ -108,8 +110,8 @@ def _overrides(pairs: Sequence[str]) -> dict[str, Any]:
     return overrides
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m ee_formation_env.baselines.evaluate", description=__doc__.split("\n\n")[0],
+def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_env.baselines.evaluate") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="table columns (mean over episodes unless said otherwise):\n"
                                             + metric_definitions())

@@ -19,7 +19,7 @@ Sections:
 - ``sb3_rollout``: ``PPO.collect_rollouts`` through :class:`~ee_formation_env.integrations.sb3.SharedPolicyVecEnv`
   with 2 worker processes (and in-process, for comparison);
 - ``sb3_training``: ``model.learn`` of ``train.py``'s default configuration (the same model, envs and PPO
-  settings, built by ``train.build_sb3_model``): training throughput in agent steps/s, updates included;
+  settings, built by ``ee_formation_env.baselines.learned.sb3_backend.build_sb3_model``): training throughput in agent steps/s, updates included;
 - ``scaling``: 2, 4, 8 and 16 arms on a minimally rigid graph (:mod:`ee_formation_env.generators`), 2-DOF planar
   and 7-DOF spatial arms: raw floor, ``env.step`` at ``frame_skip`` 1, and reset cost;
 - ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios.
@@ -302,12 +302,14 @@ def bench_training(budget: Budget, extra_args: Sequence[str] = ()) -> list[dict[
     """Section ``sb3_training``: agent steps/s of ``train.py``'s default run (``extra_args`` change it),
     PPO updates included; the first update (model warm-up) is not timed."""
     try:
-        import train
         from stable_baselines3.common.utils import configure_logger  # noqa: F401 (the "train" extra)
+
+        from ee_formation_env.baselines.learned.config import TrainConfig
+        from ee_formation_env.baselines.learned.sb3_backend import build_sb3_model
     except ImportError as error:
         return [{"section": "sb3_training", "case": f"skipped ({error})", "skipped": True}]
-    args = train.parse_args(["--no-progress", *extra_args])
-    model = train.build_sb3_model(args, None)
+    args = TrainConfig.from_args(["--no-progress", *extra_args])
+    model = build_sb3_model(args, None)
     try:
         per_update = model.n_steps * model.get_env().num_envs
         model.learn(total_timesteps=per_update)  # warm-up: first rollout, first update

@@ -144,18 +144,6 @@ class FeaturePolicy:
         return self.policy(self.transform(observation))
 
 
-def make_feature_env(features: str, factory: Callable[..., Any], *args: Any, hold_penalty: float = 0.0) -> Any:
-    """``factory(*args)``, its rewards shaped by :class:`ee_formation_env.baselines.learned.shaping.HoldShapingEnv` if ``hold_penalty``
-    > 0, wrapped in :class:`FeatureEnv` (not for ``"none"``); module-level so that
-    ``functools.partial(make_feature_env, ...)`` pickles into worker processes."""
-    from ee_formation_env.baselines.learned.shaping import HoldShapingEnv
-
-    env = factory(*args)
-    if hold_penalty > 0:
-        env = HoldShapingEnv(env, hold_penalty)
-    return env if features == "none" else FeatureEnv(env, features)
-
-
 def _check(features: str) -> None:
     if features not in FEATURE_SETS:
         raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {features!r}")

@@ -16,12 +16,28 @@ law-II and law-III carry internal states along the trajectory that was actually 
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping
+import functools
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 
 from ee_formation_env import baselines
 from ee_formation_env.baselines.reference.controllers import PolicyTeam
+
+if TYPE_CHECKING:
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+# --imitate (docs/training.md): DAgger rounds, each this many training episodes, the learner driving this share of
+# the steps after the first round, then PPO.
+IMITATION_ROUNDS = 3
+IMITATION_EPISODES = 60
+IMITATION_LEARNER_SHARE = 0.5
+IMITATION_EPOCHS = (30, 15)  # epochs over all the data so far: first round, later rounds
+IMITATION_TIMESTEPS = 0  # PPO agent steps after the imitation: none by default (PPO degraded the copy)
+IMITATION_LOG_STD = -2.5  # PPO's exploration around the imitated policy: std 0.08 of the torque range
 
 Learner = Callable[[np.ndarray], np.ndarray]  # stacked observations (k, size) -> actions (k, n)
 
@@ -66,3 +82,89 @@ def demonstrations(env: Any, reference: str, episodes: int, seeds: np.ndarray,
 
 def _per_agent(agents: list[str], actions: np.ndarray) -> Mapping[str, np.ndarray]:
     return {agent: np.asarray(action, dtype=np.float32) for agent, action in zip(agents, actions)}
+
+
+def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
+    """Start ``model``'s policy as a copy of the reference ``args.imitate``: DAgger rounds of demonstrations
+    in the training env (:func:`ee_formation_env.baselines.learned.imitation.demonstrations`), the actor's mean fitted to the
+    reference's actions after each round, the observation normalization set from the data; then PPO's
+    exploration noise is narrowed to ``IMITATION_LOG_STD``. Writes ``imitation.json``."""
+    import torch
+
+    from ee_formation_env.baselines.learned.config import EVAL_SEED_OFFSET
+    from ee_formation_env.baselines.learned.training_env import make_training_env
+
+    venv = model.get_env()  # VecNormalize: the policy sees normalized observations
+    env = make_training_env(args.scenario, args.training_overrides(), "torque")
+    rng = np.random.default_rng(args.seed)
+    seeds = rng.integers(0, EVAL_SEED_OFFSET, size=args.imitation_rounds * args.imitation_episodes)
+    observations, labels, rounds, started = [], [], [], time.time()
+    try:
+        for index in range(args.imitation_rounds):
+            learner = None if index == 0 else functools.partial(actor_mean, model, venv)
+            episode_seeds = seeds[index * args.imitation_episodes:(index + 1) * args.imitation_episodes]
+            seen, wanted = demonstrations(env, args.imitate, args.imitation_episodes, episode_seeds, learner,
+                                          0.0 if index == 0 else IMITATION_LEARNER_SHARE, rng)
+            observations.append(seen)
+            labels.append(wanted)
+            loss = fit_actor(model, venv, np.concatenate(observations), np.concatenate(labels),
+                              IMITATION_EPOCHS[min(index, 1)], args.seed + index)
+            rounds.append({"round": index, "samples": int(sum(len(x) for x in observations)), "loss": loss,
+                           "seconds": time.time() - started})
+            if not args.no_progress:
+                print(f"imitation round {index + 1}/{args.imitation_rounds}: {rounds[-1]['samples']} samples, "
+                      f"weighted loss {loss:.2e}, {rounds[-1]['seconds']:.0f} s", flush=True)
+    finally:
+        env.close()
+    with torch.no_grad():
+        model.policy.log_std.fill_(IMITATION_LOG_STD)
+    (out_dir / "imitation.json").write_text(json.dumps({"reference": args.imitate, "rounds": rounds,
+                                                        "log_std_after": IMITATION_LOG_STD}, indent=2))
+
+
+def _normalized(venv: Any, observations: np.ndarray) -> Any:
+    import torch
+
+    return torch.as_tensor(venv.normalize_obs(observations), dtype=torch.float32)
+
+
+def actor_mean(model: Any, venv: Any, observations: np.ndarray) -> np.ndarray:
+    """The policy's deterministic action (its Gaussian's mean) for raw observations (k, size)."""
+    import torch
+
+    policy = model.policy
+    with torch.no_grad():
+        latent = policy.mlp_extractor.forward_actor(policy.features_extractor(_normalized(venv, observations)))
+        return policy.action_net(latent).numpy().astype(np.float64)
+
+
+def fit_actor(model: Any, venv: Any, observations: np.ndarray, labels: np.ndarray, epochs: int, seed: int) -> float:
+    """Fit the actor's mean to ``labels`` by weighted least squares; returns the last minibatch's loss.
+
+    The observation normalization is set from the data first (and keeps updating in PPO afterwards).
+    Each sample is weighted by ``1 / (mean |label| + 0.02)``: near the goal the reference's torques are a
+    few percent of the range, and holding 1 cm needs them right to about that precision.
+    """
+    import torch
+
+    venv.obs_rms.mean = observations.mean(axis=0)
+    venv.obs_rms.var = observations.var(axis=0)
+    venv.obs_rms.count = float(len(observations))
+    inputs = _normalized(venv, observations)
+    targets = torch.as_tensor(labels, dtype=torch.float32)
+    weights = 1.0 / (targets.abs().mean(dim=1, keepdim=True) + 0.02)
+    policy = model.policy
+    parameters = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters()]
+    optimizer = torch.optim.Adam(parameters, lr=1e-3)
+    generator = torch.Generator().manual_seed(seed)
+    loss = torch.zeros(())
+    for _ in range(epochs):
+        order = torch.randperm(len(inputs), generator=generator)
+        for start in range(0, len(inputs), 1024):
+            batch = order[start:start + 1024]
+            latent = policy.mlp_extractor.forward_actor(policy.features_extractor(inputs[batch]))
+            loss = (weights[batch] * (policy.action_net(latent) - targets[batch]) ** 2).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    return float(loss.detach())

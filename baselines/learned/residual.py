@@ -225,22 +225,3 @@ class ResidualGroup:
 
 
 ResidualActionEnv.group_stepper = ResidualGroup
-
-
-def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
-                      reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
-                      correction_penalty: float = 0.5, gate: bool = False) -> Any:
-    """The env a learner steps: the formation env (``mode="torque"``) or its residual form.
-
-    A module-level function so that ``functools.partial(make_training_env, ...)`` pickles into workers.
-    """
-    from ee_formation_env import parallel_env
-
-    env = parallel_env(scenario, **dict(overrides or {}))
-    if mode == "torque":
-        return env
-    if mode == "residual":
-        return ResidualActionEnv(env, reference=reference, scale=residual_scale, correction_penalty=correction_penalty,
-                                 gate=gate)
-    env.close()
-    raise ValueError(f"mode: expected 'torque' or 'residual', got {mode!r}")

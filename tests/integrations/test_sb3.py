@@ -12,7 +12,7 @@ pytest.importorskip("stable_baselines3")
 
 from stable_baselines3 import PPO  # noqa: E402
 
-from ee_formation_env.baselines.learned.residual import make_training_env  # noqa: E402
+from ee_formation_env.baselines.learned.training_env import make_training_env  # noqa: E402
 from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv  # noqa: E402
 
 

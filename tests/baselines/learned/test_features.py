@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, FeaturePolicy, feature_size, log_error_features,
-                                make_feature_env, transform)
-from ee_formation_env.baselines.learned.residual import make_training_env
+from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, FeaturePolicy, feature_size,
+                                                         log_error_features, transform)
+from ee_formation_env.baselines.learned.training_env import make_training_env
 
 
 def test_feature_env_appends_the_transform_of_each_agents_own_observation(make_env):
@@ -71,7 +71,7 @@ def test_feature_policy_sees_what_training_saw(make_env):
     policy = FeaturePolicy(Recorder(), layout, "log-error")
     observations, _ = env.reset(seed=1)
     policy(observations[agent])
-    training_env = make_feature_env("log-error", make_training_env, "planar_square", {"episode_seconds": 0.3})
+    training_env = make_training_env("planar_square", {"episode_seconds": 0.3}, obs_features="log-error")
     try:
         featured, _ = training_env.reset(seed=1)
         np.testing.assert_array_equal(seen[0], featured[agent])

@@ -1,4 +1,5 @@
-"""train.py: smoke runs of both backends, the saved artefacts, and reproducible re-evaluation."""
+"""Training runs (``train.py`` / ``ee-formation train``): smoke runs of both backends, the saved artefacts, and
+reproducible re-evaluation."""
 
 from __future__ import annotations
 
@@ -11,9 +12,12 @@ pytest.importorskip("stable_baselines3")
 import numpy as np  # noqa: E402
 
 from ee_formation_env import baselines  # noqa: E402
-import train  # noqa: E402
+from ee_formation_env.baselines.cli import train_command  # noqa: E402
+from ee_formation_env.baselines.learned.config import EVAL_SEED_OFFSET, PRESETS, TrainConfig  # noqa: E402
+from ee_formation_env.baselines.learned.imitation import actor_mean, fit_actor  # noqa: E402
+from ee_formation_env.baselines.learned.sb3_backend import build_sb3_model, collected_steps  # noqa: E402
 from ee_formation_env.baselines.learned.imitation import demonstrations  # noqa: E402
-from ee_formation_env.baselines.learned.residual import make_training_env  # noqa: E402
+from ee_formation_env.baselines.learned.training_env import make_training_env  # noqa: E402
 
 FAST = ["--n-envs", "1", "--n-workers", "0", "--eval-episodes", "2", "--eval-seconds", "0.3",
         "--train-episode-seconds", "0.5", "--no-progress", "--eval-workers", "0", "--imitation-rounds", "1",
@@ -29,27 +33,27 @@ def _comparison(run_dir):
 @pytest.mark.parametrize("mode,algo", [("torque", "ppo"), ("residual", "ppo"), ("torque", "sac")])
 def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
     run_dir = tmp_path / "run"
-    assert train.main(["--total-timesteps", "300", "--mode", mode, "--algo", algo, "--out", str(run_dir), *FAST]) == 0
+    assert train_command(["--total-timesteps", "300", "--mode", mode, "--algo", algo, "--out", str(run_dir), *FAST]) == 0
     for name in ("config.json", "model.zip", "obs_normalizer.pkl", "learning_curve.csv", "comparison.json",
                  "comparison.md", "comparison.png"):
         assert (run_dir / name).is_file(), name
     assert any((run_dir / "tensorboard").iterdir())
     config = json.loads((run_dir / "config.json").read_text())
     assert config["mode"] == mode and config["algo"] == algo and config["scenario_data"]["arms"]
-    assert config["obs_features"] == train.OBS_FEATURES[mode]  # what the evaluation applies again
+    assert config["obs_features"] == PRESETS[mode].obs_features  # what the evaluation applies again
     comparison = _comparison(run_dir)
     assert set(comparison["results"]) == {"learned", *baselines.POLICIES}
     for summary in comparison["results"].values():
         assert METRIC_FIELDS <= set(summary)
         assert summary["episodes"] == 2
-    assert comparison["seeds"] == [train.EVAL_SEED_OFFSET, train.EVAL_SEED_OFFSET + 1]
+    assert comparison["seeds"] == [EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + 1]
 
 
 def test_saved_model_reloads_and_reproduces_its_evaluation(tmp_path):
     run_dir = tmp_path / "run"
-    train.main(["--total-timesteps", "300", "--out", str(run_dir), *FAST, "--eval-workers", "1"])  # in a worker
+    train_command(["--total-timesteps", "300", "--out", str(run_dir), *FAST, "--eval-workers", "1"])  # in a worker
     first = _comparison(run_dir)["results"]["learned"]
-    train.main(["--eval-only", str(run_dir), *FAST])
+    train_command(["--eval-only", str(run_dir), *FAST])
     again = _comparison(run_dir)["results"]["learned"]
     assert again["per_episode"] == first["per_episode"]
 
@@ -59,17 +63,17 @@ def test_bad_arguments_fail_before_training(tmp_path):
                 ["--log-std-init", "nan"], ["--hold-penalty", "1.5"], ["--max-train-seconds", "0"],
                 ["--in-process-envs", "32"], ["--n-workers", "0", "--in-process-envs", "4"]):
         with pytest.raises(SystemExit):
-            train.main([*bad, "--out", str(tmp_path / "x")])
+            train_command([*bad, "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="scenario"):
-        train.main(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
+        train_command(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="not found"):
-        train.main(["--eval-only", str(tmp_path / "missing")])
+        train_command(["--eval-only", str(tmp_path / "missing")])
     assert not (tmp_path / "x").exists()
 
 
 def test_max_train_seconds_stops_training_early(tmp_path):
     run_dir = tmp_path / "run"
-    assert train.main(["--total-timesteps", "10000000", "--max-train-seconds", "2", "--mode", "torque",
+    assert train_command(["--total-timesteps", "10000000", "--max-train-seconds", "2", "--mode", "torque",
                        "--out", str(run_dir), *FAST]) == 0
     timing = json.loads((run_dir / "timing.json").read_text())
     assert timing["agent_steps"] < 10_000_000 and timing["train_seconds"] < 30
@@ -77,22 +81,23 @@ def test_max_train_seconds_stops_training_early(tmp_path):
 
 
 def test_mode_defaults_and_explicit_values():
-    torque = train.parse_args(["--mode", "torque"])
+    torque = TrainConfig.from_args(["--mode", "torque"])
     assert (torque.obs_features, torque.gamma, torque.log_std_init, torque.hold_penalty) == (
-        train.OBS_FEATURES["torque"], train.GAMMA["torque"], train.LOG_STD_INIT["torque"], train.HOLD_PENALTY["torque"])
-    residual = train.parse_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2",
+        PRESETS["torque"].obs_features, PRESETS["torque"].gamma, PRESETS["torque"].log_std_init,
+        PRESETS["torque"].hold_penalty)
+    residual = TrainConfig.from_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2",
                                  "--hold-penalty", "0.25"])
     assert (residual.obs_features, residual.gamma, residual.log_std_init, residual.hold_penalty) == (
         "log-error", 0.9, -2.0, 0.25)
     # The learner steps its share of the envs only beside worker processes.
-    assert residual.in_process_envs == train.IN_PROCESS_ENVS["residual"] > 0 and torque.in_process_envs == 0
-    assert train.parse_args(["--n-workers", "0"]).in_process_envs == 0
+    assert residual.in_process_envs == PRESETS["residual"].in_process_envs > 0 and torque.in_process_envs == 0
+    assert TrainConfig.from_args(["--n-workers", "0"]).in_process_envs == 0
 
 
 def test_rllib_smoke_run(tmp_path):
     pytest.importorskip("ray.rllib")
     run_dir = tmp_path / "rllib"
-    assert train.main(["--backend", "rllib", "--total-timesteps", "2000", "--out", str(run_dir),
+    assert train_command(["--backend", "rllib", "--total-timesteps", "2000", "--out", str(run_dir),
                        "--n-workers", "0", "--eval-episodes", "1", "--eval-seconds", "0.3",
                        "--train-episode-seconds", "0.5", "--no-progress"]) == 0
     comparison = _comparison(run_dir)
@@ -104,9 +109,9 @@ def test_progress_total_is_what_sb3_collects():
     from types import SimpleNamespace
 
     # PPO collects whole rollouts of n_steps x num_envs agent steps; SAC whole vec-env steps.
-    assert train._collected_steps(3000, SimpleNamespace(n_steps=256), 4) == 3072
-    assert train._collected_steps(2048, SimpleNamespace(n_steps=256), 4) == 2048
-    assert train._collected_steps(3001, SimpleNamespace(), 4) == 3004
+    assert collected_steps(3000, SimpleNamespace(n_steps=256), 4) == 3072
+    assert collected_steps(2048, SimpleNamespace(n_steps=256), 4) == 2048
+    assert collected_steps(3001, SimpleNamespace(), 4) == 3004
 
 
 def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
@@ -114,7 +119,7 @@ def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
     run_dir = tmp_path / "run"
     args = ["--mode", "torque", "--imitate", "gradient", "--total-timesteps", "0", "--out", str(run_dir), *FAST,
             "--imitation-rounds", "2"]
-    assert train.main(args) == 0
+    assert train_command(args) == 0
     imitation = json.loads((run_dir / "imitation.json").read_text())
     assert imitation["reference"] == "gradient" and [r["round"] for r in imitation["rounds"]] == [0, 1]
     assert imitation["rounds"][1]["samples"] == 2 * imitation["rounds"][0]["samples"] == 2 * 2 * 50 * 4
@@ -124,17 +129,17 @@ def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
 
 
 def test_the_fitted_actor_follows_the_reference_actions():
-    args = train.parse_args(["--mode", "torque", "--imitate", "gradient", "--n-envs", "1", "--n-workers", "0",
+    args = TrainConfig.from_args(["--mode", "torque", "--imitate", "gradient", "--n-envs", "1", "--n-workers", "0",
                              "--no-progress"])
-    model = train.build_sb3_model(args, None)
+    model = build_sb3_model(args, None)
     try:
         env = make_training_env("planar_square", {"episode_seconds": 0.5}, "torque")
         observations, labels = demonstrations(env, "gradient", 3, np.arange(3))
         env.close()
         venv = model.get_env()
-        before = np.mean((train._actor_mean(model, venv, observations) - labels) ** 2)
-        train._fit_actor(model, venv, observations, labels, epochs=200, seed=0)  # 200 Adam steps on 600 samples
-        after = np.mean((train._actor_mean(model, venv, observations) - labels) ** 2)
+        before = np.mean((actor_mean(model, venv, observations) - labels) ** 2)
+        fit_actor(model, venv, observations, labels, epochs=200, seed=0)  # 200 Adam steps on 600 samples
+        after = np.mean((actor_mean(model, venv, observations) - labels) ** 2)
         assert after < 0.1 * before
     finally:
         model.get_env().close()
@@ -149,7 +154,7 @@ def test_the_fitted_actor_follows_the_reference_actions():
 ])
 def test_imitation_options_are_validated(argv, match, capsys):
     with pytest.raises(SystemExit):
-        train.parse_args(argv)
+        TrainConfig.from_args(argv)
     assert match in capsys.readouterr().err
 
 
@@ -163,8 +168,8 @@ PINNED_TRAINING_DIGESTS = {"residual": "09bc6d476093246d", "torque": "e9a5889eb5
 def test_three_ppo_updates_give_the_pinned_parameters(mode):
     import hashlib
 
-    args = train.parse_args(["--mode", mode, "--seed", "3", "--n-workers", "0", "--no-progress"])
-    model = train.build_sb3_model(args, None)
+    args = TrainConfig.from_args(["--mode", mode, "--seed", "3", "--n-workers", "0", "--no-progress"])
+    model = build_sb3_model(args, None)
     try:
         model.learn(total_timesteps=3 * model.n_steps * model.get_env().num_envs)
         digest = hashlib.sha256()

@@ -1,0 +1,75 @@
+"""The ``ee-formation`` command: ``ee-formation COMMAND [flags]``; ``ee-formation COMMAND --help`` lists a command's flags.
+
+- ``train``: train a shared policy and compare it with the reference controllers (the flags of ``train.py``);
+- ``evaluate``: run reference policies on seeded episodes and print the metrics table;
+- ``reproduce``, ``robustness``, ``random-scenarios``: the studies (``python -m studies.<name>``), which run
+  from the repository root of a checkout (they are not part of the installed package).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+TRAIN_DESCRIPTION = "Train a shared formation policy and compare it with the reference controllers on the same metrics."
+
+
+def train_command(argv: Sequence[str] | None = None, prog: str = "train.py") -> int:
+    """``train.py`` / ``ee-formation train``: parse the flags into a run configuration, then train (or, with
+    ``--eval-only RUN_DIR``, re-evaluate a saved run)."""
+    from ee_formation_env.baselines.learned.config import TrainConfig
+    from ee_formation_env.baselines.learned.run import evaluate_saved_run, train
+
+    config = TrainConfig.from_args(argv, prog=prog, description=TRAIN_DESCRIPTION)
+    if config.eval_only:
+        evaluate_saved_run(config)
+    else:
+        train(config)
+    return 0
+
+
+def _evaluate(argv: Sequence[str]) -> int:
+    from ee_formation_env.baselines.evaluate import main
+
+    return main(argv, prog="ee-formation evaluate")
+
+
+def _study(module: str) -> Callable[[Sequence[str]], int]:
+    def run(argv: Sequence[str]) -> int:
+        checkout = Path.cwd()
+        if not (checkout / "studies" / f"{module}.py").is_file() or not (checkout / "ee_formation_env").is_dir():
+            raise SystemExit(f"ee-formation: the study {module!r} runs from the root of a checkout of the "
+                             f"repository (it is not installed): cd there and run it again, or `python -m "
+                             f"studies.{module}`")
+        sys.path.insert(0, str(checkout))
+        importlib.import_module(f"studies.{module}").main(list(argv))  # returns its results; they are written
+        return 0
+
+    return run
+
+
+COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {
+    "train": ("train a shared policy (residual or torque mode) and compare it with the references",
+              lambda argv: train_command(argv, prog="ee-formation train")),
+    "evaluate": ("evaluate reference policies on seeded episodes and print the metrics table", _evaluate),
+    "reproduce": ("the paper's figures from the three laws (checkout only)", _study("reproduce")),
+    "robustness": ("the laws under model mismatch, stalls and windup (checkout only)", _study("robustness")),
+    "random-scenarios": ("the laws on random planar and spatial scenarios (checkout only)",
+                         _study("random_scenarios")),
+}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="ee-formation", description="Formation control of manipulator end-effectors: train, evaluate and study policies.")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (help, _) in COMMANDS.items():
+        commands.add_parser(name, help=help, add_help=False)  # each command parses (and documents) its own flags
+    known, rest = parser.parse_known_args(argv)
+    return COMMANDS[known.command][1](rest)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,191 @@
+"""The comparison of a run: its learned policy and every reference policy on the same held-out seeds.
+
+Each policy runs ``eval_episodes`` episodes (seeds from :data:`~ee_formation_env.baselines.learned.config.EVAL_SEED_OFFSET`),
+each scored by :func:`ee_formation_env.baselines.metrics.run_episode` exactly as ``ee-formation evaluate`` scores
+it; the tables and the figure show the same summary.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import ee_formation_env
+from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.config import EVAL_SEED_OFFSET, TrainConfig
+from ee_formation_env.baselines.learned.policy import learned_policies
+from ee_formation_env.baselines.metrics import format_table, run_episode, summarize
+
+REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
+
+
+def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path) -> dict[str, Any]:
+    """Evaluate the learned policy of the run in ``run_dir`` (its saved ``config``) and every reference policy
+    on the same held-out seeds, with the evaluation settings of ``args`` (``eval_episodes``, ``eval_seconds``,
+    ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md`` and ``.png``.
+
+    Episodes run in ``--eval-workers`` processes (each its own env), or in this one with 0; an episode's
+    result does not depend on where it runs (same seed, same episode, bit for bit).
+    """
+    overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
+    seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
+    names = ["learned", *baselines.POLICIES]
+    jobs = [(name, seed) for name in names for seed in seeds]
+    episodes: dict[tuple[str, int], Any] = {}
+    setup = (config["scenario"], overrides, str(run_dir), config)
+    bar = _evaluation_progress(len(jobs), args.no_progress)
+
+    def done(job: tuple[str, int], metrics: Any) -> None:
+        episodes[job] = metrics
+        if bar is not None:
+            bar.set_postfix_str(job[0])
+            bar.update(1)
+
+    if args.eval_workers == 0:
+        _evaluation_worker_setup(*setup)
+        try:
+            for job in jobs:
+                done(job, _evaluate_episode(*job))
+        finally:
+            _evaluation_worker_teardown()
+    else:
+        import concurrent.futures
+        import multiprocessing
+
+        with concurrent.futures.ProcessPoolExecutor(
+                args.eval_workers, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_evaluation_worker_setup, initargs=setup) as pool:
+            futures = {pool.submit(_evaluate_episode, *job): job for job in jobs}
+            for future in concurrent.futures.as_completed(futures):
+                done(futures[future], future.result())
+    if bar is not None:
+        bar.close()
+    else:
+        print(f"evaluated {len(names)} policies on {len(seeds)} seeds", flush=True)
+    error_unit = "m²" if ee_formation_env.load_scenario(config["scenario"]).formation == "distance" else "m"
+    results: dict[str, Any] = {}
+    for name in names:
+        runs = [episodes[(name, seed)] for seed in seeds]
+        results[name] = summarize(runs)
+        results[name]["per_episode"] = [e.as_dict() for e in runs]
+    label = f"learned ({config['mode']})"
+    comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results}
+    (run_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
+    table = format_table({label if k == "learned" else k: v for k, v in results.items()})
+    (run_dir / "comparison.md").write_text(
+        f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
+    _plot(run_dir, results, label, error_unit)
+    print(table)
+    return comparison
+
+
+_EVALUATION: dict[str, Any] = {}  # one evaluation worker's env and policies
+
+
+def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
+    _EVALUATION.clear()
+    _EVALUATION.update(env=ee_formation_env.parallel_env(scenario, **overrides), run_dir=Path(run_dir), config=config,
+                       policies={})
+
+
+def _evaluation_worker_teardown() -> None:
+    _EVALUATION["env"].close()
+    _EVALUATION.clear()
+
+
+def _evaluate_episode(name: str, seed: int) -> Any:
+    """One held-out episode of policy ``name`` ("learned" or a reference) in this worker's env."""
+    env, policies = _EVALUATION["env"], _EVALUATION["policies"]
+    if name not in policies:
+        policies[name] = (learned_policies(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
+                          else baselines.make_policies(name, env))
+    return run_episode(env, policies[name], seed=seed)
+
+
+def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
+    """Mean per-agent episode return of each reference policy in the *training* env (its episode length and
+    start noise, torque mode), on held-out seeds: the lines the learning curve is drawn against.
+
+    In residual mode the reference alone is the learner's zero correction, whose return is the same.
+    """
+    overrides = TrainConfig.from_dict(config).training_overrides()
+    seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
+    returns = {}
+    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
+        for name in baselines.POLICIES:
+            policies = baselines.make_policies(name, env)
+            returns[name] = float(np.mean([run_episode(env, policies, seed=seed).mean_return for seed in seeds]))
+    return returns
+
+
+def _evaluation_progress(total: int, disabled: bool) -> Any:
+    """A tqdm bar over the comparison's episodes, or None (``--no-progress``, or tqdm not installed)."""
+    if disabled:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=total, desc="evaluating", unit=" episodes")
+
+
+def _plot(run_dir: Path, results: dict[str, Any], label: str, error_unit: str) -> None:
+    """``comparison.png``: the learning curve, then the final formation error and the success rate per
+    policy as labelled horizontal bars (policy names stay readable; a 0 % bar shows as its empty track)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(results)
+    ticks = [label if n == "learned" else n for n in names]
+    rows = np.arange(len(names))
+    figure, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1.2, 1, 1]})
+    lines = (run_dir / "learning_curve.csv").read_text().splitlines()[1:]  # none when no PPO step ran (--imitate)
+    curve = np.loadtxt(lines, delimiter=",", ndmin=2) if lines else np.empty((0, 2))
+    if curve.size:
+        axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.4, label="episode")
+        if len(curve) >= 10:
+            window = max(len(curve) // 20, 5)
+            axes[0].plot(curve[window - 1:, 0], np.convolve(curve[:, 1], np.ones(window) / window, mode="valid"),
+                         label=f"mean of {window}")
+    references_path = run_dir / "reference_returns.json"
+    if references_path.is_file():  # each reference policy's return in the training episodes
+        for (name, value), color in zip(json.loads(references_path.read_text()).items(), plt.cm.Dark2.colors):
+            axes[0].axhline(value, linestyle="--", linewidth=1, color=color, label=name)
+    if curve.size or references_path.is_file():
+        axes[0].legend(loc="best", fontsize=7)
+    axes[0].set(title="learning curve (training episodes)", xlabel="agent steps",
+                ylabel="episode return per agent\n(sum of step rewards, each in [0, 2])")
+    axes[0].ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
+
+    errors = np.array([results[n]["final_formation_error"] for n in names], dtype=np.float64)
+    shown = np.where(np.isfinite(errors) & (errors > 0), errors, np.nan)
+    axes[1].barh(rows, shown, color="tab:blue")
+    axes[1].set_xscale("log")
+    axes[1].set(title="final formation error (mean)", xlabel=f"formation error ({error_unit}, log scale)")
+    if np.isfinite(shown).any():
+        low, high = np.nanmin(shown), np.nanmax(shown)
+        axes[1].set_xlim(low / 10, high * 1e3)  # room for the value labels right of the bars
+    for row, value in zip(rows, errors):
+        axes[1].annotate(f"{value:.2g}", (shown[row] if np.isfinite(shown[row]) else axes[1].get_xlim()[0], row),
+                         xytext=(3, 0), textcoords="offset points", va="center", fontsize=8)
+
+    success = 100.0 * np.array([results[n]["success_rate"] for n in names], dtype=np.float64)
+    axes[2].barh(rows, np.full(len(rows), 100.0), color="0.92", edgecolor="0.75")  # the empty track
+    axes[2].barh(rows, success, color="tab:green")
+    axes[2].set(title="success rate", xlabel="episodes that succeeded (%)", xlim=(0, 118))
+    axes[2].set_xticks([0, 25, 50, 75, 100])
+    for row, value in zip(rows, success):
+        axes[2].annotate(f"{value:.0f} %", (value, row), xytext=(3, 0), textcoords="offset points", va="center",
+                         fontsize=8)
+    for axis in axes[1:]:
+        axis.set_yticks(rows, ticks)
+        axis.invert_yaxis()  # first policy on top, as in the table
+    axes[2].set_yticklabels([])  # same rows as the middle panel
+    figure.tight_layout()
+    figure.savefig(run_dir / "comparison.png", dpi=110)
+    plt.close(figure)

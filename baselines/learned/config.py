@@ -1,0 +1,273 @@
+"""The configuration of a training run: one typed object, per-mode presets, the CLI flags derived from it.
+
+A :class:`TrainConfig` holds every setting of a run (``python train.py`` / ``ee-formation train``: each field is
+one flag, ``--n-envs`` for ``n_envs``). Fields left ``None`` take their training mode's preset
+(:data:`PRESETS`) when :meth:`TrainConfig.resolved` fills and checks them; a resolved configuration is what a
+run saves in its ``config.json`` and what :meth:`TrainConfig.from_dict` reads back. The training design
+behind the presets (episode length, start noise, PPO settings, rollout layout) is in docs/training.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from ee_formation_env.baselines import MODEL_BASED_POLICIES
+from ee_formation_env.baselines.learned.features import FEATURE_SETS
+from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
+from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
+
+MODES = ("residual", "torque")
+EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
+
+
+@dataclass(frozen=True)
+class PPOSettings:
+    """PPO's network and optimizer settings of a mode (the rest is common: GAE 0.95, clip 0.2)."""
+
+    net_arch: tuple[int, ...]  # hidden layer widths of the actor and the critic
+    n_epochs: int  # passes over each rollout
+    learning_rate: float
+    learning_rate_decay: bool  # linear decay to 0 over the run
+
+
+@dataclass(frozen=True)
+class ModePreset:
+    """The defaults of one training mode: what every ``None`` field of :class:`TrainConfig` becomes."""
+
+    total_timesteps: int  # agent steps (all agents count)
+    train_episode_seconds: float  # s: short episodes give many starts per budget
+    train_initial_q_noise: float | None  # rad, half-width; None: the scenario's
+    obs_features: str  # features appended to each agent's observation (features.py)
+    gamma: float  # discount per control step
+    hold_penalty: float  # training-only shaping (shaping.py)
+    log_std_init: float  # initial log standard deviation of the Gaussian policy
+    ppo: PPOSettings
+    n_envs: int  # envs, each with all its agents
+    n_steps: int  # PPO steps per env slot per update
+    n_workers: int  # worker processes for the envs
+    in_process_envs: int  # with worker processes: envs the learner's process steps itself
+
+
+#: Per-mode presets (docs/training.md gives the evidence for each value). Residual mode: short episodes, the
+#: raw observation, 32 envs of which 18 in the learner's process beside one worker (throughput). Torque
+#: mode: longer episodes, wider start noise, log-scaled error features, the hold penalty and a larger network;
+#: the layout of its documented 30-minute run (8 envs in-process, 128 steps).
+PRESETS: dict[str, ModePreset] = {
+    "residual": ModePreset(
+        total_timesteps=600_000, train_episode_seconds=3.0, train_initial_q_noise=None, obs_features="none",
+        gamma=0.99, hold_penalty=0.0, log_std_init=-1.0,
+        ppo=PPOSettings(net_arch=(64, 64), n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
+        n_envs=32, n_steps=32, n_workers=1, in_process_envs=18),
+    "torque": ModePreset(
+        total_timesteps=5_000_000, train_episode_seconds=10.0, train_initial_q_noise=0.1, obs_features="log-error",
+        gamma=0.99, hold_penalty=0.5, log_std_init=-2.0,
+        ppo=PPOSettings(net_arch=(128, 128), n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
+        n_envs=8, n_steps=128, n_workers=0, in_process_envs=0),
+}
+IMITATION_NET_ARCH = (256, 256)  # a copy of a reference controller (--imitate) needs a wider actor
+
+
+def _preset_text(name: str) -> str:
+    return ", ".join(f"{mode}: {getattr(preset, name)}" for mode, preset in PRESETS.items())
+
+
+def _flag(help: str, default: Any = None, **argparse_kwargs: Any) -> Any:
+    """A field that is also a command-line flag: its help and any argparse keywords travel in its metadata."""
+    return field(default=default, metadata={"help": help, **argparse_kwargs})
+
+
+@dataclass
+class TrainConfig:
+    """Every setting of a training run; ``None`` fields take the mode's preset (:meth:`resolved`)."""
+
+    scenario: Any = _flag("built-in name or YAML/JSON scenario file", "planar_square")
+    mode: str = _flag("residual (default): learn a correction on top of --reference; torque: learn torques",
+                      "residual", choices=MODES)
+    reference: str = _flag("reference controller of --mode residual", "adaptive_jacobian",
+                           choices=MODEL_BASED_POLICIES)
+    residual_scale: float = _flag("residual action scale (0, 1]", 0.3, type=float)
+    correction_penalty: float = _flag("residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]",
+                                      0.5, type=float)
+    residual_gate: bool = _flag("residual mode: scale the correction by min(1, the agent's error in tolerances), "
+                                "so that it fades out at the goal (default on)", True,
+                                action=argparse.BooleanOptionalAction)
+    imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
+                                "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
+                                "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
+    imitation_rounds: int = _flag("--imitate: demonstration rounds (the first driven by the reference, the next ones "
+                                  "partly by the learner)", IMITATION_ROUNDS, type=int)
+    imitation_episodes: int = _flag("--imitate: training episodes per demonstration round", IMITATION_EPISODES,
+                                    type=int)
+    algo: str = _flag("learning algorithm", "ppo", choices=("ppo", "sac"))
+    backend: str = _flag("training library", "sb3", choices=("sb3", "rllib"))
+    total_timesteps: int | None = _flag(f"agent steps (all agents count); default {_preset_text('total_timesteps')}",
+                                        type=int)
+    n_envs: int | None = _flag(f"parallel envs (each with all its agents; default {_preset_text('n_envs')})", type=int)
+    n_steps: int | None = _flag("ppo: steps per env slot per update (an update learns from n_steps x n_envs x agents "
+                                "agent steps: 4,096 with either mode's defaults on 4 agents; default "
+                                f"{_preset_text('n_steps')})", type=int)
+    n_workers: int | None = _flag("worker processes for the envs (0 = step them in this process; default "
+                                  f"{_preset_text('n_workers')})", type=int)
+    in_process_envs: int | None = _flag("with worker processes: how many of the envs the learner's process steps "
+                                        "while the workers step the others (default "
+                                        f"{_preset_text('in_process_envs')}; 0 without workers)", type=int)
+    train_episode_seconds: float | None = _flag("episode length while training, s (default "
+                                                f"{_preset_text('train_episode_seconds')})", type=float)
+    train_initial_q_noise: float | None = _flag("half-width of the uniform noise on the initial joint positions while "
+                                                f"training, rad (default {_preset_text('train_initial_q_noise')}, "
+                                                "None: the scenario's; evaluation uses the scenario's)", type=float)
+    gamma: float | None = _flag(f"discount per control step (default {_preset_text('gamma')})", type=float)
+    log_std_init: float | None = _flag("initial log standard deviation of the Gaussian policy (ppo; default "
+                                       f"{_preset_text('log_std_init')})", type=float)
+    obs_features: str | None = _flag("features appended to each agent's observation, computed from it alone "
+                                     f"(ee_formation_env.baselines.learned.features; default "
+                                     f"{_preset_text('obs_features')})", choices=FEATURE_SETS)
+    hold_penalty: float | None = _flag(f"training only: subtract this times min(1, |dq| / {SPEED_SCALE} rad/s) from an "
+                                       "agent's reward on steps where it is in formation "
+                                       "(ee_formation_env.baselines.learned.shaping), in [0, 1]; default "
+                                       f"{_preset_text('hold_penalty')}", type=float)
+    max_train_seconds: float | None = _flag("sb3: stop training after this wall time, s, even if --total-timesteps is "
+                                            "not reached (default: no limit)", type=float)
+    seed: int = _flag("training seed", 0, type=int)
+    out: str | None = _flag("run directory (default runs/<name>)")
+    eval_only: str | None = _flag("evaluate a saved run only", metavar="RUN_DIR")
+    eval_episodes: int = _flag("held-out episodes per policy in the comparison", 10, type=int)
+    eval_workers: int = _flag("processes for the evaluation episodes (0 = run them in this process)", 2, type=int)
+    eval_seconds: float | None = _flag("episode length for the comparison, s (default: the scenario's)", type=float)
+    address: str | None = _flag("rllib: address of an existing Ray cluster")
+    no_progress: bool = _flag("no progress bars", False, action="store_true")
+
+    # ------------------------------------------------------------------------------------------ presets
+    @property
+    def preset(self) -> ModePreset:
+        return PRESETS[self.mode]
+
+    @property
+    def ppo(self) -> PPOSettings:
+        """The mode's PPO settings; an imitated policy gets the wider actor."""
+        settings = self.preset.ppo
+        if self.imitate not in (None, "none"):
+            settings = dataclasses.replace(settings, net_arch=IMITATION_NET_ARCH)
+        return settings
+
+    def resolved(self) -> "TrainConfig":
+        """A copy with every ``None`` field filled from the mode's preset, checked: raises ``ValueError``
+        naming the flag of the first setting out of range."""
+        if self.mode not in MODES:
+            raise ValueError(f"--mode: expected one of {list(MODES)}, got {self.mode!r}")
+        config = dataclasses.replace(self)
+        preset = config.preset
+        if config.imitate is None:
+            config.imitate = "none"
+        imitating = config.imitate != "none"
+        if config.total_timesteps is None:
+            config.total_timesteps = IMITATION_TIMESTEPS if imitating else preset.total_timesteps
+        if config.obs_features is None:  # an imitated policy sees what its reference sees
+            config.obs_features = "none" if imitating else preset.obs_features
+        for name in ("train_episode_seconds", "gamma", "log_std_init", "hold_penalty", "n_envs", "n_steps",
+                     "n_workers"):
+            if getattr(config, name) is None:
+                setattr(config, name, getattr(preset, name))
+        if config.train_initial_q_noise is None:
+            config.train_initial_q_noise = preset.train_initial_q_noise
+        if config.in_process_envs is None:  # the mode's share, where it leaves the workers envs to step
+            share = preset.in_process_envs
+            config.in_process_envs = share if config.n_workers > 0 and share < config.n_envs else 0
+        config.check()
+        return config
+
+    def check(self) -> None:
+        """Raise ``ValueError`` naming the flag of the first setting out of range (a resolved configuration)."""
+        imitating = self.imitate != "none"
+        if self.total_timesteps < (0 if imitating else 1):
+            raise ValueError("--total-timesteps must be >= 1 (>= 0 with --imitate: the imitated policy as it is)")
+        if self.n_envs < 1 or self.n_steps < 1 or self.eval_episodes < 1:
+            raise ValueError("--n-envs, --n-steps and --eval-episodes must be >= 1")
+        if imitating and self.obs_features != "none":
+            raise ValueError("--obs-features: expected none with --imitate (the policy sees what its reference sees)")
+        if not 0 < self.residual_scale <= 1:
+            raise ValueError("--residual-scale: expected a value in (0, 1]")
+        if imitating and (self.mode != "torque" or self.backend != "sb3" or self.algo != "ppo"):
+            raise ValueError("--imitate: expected none, except with --mode torque, --backend sb3 and --algo ppo")
+        if self.imitation_rounds < 1 or self.imitation_episodes < 1:
+            raise ValueError("--imitation-rounds and --imitation-episodes must be >= 1")
+        if self.n_workers < 0 or self.eval_workers < 0:
+            raise ValueError("--n-workers and --eval-workers must be >= 0")
+        if self.in_process_envs and not (self.n_workers > 0 and 0 < self.in_process_envs < self.n_envs):
+            raise ValueError("--in-process-envs: expected 0, or with --n-workers >= 1 a number below --n-envs")
+        if self.backend == "rllib" and self.algo != "ppo":
+            raise ValueError("--backend rllib supports --algo ppo only")
+        if not 0 <= self.correction_penalty <= 1:
+            raise ValueError("--correction-penalty: expected a value in [0, 1]")
+        if not 0 < self.gamma <= 1:
+            raise ValueError("--gamma: expected a value in (0, 1]")
+        if not 0 <= self.hold_penalty <= 1:
+            raise ValueError("--hold-penalty: expected a value in [0, 1]")
+        if self.max_train_seconds is not None and not self.max_train_seconds > 0:
+            raise ValueError("--max-train-seconds: expected a value > 0")
+        if not math.isfinite(self.log_std_init):
+            raise ValueError("--log-std-init: expected a finite number")
+        if (self.train_initial_q_noise is not None and self.train_initial_q_noise < 0) or self.train_episode_seconds <= 0:
+            raise ValueError("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
+
+    # ------------------------------------------------------------------------------------------ the env
+    def training_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of the training env: episode length and start randomization."""
+        overrides: dict[str, Any] = {"episode_seconds": self.train_episode_seconds}
+        if self.train_initial_q_noise is not None:
+            overrides["initial_q_noise"] = self.train_initial_q_noise
+        return overrides
+
+    # ------------------------------------------------------------------------------------------ files
+    #: Fields that say where a run is, not what it is: not saved in its config.json.
+    LOCATION_FIELDS = ("out", "eval_only")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The saved settings (every field but :data:`LOCATION_FIELDS`), JSON-ready."""
+        return {spec.name: getattr(self, spec.name) for spec in fields(self) if spec.name not in self.LOCATION_FIELDS}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "TrainConfig":
+        """The configuration a run saved (extra keys such as ``scenario_data`` and ``versions`` are ignored;
+        settings a run saved before they existed take their defaults)."""
+        names = {spec.name for spec in fields(cls)}
+        return cls(**{key: value for key, value in data.items() if key in names})
+
+    @classmethod
+    def load(cls, run_dir: str | Path) -> "TrainConfig":
+        """The configuration saved in ``run_dir/config.json``."""
+        return cls.from_dict(json.loads((Path(run_dir) / "config.json").read_text()))
+
+    # ------------------------------------------------------------------------------------------ the CLI
+    @classmethod
+    def add_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        """One flag per field (``--n-envs`` for ``n_envs``), with the field's help, type and choices."""
+        for spec in fields(cls):
+            kwargs = {key: value for key, value in spec.metadata.items()}
+            if kwargs.get("action") != "store_true":
+                kwargs["default"] = spec.default
+            parser.add_argument("--" + spec.name.replace("_", "-"), **kwargs)
+
+    @classmethod
+    def parser(cls, prog: str = "train.py", description: str | None = None) -> argparse.ArgumentParser:
+        parser = argparse.ArgumentParser(prog=prog, description=description)
+        cls.add_arguments(parser)
+        return parser
+
+    @classmethod
+    def from_args(cls, argv: Sequence[str] | None = None, prog: str = "train.py",
+                  description: str | None = None) -> "TrainConfig":
+        """Parse command-line flags into a resolved configuration; a bad value is a parser error naming its flag."""
+        parser = cls.parser(prog, description)
+        namespace = parser.parse_args(argv)
+        try:
+            return cls(**vars(namespace)).resolved()
+        except ValueError as error:
+            parser.error(str(error))
+            raise  # parser.error exits; this line is never reached

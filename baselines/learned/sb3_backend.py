@@ -1,0 +1,147 @@
+"""The Stable-Baselines3 backend of ``train.py``: the model, its VecEnv, callbacks and the saved artefacts.
+
+One policy is shared by every agent: :class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv` gives each
+agent of each env a slot, normalized by ``VecNormalize`` and monitored by ``VecMonitor``. The PPO settings
+come from the run's configuration (:class:`ee_formation_env.baselines.learned.config.TrainConfig` and its mode's
+preset); docs/training.md explains them.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.imitation import imitate
+from ee_formation_env.baselines.learned.policy import ObservationNormalizer
+from ee_formation_env.baselines.learned.training_env import env_factory
+
+
+def build_sb3_model(args: TrainConfig, out_dir: Path | None) -> Any:
+    """The SB3 model (with its normalized, monitored VecEnv as ``model.get_env()``) that ``train_sb3`` trains;
+    ``out_dir`` None: no monitor file and no TensorBoard logs (the throughput benchmark)."""
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
+
+    import torch
+
+    torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
+    factory = env_factory(args)
+    # No per-step infos cross the worker pipes: the learner reads none (the VecEnv adds what SB3 needs).
+    venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers, info_keys=(),
+                              in_process_envs=args.in_process_envs)
+    venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / "monitor.csv"))
+    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
+    # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
+    # policy starts far from "no correction" and a torque policy saturates its joints half of the time.
+    settings = args.ppo  # the mode's; a copy of a reference controller (--imitate) gets a wider actor
+    policy_kwargs: dict[str, Any] = dict(net_arch=list(settings.net_arch))
+    if args.algo == "ppo":
+        policy_kwargs["log_std_init"] = args.log_std_init
+    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
+                  tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
+    if args.algo == "ppo":
+        rate = settings.learning_rate
+        # A linear decay to 0 over the run (SB3 passes the remaining progress, 1 -> 0) settles the final policy.
+        learning_rate = functools.partial(_linear_schedule, rate) if settings.learning_rate_decay else rate
+        # n_steps x (n_envs x agents) slots per update: 4,096 agent steps with either mode's defaults.
+        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=min(1024, args.n_steps * venv.num_envs),
+                   n_epochs=settings.n_epochs, learning_rate=learning_rate, gamma=args.gamma, gae_lambda=0.95,
+                   clip_range=0.2, **common)
+    return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
+               learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
+
+
+def _linear_schedule(initial: float, progress_remaining: float) -> float:
+    return initial * progress_remaining
+
+
+def train_sb3(args: TrainConfig, out_dir: Path) -> None:
+    """Train ``args`` (a resolved configuration) with SB3; writes the model, its observation normalization,
+    checkpoints, ``timing.json``, ``monitor.csv`` and ``learning_curve.csv`` into ``out_dir``."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    model = build_sb3_model(args, out_dir)
+    venv = model.get_env()
+    if args.imitate != "none":
+        imitate(model, args, out_dir)
+    checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
+                                     save_path=str(out_dir / "checkpoints"), name_prefix="model")
+    callbacks = [checkpoints]
+    if args.max_train_seconds is not None:
+        callbacks.append(_time_limit_callback(args.max_train_seconds))
+    if not args.no_progress:
+        callbacks.append(_progress_callback(collected_steps(args.total_timesteps, model, venv.num_envs)))
+    started = time.time()
+    if args.total_timesteps > 0:
+        model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
+    seconds = time.time() - started
+    (out_dir / "timing.json").write_text(json.dumps({"train_seconds": seconds, "agent_steps": model.num_timesteps,
+                                                     "agent_steps_per_s": model.num_timesteps / max(seconds, 1e-9)}))
+    model.save(out_dir / "model.zip")
+    ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
+        out_dir / "obs_normalizer.pkl")
+    venv.close()
+    _write_learning_curve_from_monitor(out_dir)
+
+
+def _time_limit_callback(seconds: float) -> Any:
+    """Ends ``learn`` at the first step after ``seconds`` of wall time (from the start of training)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class TimeLimit(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.deadline = time.time() + seconds
+
+        def _on_step(self) -> bool:
+            return time.time() < self.deadline
+
+    return TimeLimit()
+
+
+def collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:
+    """Agent steps SB3 actually collects for ``total_timesteps``: PPO collects whole rollouts of
+    ``n_steps * num_envs``, SAC whole vec-env steps of ``num_envs``, so it stops at or after the total."""
+    chunk = getattr(model, "n_steps", 1) * num_envs
+    return math.ceil(total_timesteps / chunk) * chunk
+
+
+def _progress_callback(total: int) -> Any:
+    """A tqdm bar over the agent steps of training, ``total`` being what will be collected (no overshoot)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm.auto import tqdm
+
+    class TrainingProgress(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, desc="training", unit=" agent steps", unit_scale=True)
+
+        def _on_step(self) -> bool:
+            self.bar.update(min(self.training_env.num_envs, total - self.bar.n))
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TrainingProgress()
+
+
+def _write_learning_curve_from_monitor(out_dir: Path) -> None:
+    """``learning_curve.csv``: agent steps so far and episode return (mean over agents), per episode."""
+    monitor = out_dir / "monitor.csv"
+    rows = []
+    if monitor.exists():
+        lines = [line for line in monitor.read_text().splitlines() if line and not line.startswith("#")]
+        total = 0
+        for line in lines[1:]:
+            reward, length, _ = (float(x) for x in line.split(","))
+            total += int(length)
+            rows.append((total, reward))
+    with open(out_dir / "learning_curve.csv", "w", encoding="utf-8") as handle:
+        handle.write("agent_steps,episode_return\n")
+        handle.writelines(f"{steps},{ret}\n" for steps, ret in rows)
