@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import gymnasium
 import numpy as np
 
+from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
 from ee_formation_env.task import FormationTask
 
 # (entry, size, meaning (unit)): the slot entries in order, then the joint entries.
@@ -77,6 +78,29 @@ class ObservationLayout:
     @property
     def size(self) -> int:
         return self.n_slots * self.slot_size + 2 * self.n_joints
+
+    @property
+    def formation_kind(self) -> str:
+        """``"distance"`` (one error entry per slot) or ``"displacement"`` (``dim`` entries)."""
+        return "distance" if self.error_width == 1 else "displacement"
+
+    def slot_tolerances(self, parts: ObservationParts,
+                        position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
+        """Each neighbour slot's success tolerance in formation units, ``(n_slots,)`` (or ``(k, n_slots)``):
+        the reward's :func:`~ee_formation_env.reward.edge_tolerances` of the desired length the slot carries,
+        for an edge accuracy ``position_tolerance`` (m). Padding slots get that of a 1e-9 m edge (their
+        errors are 0, so a ratio never divides by zero)."""
+        lengths = np.maximum(parts.desired[..., 0], 1e-9)
+        return edge_tolerances(self.formation_kind, lengths, position_tolerance)
+
+    def error_ratios(self, observation: np.ndarray, position_tolerance: float = DEFAULT_POSITION_TOLERANCE
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The edge errors in success tolerances as the agent sees them: each slot's ``e_ij / tol_ij``
+        ``(n_slots, w)`` (0 for padding; with a leading k axis for a stack), and the mask of real slots."""
+        parts = self.split(observation)
+        real = parts.mask > 0.5
+        ratios = parts.edge_errors / self.slot_tolerances(parts, position_tolerance)[..., None]
+        return np.where(real[..., None], ratios, 0.0), real
 
     def split(self, observation: np.ndarray) -> ObservationParts:
         """Parts of one observation (size,), or of a stack of observations (k, size) with a leading k axis."""

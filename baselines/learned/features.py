@@ -24,6 +24,7 @@ from typing import Any, Callable, Mapping
 
 import gymnasium
 import numpy as np
+from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
@@ -43,15 +44,8 @@ def feature_size(layout: ObservationLayout, features: str) -> int:
 def error_ratios(layout: ObservationLayout, observation: np.ndarray,
                  position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
     """Each neighbour slot's edge error in success tolerances, ``(slots, w)`` (0 for padding), and the mask of
-    real slots, read from one observation."""
-    parts = layout.split(observation)
-    real = parts.mask > 0.5
-    errors = parts.edge_errors  # (slots, w)
-    if layout.error_width == 1:
-        tolerances = 2.0 * np.maximum(parts.desired[:, :1], 1e-9) * position_tolerance
-    else:
-        tolerances = np.full(errors.shape, position_tolerance)
-    return np.where(real[:, None], errors / tolerances, 0.0), real
+    real slots, read from one observation (:meth:`ObservationLayout.error_ratios`)."""
+    return layout.error_ratios(observation, position_tolerance)
 
 
 def log_error_features(layout: ObservationLayout, observation: np.ndarray,
@@ -98,23 +92,31 @@ def feature_space(space: gymnasium.spaces.Box, layout: ObservationLayout, featur
     return gymnasium.spaces.Box(low, high, dtype=np.float32)
 
 
-class FeatureEnv:
-    """A parallel env whose observations carry the features appended; everything else is the wrapped env's."""
+class FeatureEnv(BaseParallelWrapper):
+    """A parallel env whose observations carry the features appended; everything else is the wrapped env's.
+
+    Its observations are longer than the wrapped env's :class:`~ee_formation_env.observation.ObservationLayout`
+    describes: :meth:`raw_observation_layout` is the layout of their first part.
+    """
 
     def __init__(self, env: Any, features: str = "log-error"):
         _check(features)
-        self.env, self.features = env, features
+        super().__init__(env)
+        self.features = features
         self._transforms = {agent: transform(env.observation_layout(agent), features) for agent in env.possible_agents}
         self._spaces = {agent: feature_space(env.observation_space(agent), env.observation_layout(agent), features)
                         for agent in env.possible_agents}
 
-    def __getattr__(self, name: str) -> Any:
-        if name == "env":  # not set yet (e.g. during unpickling): no delegation loop
-            raise AttributeError(name)
-        return getattr(self.env, name)
-
     def observation_space(self, agent: str) -> gymnasium.spaces.Box:
         return self._spaces[agent]
+
+    def raw_observation_layout(self, agent: str) -> ObservationLayout:
+        """The layout of the first part of ``agent``'s observation: the wrapped env's observation."""
+        return self.env.observation_layout(agent)
+
+    def observation_layout(self, agent: str) -> ObservationLayout:
+        raise TypeError("FeatureEnv.observation_layout: the observations carry appended features that no "
+                        "ObservationLayout describes; raw_observation_layout(agent) is the layout of their first part")
 
     def _apply(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         return {agent: self._transforms[agent](obs) for agent, obs in observations.items()}
@@ -126,9 +128,6 @@ class FeatureEnv:
     def step(self, actions: Mapping[str, np.ndarray]):
         observations, rewards, terminations, truncations, infos = self.env.step(actions)
         return self._apply(observations), rewards, terminations, truncations, infos
-
-    def close(self) -> None:
-        self.env.close()
 
 
 class FeaturePolicy:

@@ -23,6 +23,8 @@ import numpy as np
 
 from ee_formation_env import baselines
 from ee_formation_env.baselines.reference.controllers import PolicyTeam
+from pettingzoo.utils.wrappers import BaseParallelWrapper
+
 from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
 
@@ -51,12 +53,8 @@ def error_gates(layout: ObservationLayout, observations: np.ndarray,
     """:func:`error_gate` of a stack of k observations (k, size) of one layout: (k,)."""
     parts = layout.split(observations)
     real = parts.mask > 0.5  # (k, slots)
-    errors = np.linalg.norm(parts.edge_errors, axis=2)
-    if layout.error_width == 1:
-        tolerances = np.where(real, 2.0 * parts.desired[:, :, 0] * position_tolerance, 1.0)
-    else:
-        tolerances = np.full(errors.shape, position_tolerance)
-    ratios = np.where(real, errors / tolerances, 0.0)
+    errors = np.linalg.norm(parts.edge_errors, axis=2)  # |e_ij| per slot
+    ratios = np.where(real, errors / layout.slot_tolerances(parts, position_tolerance), 0.0)
     return np.minimum(1.0, ratios.sum(axis=1) / real.sum(axis=1))
 
 
@@ -76,7 +74,7 @@ class ResidualPolicy:
         return combine(self.reference(observation), self.learned(observation), scale)
 
 
-class ResidualActionEnv:
+class ResidualActionEnv(BaseParallelWrapper):
     """A parallel env whose actions are residuals on top of one reference controller per agent.
 
     Observations and spaces are the wrapped env's; each agent's reward is the env's times
@@ -93,7 +91,8 @@ class ResidualActionEnv:
             raise ValueError(f"residual_scale: expected a value in (0, 1], got {scale!r}")
         if not 0 <= correction_penalty <= 1:
             raise ValueError(f"correction_penalty: expected a value in [0, 1], got {correction_penalty!r}")
-        self.env, self.scale, self.correction_penalty = env, float(scale), float(correction_penalty)
+        super().__init__(env)
+        self.scale, self.correction_penalty = float(scale), float(correction_penalty)
         self.agents_in_order = list(env.possible_agents)
         shapes = {env.action_space(agent).shape for agent in self.agents_in_order}
         self._uniform = len(shapes) == 1
@@ -104,11 +103,6 @@ class ResidualActionEnv:
         # Agents of one robot type are stepped as a group of one env (ResidualGroup: the team in one array);
         # mixed robots agent by agent.
         self._group = ResidualGroup([self]) if self._uniform else None
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "env":  # not set yet (e.g. during unpickling): no delegation loop
-            raise AttributeError(name)
-        return getattr(self.env, name)
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._observations, infos = self.env.reset(seed=seed, options=options)
@@ -163,9 +157,6 @@ class ResidualActionEnv:
             factors = (1.0 - self.correction_penalty * penalties).tolist()
             rewards = {agent: rewards[agent] * factor for agent, factor in zip(self.agents_in_order, factors)}
         return observations, rewards, terminations, truncations, infos
-
-    def close(self) -> None:
-        self.env.close()
 
 
 class ResidualGroup:

@@ -24,42 +24,31 @@ from __future__ import annotations
 from typing import Any, Mapping
 
 import numpy as np
-
-from ee_formation_env.baselines.learned.features import error_ratios
+from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 SPEED_SCALE = 0.05  # rad/s: joint speed (2-norm over the arm's joints) at which the penalty is full
 
 
 def hold_penalty_factor(layout: Any, observation: np.ndarray) -> float:
     """``[every real slot within tolerance] * min(1, |dq| / SPEED_SCALE)`` for one observation."""
-    ratios, real = error_ratios(layout, observation)
+    ratios, real = layout.error_ratios(observation)
     if not np.all(np.abs(ratios[real]) <= 1.0):
         return 0.0
     return min(1.0, float(np.linalg.norm(layout.split(observation).dq)) / SPEED_SCALE)
 
 
-class HoldShapingEnv:
+class HoldShapingEnv(BaseParallelWrapper):
     """A parallel env whose rewards carry the hold penalty (module docstring); all else is the wrapped env's."""
 
     def __init__(self, env: Any, hold_penalty: float):
         if not 0 <= hold_penalty <= 1:
             raise ValueError(f"hold_penalty: expected a value in [0, 1], got {hold_penalty!r}")
-        self.env, self.hold_penalty = env, float(hold_penalty)
+        super().__init__(env)
+        self.hold_penalty = float(hold_penalty)
         self._layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents}
-
-    def __getattr__(self, name: str) -> Any:
-        if name == "env":  # not set yet (e.g. during unpickling): no delegation loop
-            raise AttributeError(name)
-        return getattr(self.env, name)
-
-    def reset(self, seed: int | None = None, options: dict | None = None):
-        return self.env.reset(seed=seed, options=options)
 
     def step(self, actions: Mapping[str, np.ndarray]):
         observations, rewards, terminations, truncations, infos = self.env.step(actions)
         shaped = {agent: reward - self.hold_penalty * hold_penalty_factor(self._layouts[agent], observations[agent])
                   for agent, reward in rewards.items()}
         return observations, shaped, terminations, truncations, infos
-
-    def close(self) -> None:
-        self.env.close()
