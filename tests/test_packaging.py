@@ -39,7 +39,15 @@ def test_wheel_contents(wheel):
                      "ee_formation_env/assets/__init__.py", "ee_formation_env/assets/planar_2link.urdf",
                      "ee_formation_env/assets/pera_arm.urdf"):
         assert required in names, required
-    assert not any(name.startswith("tests/") for name in names)
+    for required in ("ee_formation_env/integrations/sb3.py", "ee_formation_env/baselines/__init__.py",
+                     "ee_formation_env/baselines/reference/controllers.py", "ee_formation_env/baselines/learned/config.py",
+                     "ee_formation_env/baselines/cli.py"):
+        assert required in names, required
+    # Only the env's package at the top: no `baselines` (another project's name too), no studies or benchmarks.
+    assert {name.split("/")[0] for name in names if not name.split("/")[0].endswith((".dist-info", ".data"))} == {
+        "ee_formation_env"}
+    entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
+    assert "ee-formation = ee_formation_env.baselines.cli:main" in zipfile.ZipFile(wheel).read(entry_points).decode()
     metadata = next(n for n in names if n.endswith(".dist-info/METADATA"))
     text = zipfile.ZipFile(wheel).read(metadata).decode()
     for dependency in ("pybullet", "pettingzoo", "gymnasium", "numpy", "pyyaml"):
@@ -62,6 +70,13 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
         "space = env.observation_space('arm_0')\n"
         "print('obs', obs['arm_0'].shape == space.shape and space.contains(obs['arm_0']))\n"
         "env.close()\n"
+        "import ee_formation_env.baselines.learned.config\n"
+        "print(pathlib.Path(ee_formation_env.baselines.__file__).resolve())\n"
+        "try:\n"
+        "    import baselines\n"
+        "    print('baselines', baselines.__file__)\n"
+        "except ImportError:\n"
+        "    print('no baselines')\n"
     )
     environment = dict(os.environ, PYTHONPATH=str(target))
     run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=environment, capture_output=True,
@@ -72,3 +87,5 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
     assert target.resolve() in package_file.parents
     assert target.resolve() in urdf.parents and urdf.name == "pera_arm.urdf"
     assert lines[2] == "obs True"
+    assert target.resolve() in Path(lines[3]).parents  # the learning wing installed inside the env's package
+    assert lines[4] == "no baselines"
