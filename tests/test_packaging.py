@@ -1,7 +1,8 @@
-"""Packaging: the wheel ships the package, its robot assets, and works when installed on its own."""
+"""Packaging: the wheel ships the package, its robot assets and built-in scenarios, and works installed on its own."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -39,6 +40,10 @@ def test_wheel_contents(wheel):
                      "ee_formation_env/assets/__init__.py", "ee_formation_env/assets/planar_2link.urdf",
                      "ee_formation_env/assets/pera_arm.urdf"):
         assert required in names, required
+    from ee_formation_env.builtin import BUILTIN_SCENARIOS
+
+    for scenario in BUILTIN_SCENARIOS:  # package data: the built-in scenarios' YAML files
+        assert f"ee_formation_env/builtin/{scenario}.yaml" in names, scenario
     assert not any(name.startswith("tests/") for name in names)
     metadata = next(n for n in names if n.endswith(".dist-info/METADATA"))
     text = zipfile.ZipFile(wheel).read(metadata).decode()
@@ -53,7 +58,7 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
                              str(target), str(wheel)], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     code = (
-        "import ee_formation_env, pathlib\n"
+        "import ee_formation_env, json, pathlib\n"
         "print(pathlib.Path(ee_formation_env.__file__).resolve())\n"
         "from ee_formation_env.scenario import ROBOTS\n"
         "print(ROBOTS['pera_arm'].urdf.resolve())\n"
@@ -62,6 +67,9 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
         "space = env.observation_space('arm_0')\n"
         "print('obs', obs['arm_0'].shape == space.shape and space.contains(obs['arm_0']))\n"
         "env.close()\n"
+        "from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario\n"
+        "print(len(BUILTIN_SCENARIOS), all(ee_formation_env.load_scenario(n).name == n for n in BUILTIN_SCENARIOS))\n"
+        "print(json.dumps({n: builtin_scenario(n) for n in BUILTIN_SCENARIOS}))\n"
     )
     environment = dict(os.environ, PYTHONPATH=str(target))
     run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=environment, capture_output=True,
@@ -72,3 +80,7 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
     assert target.resolve() in package_file.parents
     assert target.resolve() in urdf.parents and urdf.name == "pera_arm.urdf"
     assert lines[2] == "obs True"
+    from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario
+
+    assert lines[3] == f"{len(BUILTIN_SCENARIOS)} True"  # every built-in loads from the installed package data
+    assert lines[4] == json.dumps({name: builtin_scenario(name) for name in BUILTIN_SCENARIOS})
