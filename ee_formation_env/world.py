@@ -17,9 +17,6 @@ from typing import Iterator, Sequence
 import numpy as np
 import pybullet
 
-RenderMode = str  # "human" | "rgb_array" | None
-
-
 class PhysicsWorld:
     """One PyBullet client (DIRECT, or GUI for ``render_mode="human"``) with a fixed time step.
 
@@ -81,12 +78,6 @@ class PhysicsWorld:
             for body, joints, torques in commands:
                 set_motors(body, joints, torque_control, forces=torques, physicsClientId=client)
             step(physicsClientId=client)
-
-    def send_torques(self, commands: Sequence[tuple[int, Sequence[int], Sequence[float]]]) -> None:
-        """Send every ``(body, joint indices, torques N m)`` command for the next physics step only."""
-        for body, joints, torques in commands:
-            pybullet.setJointMotorControlArray(body, joints, pybullet.TORQUE_CONTROL, forces=torques,
-                                               physicsClientId=self.client)
 
     def save_snapshot(self) -> None:
         """Remember the current world (including contact caches) for :meth:`restore_snapshot`."""
