@@ -14,10 +14,10 @@ Top-level keys: see the table at the end of this docstring (generated from :clas
 the one place where their defaults, units and meanings are written). Every one can also be passed to
 ``parallel_env`` as an override.
 
-Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ROBOTS`) or ``urdf`` (a path, absolute,
-relative to the scenario file, or inside ``pybullet_data``); ``ee_link`` (required with ``urdf``);
-``base_position`` [x, y, z] m (default 0); ``base_rpy`` [roll, pitch, yaw] rad (default 0);
-``initial_q`` rad (default all zeros).
+Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ee_formation_env.robots.ROBOTS`) or
+``urdf`` (a path, absolute, relative to the scenario file, or inside ``pybullet_data``); ``ee_link``
+(required with ``urdf``); ``base_position`` [x, y, z] m (default 0); ``base_rpy`` [roll, pitch, yaw] rad
+(default 0); ``initial_q`` rad (default all zeros).
 """
 
 from __future__ import annotations

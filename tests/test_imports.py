@@ -1,4 +1,4 @@
-"""The env core's modules import each other without circles (one direction per dependency)."""
+"""The env core's modules (ee_formation_env/, not the baselines wing) import each other without circles."""
 
 from __future__ import annotations
 
