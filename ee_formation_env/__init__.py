@@ -8,7 +8,9 @@ Quick use::
 
 Registered ids: PettingZoo ``ee_formation/<scenario>-v0`` for every built-in scenario; Gymnasium
 (centralized, one joint observation and action) ``EEFormation/PlanarSquare-v0`` and
-``EEFormation/SpatialTetrahedron-v0`` (plus the other built-ins in CamelCase).
+``EEFormation/SpatialTetrahedron-v0`` (plus the other built-ins in CamelCase). The built-ins are the YAML
+files in ``ee_formation_env/builtin/`` (:data:`BUILTIN_SCENARIOS`); the scenario format is documented in
+``docs/scenarios.md``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,9 @@ from __future__ import annotations
 from typing import Any
 
 from ee_formation_env.env import FormationEnv
-from ee_formation_env.scenario import BUILTIN_SCENARIOS, ROBOTS, Scenario, load_scenario
+from ee_formation_env.builtin import BUILTIN_SCENARIOS
+from ee_formation_env.robots import ROBOTS
+from ee_formation_env.scenario import Scenario, load_scenario
 
 __all__ = ["FormationEnv", "Scenario", "load_scenario", "parallel_env", "env", "raw_env",
            "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]

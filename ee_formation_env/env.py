@@ -249,14 +249,6 @@ class FormationEnv(ParallelEnv):
         dq = self._last().dq
         return [dq[joints].copy() for joints in self.arm_set.joint_slices]
 
-    def nominal_initial_q(self, agent: str) -> np.ndarray:
-        """The scenario's initial joint positions of ``agent`` (rad), before reset noise."""
-        return self.task.initial_q[self.task.agent_index(agent)].copy()
-
-    def gravity_in_base_frame(self, agent: str) -> np.ndarray:
-        """World gravity (m/s^2) expressed in ``agent``'s base frame: what its own mounting tells it."""
-        return self.task.gravity_in_base_frame(self.task.agent_index(agent))
-
     def state(self) -> np.ndarray:
         """Global state for centralized critics: all end-effector positions (world, m), all q, all dq."""
         measured = self._last()

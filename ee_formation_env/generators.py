@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ee_formation_env.scenario import SPATIAL_INITIAL_Q, ROBOTS
+from ee_formation_env.robots import SPATIAL_INITIAL_Q, ROBOTS
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix
 
 _PLANAR_LINK = 1.5  # m, both links of planar_2link

@@ -1,11 +1,16 @@
-"""Registration of the built-in scenarios in PettingZoo's and Gymnasium's registries."""
+"""Registration of the built-in scenarios in PettingZoo's and Gymnasium's registries.
+
+Every name in :data:`ee_formation_env.builtin.BUILTIN_SCENARIOS` (one YAML file each, see ``docs/scenarios.md``)
+gets both ids; nothing here lists scenarios by hand.
+"""
 
 from __future__ import annotations
 
 import gymnasium
 import pettingzoo
 
-from ee_formation_env.scenario import BUILTIN_SCENARIOS, load_scenario
+from ee_formation_env.builtin import BUILTIN_SCENARIOS
+from ee_formation_env.scenario import load_scenario
 
 PETTINGZOO_NAMESPACE = "ee_formation"
 GYMNASIUM_NAMESPACE = "EEFormation"

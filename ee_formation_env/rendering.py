@@ -8,6 +8,9 @@ render after a reset, on the bases, every link frame and the ghost, so that a vi
 Colours: the current formation's edges are red; the ghost, the desired shape placed where it best fits the
 current end-effectors (:func:`ghost_positions`), is light blue, so that the gap between the two is the
 remaining formation error.
+
+The pixel helpers (:func:`project_points`, :func:`draw_segment`) live here too: everything drawn into a frame
+is this module's; :mod:`ee_formation_env.world` only wraps the PyBullet client.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from ee_formation_env.formation import Formation
-from ee_formation_env.world import PhysicsWorld, draw_segment, project_points
+from ee_formation_env.world import PhysicsWorld
 
 EDGE_COLOR = (220, 30, 30)  # RGB 0-255: the current formation's edges
 GHOST_COLOR = (110, 150, 230)  # RGB 0-255: the target formation placed at the best fit
@@ -199,3 +202,25 @@ class SceneRenderer:
             time.sleep(delay)
         elif delay < -REAL_TIME_SLACK:  # the simulation runs slower than real time: do not rush to catch up
             self._anchor = (now, sim_time)
+
+
+# Drawing into rgb_array frames (pixels), used by the renderer above.
+def project_points(world_to_clip: np.ndarray, points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Pixel coordinates (k, 2) as (column, row) of world points (k, 3)."""
+    homogeneous = np.hstack([points, np.ones((len(points), 1))]) @ world_to_clip.T
+    ndc = homogeneous[:, :2] / homogeneous[:, 3:4]
+    return np.stack([(ndc[:, 0] + 1) * 0.5 * width, (1 - ndc[:, 1]) * 0.5 * height], axis=1)
+
+
+def draw_segment(image: np.ndarray, start: np.ndarray, end: np.ndarray, color: tuple[int, int, int],
+                 thickness: int = 2) -> None:
+    """Draw a line segment between two pixel positions into an RGB image, in place."""
+    length = int(math.ceil(np.linalg.norm(end - start))) + 1
+    samples = np.linspace(0.0, 1.0, max(length, 2))[:, None]
+    points = np.round(start + samples * (end - start)).astype(np.int64)
+    height, width = image.shape[:2]
+    for dx in range(-(thickness // 2), thickness - thickness // 2):
+        for dy in range(-(thickness // 2), thickness - thickness // 2):
+            cols, rows = points[:, 0] + dx, points[:, 1] + dy
+            keep = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+            image[rows[keep], cols[keep]] = color

@@ -24,8 +24,8 @@ class Arm:
 
     Physics set-up (``docs/physics.md``, "PyBullet torque control"): the default velocity motors are disabled,
     link linear/angular damping is zeroed, URDF joint damping is replaced by ``joint_damping``, and the
-    velocity clamp is lifted. Torques last one physics step, so :meth:`apply_torques` is called before
-    every ``stepSimulation`` (:meth:`torque_command` is the one definition of that call). Movable joints that are not on the chain (e.g. a gripper's fingers) are
+    velocity clamp is lifted. Torques last one physics step, so they are re-sent before every
+    ``stepSimulation`` (:meth:`torque_command` is the one definition of that call). Movable joints that are not on the chain (e.g. a gripper's fingers) are
     held where they are by position motors.
     """
 
@@ -79,13 +79,9 @@ class Arm:
         for j, value in zip(self.joint_indices, q):
             pybullet.resetJointState(self.body, j, float(value), 0.0, physicsClientId=self.world.client)
 
-    def read_state(self) -> tuple[np.ndarray, np.ndarray]:
-        """Joint positions (rad) and velocities (rad/s) of the chain joints."""
-        positions, velocities = self.read_state_lists()
-        return np.array(positions), np.array(velocities)
-
     def read_state_lists(self) -> tuple[list[float], list[float]]:
-        """:meth:`read_state` as Python lists (the env joins every arm's into one array)."""
+        """Joint positions (rad) and velocities (rad/s) of the chain joints, as Python lists (the env joins
+        every arm's into one array)."""
         states = pybullet.getJointStates(self.body, self.joint_indices, physicsClientId=self.world.client)
         return [state[0] for state in states], [state[1] for state in states]
 
@@ -93,10 +89,6 @@ class Arm:
         """``(body, joint indices, torques N m)``: what :meth:`PhysicsWorld.step_with_torques` sends before
         each physics step for this arm."""
         return self.body, self.joint_indices, torques
-
-    def apply_torques(self, torques: list[float]) -> None:
-        """Joint torques (N m) for the next physics step only."""
-        self.world.send_torques([self.torque_command(torques)])
 
 
 class ArmSet:

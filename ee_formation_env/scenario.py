@@ -1,18 +1,23 @@
-"""Scenarios: declarative, validated descriptions of a formation task.
+"""Scenarios: the schema and parser of the declarative description of a formation task.
 
 A scenario is plain data: a dict, a YAML/JSON file, or the name of a built-in scenario. It is parsed
 into a frozen :class:`Scenario` by :func:`load_scenario`, which checks every field's type and range;
 the geometric checks that need the robots' kinematic models (links, reachability, singularities,
 rigidity) live in :mod:`ee_formation_env.validation`. Both run before any simulation starts.
 
+This module holds the format only (the format is documented in ``docs/scenarios.md``). The built-in
+scenarios are YAML files in that format (:mod:`ee_formation_env.builtin`), the built-in robots are in
+:mod:`ee_formation_env.robots`; ``ROBOTS``, ``BUILTIN_SCENARIOS``, ``builtin_scenario`` and
+``SPATIAL_INITIAL_Q`` are re-exported here for compatibility.
+
 Top-level keys: see the table at the end of this docstring (generated from :class:`Scenario`'s fields,
 the one place where their defaults, units and meanings are written). Every one can also be passed to
 ``parallel_env`` as an override.
 
-Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ROBOTS`) or ``urdf`` (a path, absolute,
-relative to the scenario file, or inside ``pybullet_data``); ``ee_link`` (required with ``urdf``);
-``base_position`` [x, y, z] m (default 0); ``base_rpy`` [roll, pitch, yaw] rad (default 0);
-``initial_q`` rad (default all zeros).
+Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ee_formation_env.robots.ROBOTS`) or
+``urdf`` (a path, absolute, relative to the scenario file, or inside ``pybullet_data``); ``ee_link``
+(required with ``urdf``); ``base_position`` [x, y, z] m (default 0); ``base_rpy`` [roll, pitch, yaw] rad
+(default 0); ``initial_q`` rad (default all zeros).
 """
 
 from __future__ import annotations
@@ -28,25 +33,13 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from ee_formation_env.assets import asset_path
+# Re-exported for compatibility (plain re-exports, defined once): the built-in scenarios live in
+# ee_formation_env.builtin, the robots in ee_formation_env.robots.
+from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario  # noqa: F401
 from ee_formation_env.formation import FORMATION_KINDS
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 from ee_formation_env.reward import RewardConfig, parse_reward
-
-
-@dataclass(frozen=True)
-class RobotSpec:
-    """A built-in robot: its URDF and end-effector link."""
-
-    urdf: Path
-    ee_link: str
-
-
-ROBOTS: dict[str, RobotSpec] = {
-    "planar_2link": RobotSpec(asset_path("planar_2link.urdf"), "ee_link"),
-    "pera_arm": RobotSpec(asset_path("pera_arm.urdf"), "ee_link"),
-}
-
+from ee_formation_env.robots import ROBOTS, SPATIAL_INITIAL_Q, RobotSpec  # noqa: F401
 
 @dataclass(frozen=True)
 class ArmConfig:
@@ -204,87 +197,6 @@ GAIN_NEUTRAL_FIELDS = frozenset({"name", "episode_seconds", "initial_q_noise", "
                                  "max_joint_velocity", "singularity_threshold", "reward", "model_mismatch",
                                  "controller_gains"})
 __doc__ += "\n" + scenario_keys_table() + "\n"
-
-
-# --------------------------------------------------------------------------------------------------
-# Built-in scenarios
-# --------------------------------------------------------------------------------------------------
-
-_PLANAR_BASES = [[0.0, 0.0, 0.0], [6.0, 0.0, 0.0], [6.0, 6.0, 0.0], [0.0, 6.0, 0.0]]
-_PLANAR_Q0 = [[0.0, math.pi / 3], [math.pi / 2, math.pi / 3], [math.pi, math.pi / 3], [3 * math.pi / 2, math.pi / 3]]
-# Paper Sec. VI-A incidence matrix, columns as (tail, head), 0-based: 1-2, 2-3, 3-4, 4-1, 1-3.
-_PLANAR_EDGES = [[0, 1], [1, 2], [2, 3], [3, 0], [0, 2]]
-
-
-def _square(side: float, centre: tuple[float, float] = (3.0, 3.0)) -> list[list[float]]:
-    half = side / 2
-    cx, cy = centre
-    return [[cx - half, cy - half], [cx + half, cy - half], [cx + half, cy + half], [cx - half, cy + half]]
-
-
-# Gains tuned for the built-in scenarios under their default torque limits and rates (README, "Reference
-# policies"); see baselines/gains.py for the rule used everywhere else.
-_PLANAR_GAINS = {"distance": {"kp": 5.0, "kd": 20.0, "ki": 0.0, "alpha": 0.02},
-                 "displacement": {"kp": 60.0, "kd": 20.0, "ki": 0.0, "alpha": 0.5}}
-_SPATIAL_GAINS = {"distance": {"kp": 120.0, "kd": 2.0, "ki": 1.0, "alpha": 0.01},
-                  "displacement": {"kp": 20.0, "kd": 2.0, "ki": 1.0, "alpha": 1.0}}
-
-
-def _planar_square(formation: str, yaws: list[float] | None = None) -> dict[str, Any]:
-    yaws = yaws or [0.0] * 4
-    arms = []
-    for base, q0, yaw in zip(_PLANAR_BASES, _PLANAR_Q0, yaws):
-        # Subtracting the base yaw from q1 keeps the paper's initial end-effector positions.
-        arms.append({"robot": "planar_2link", "base_position": base, "base_rpy": [0.0, 0.0, yaw],
-                     "initial_q": [q0[0] - yaw, q0[1]]})
-    # 3.0 m, not the paper's 0.4 m square, which is out of reach (see README, "Deviations").
-    return {"arms": arms, "edges": _PLANAR_EDGES, "shape": _square(3.0), "formation": formation, "dim": 2,
-            "controller_gains": dict(_PLANAR_GAINS[formation])}
-
-
-_SPATIAL_BASES = [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.0]]
-# The paper's printed 3D incidence matrix is not an incidence matrix (column 3 repeats edge 1-3,
-# column 5 has no tail, column 6 has three entries); the tetrahedron needs all six edges of K4.
-# Kept: columns 1, 2, 4 (1-2, 1-3, 1-4); repaired: 3-4, 2-4, 2-3. See docs/physics.md, "The paper's 3D incidence matrix".
-_SPATIAL_EDGES = [[0, 1], [0, 2], [2, 3], [0, 3], [1, 3], [1, 2]]
-_TETRA_HALF = 0.4 / (2 * math.sqrt(2))  # a regular tetrahedron of side 0.4 m inscribed in a cube
-
-
-def _tetrahedron(centre: tuple[float, float, float] = (0.25, 0.25, -0.5)) -> list[list[float]]:
-    h = _TETRA_HALF
-    corners = [[-h, -h, -h], [h, -h, h], [h, h, -h], [-h, h, h]]  # each vertex leans toward its base
-    return [[c + o for c, o in zip(centre, corner)] for corner in corners]
-
-
-def _spatial_tetrahedron(formation: str) -> dict[str, Any]:
-    arms = []
-    for i, base in enumerate(_SPATIAL_BASES):
-        yaw = math.atan2(0.25 - base[1], 0.25 - base[0])  # each arm faces the group's centre
-        arms.append({"robot": "pera_arm", "base_position": base, "base_rpy": [0.0, 0.0, yaw],
-                     "initial_q": list(SPATIAL_INITIAL_Q[i % 2])})
-    return {"arms": arms, "edges": _SPATIAL_EDGES, "shape": _tetrahedron(), "formation": formation, "dim": 3,
-            "frame_skip": 5, "episode_seconds": 50.0, "controller_gains": dict(_SPATIAL_GAINS[formation])}
-
-
-# PERA-like arm starts (rad), elbows bent, away from singularities: the end-effectors start 0.25 m in
-# front of their bases, arms 0 and 2 low (z = -0.62 m), arms 1 and 3 high (z = -0.35 m), so the start
-# is not coplanar (a planar start is invariant under the distance gradient of point agents).
-SPATIAL_INITIAL_Q = ((-0.45, 0.1, 0.0, 1.15, 0.0, 0.3, 0.0), (-0.85, 0.1, 0.0, 2.0, 0.0, 0.3, 0.0))
-
-BUILTIN_SCENARIOS: dict[str, Any] = {
-    "planar_square": lambda: _planar_square("distance"),
-    "planar_square_displacement": lambda: _planar_square("displacement"),
-    "planar_square_rotated": lambda: _planar_square("distance", yaws=[0.4, -1.1, 2.3, 0.9]),
-    "spatial_tetrahedron": lambda: _spatial_tetrahedron("distance"),
-    "spatial_tetrahedron_displacement": lambda: _spatial_tetrahedron("displacement"),
-}
-
-
-def builtin_scenario(name: str) -> dict[str, Any]:
-    """A fresh plain-data copy of a built-in scenario."""
-    if name not in BUILTIN_SCENARIOS:
-        raise ValueError(f"scenario: unknown built-in scenario {name!r}; available: {sorted(BUILTIN_SCENARIOS)}")
-    return BUILTIN_SCENARIOS[name]()
 
 
 # --------------------------------------------------------------------------------------------------

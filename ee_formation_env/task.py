@@ -3,8 +3,10 @@
 :func:`build_task` turns a :class:`~ee_formation_env.scenario.Scenario` into a :class:`FormationTask`, the
 one place where the scenario's derived objects are made: the arms' nominal kinematic models, the formation
 (graph, desired relations), per-joint torque limits, nominal initial configurations, reaches and base
-poses. It then runs the geometric checks of :mod:`ee_formation_env.validation`, so a task that exists is a
-valid one, and no physics has started. The env, the reference controllers and their gain rule only read it.
+poses. It then runs the geometric checks of :mod:`ee_formation_env.validation` on what it derived (passed
+as arguments: validation does not import this module, so there is no import circle), so a task that exists
+is a valid one, and no physics has started. The env, the reference controllers and their gain rule only read
+it. The scenario format is documented in ``docs/scenarios.md``.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 from ee_formation_env.formation import Formation, FormationGraph
 from ee_formation_env.kinematics import SerialChain, chain_model, rpy_to_matrix
 from ee_formation_env.scenario import Scenario
+from ee_formation_env.validation import check_task
 from ee_formation_env.workspace import workspace
 
 
@@ -66,8 +69,6 @@ class FormationTask:
 
 def build_task(scenario: Scenario) -> FormationTask:
     """Derive everything from ``scenario`` and validate it; ``ValueError`` naming the field otherwise."""
-    from ee_formation_env.validation import check_task  # validation reads tasks: import here, no cycle
-
     models = []
     for i, arm in enumerate(scenario.arms):
         try:
@@ -86,7 +87,7 @@ def build_task(scenario: Scenario) -> FormationTask:
         base_positions=np.array([arm.base_position for arm in scenario.arms], dtype=np.float64),
         base_rotations=np.stack([rpy_to_matrix(arm.base_rpy) for arm in scenario.arms]),
     )
-    check_task(task)
+    check_task(scenario, task.models, task.initial_q, task.graph, task.reaches)
     return task
 
 

@@ -1,6 +1,9 @@
 """Geometric checks of a formation task (a scenario with its derived models), before any physics starts.
 
-They only check: :func:`ee_formation_env.task.build_task` derives, then calls :func:`check_task`.
+They only check: :func:`ee_formation_env.task.build_task` derives, then calls :func:`check_task` with what
+it derived (the models, initial configurations, graph, reaches). This module takes those as arguments and
+imports nothing from :mod:`ee_formation_env.task`, so the two modules form no import circle. The checks are
+described with the scenario format in ``docs/scenarios.md``.
 
 Checks, each failure a ``ValueError`` naming the problem:
 
@@ -21,10 +24,11 @@ import warnings
 
 import numpy as np
 
-from ee_formation_env.formation import check_rigidity
+from typing import Sequence
+
+from ee_formation_env.formation import FormationGraph, check_rigidity
 from ee_formation_env.kinematics import SerialChain, rpy_to_matrix, singularity_margins
 from ee_formation_env.scenario import Scenario
-from ee_formation_env.task import FormationTask
 from ee_formation_env.workspace import workspace
 
 
@@ -78,13 +82,17 @@ def find_reachable_placement(scenario: Scenario) -> np.ndarray | None:
     return None
 
 
-def check_task(task: FormationTask) -> None:
-    """Run every geometric check (module docstring); ``ValueError`` naming the problem on the first failure."""
-    scenario = task.scenario
-    for i, (arm, model) in enumerate(zip(scenario.arms, task.models)):
-        _check_arm(i, task.initial_q[i], model, scenario)
+def check_task(scenario: Scenario, models: Sequence[SerialChain], initial_q: Sequence[np.ndarray],
+               graph: FormationGraph, reaches: Sequence[float]) -> None:
+    """Run every geometric check (module docstring) on a scenario and what the task derived from it.
 
-    graph = task.graph
+    ``models``, ``initial_q`` (rad) and ``reaches`` (m) are per arm in agent order, ``graph`` the formation
+    graph (:class:`ee_formation_env.task.FormationTask`'s fields). ``ValueError`` naming the problem on the
+    first failure.
+    """
+    for i, (arm, model) in enumerate(zip(scenario.arms, models)):
+        _check_arm(i, initial_q[i], model, scenario)
+
     if not graph.is_connected():
         raise ValueError(f"edges: the formation graph is not connected: {list(scenario.edges)}")
     if scenario.formation == "distance":
@@ -107,7 +115,7 @@ def check_task(task: FormationTask) -> None:
             "shape: the formation is out of reach: no placement of the shape "
             f"({'translations, rotations and reflections' if scenario.formation == 'distance' else 'translations'}) "
             "puts every vertex inside its arm's workspace (arm reaches "
-            f"{[round(reach, 3) for reach in task.reaches]} m from their bases)"
+            f"{[round(reach, 3) for reach in reaches]} m from their bases)"
         )
 
 

@@ -1,4 +1,8 @@
-"""A thin wrapper over one PyBullet physics client: connection, stepping, state snapshots, camera."""
+"""A thin wrapper over one PyBullet physics client: connection, stepping, state snapshots, camera.
+
+Rule: this module talks to PyBullet and nothing else; what is drawn into frames (pixel projection, line
+drawing) lives in :mod:`ee_formation_env.rendering`, its only user.
+"""
 
 from __future__ import annotations
 
@@ -12,9 +16,6 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import pybullet
-
-RenderMode = str  # "human" | "rgb_array" | None
-
 
 class PhysicsWorld:
     """One PyBullet client (DIRECT, or GUI for ``render_mode="human"``) with a fixed time step.
@@ -77,12 +78,6 @@ class PhysicsWorld:
             for body, joints, torques in commands:
                 set_motors(body, joints, torque_control, forces=torques, physicsClientId=client)
             step(physicsClientId=client)
-
-    def send_torques(self, commands: Sequence[tuple[int, Sequence[int], Sequence[float]]]) -> None:
-        """Send every ``(body, joint indices, torques N m)`` command for the next physics step only."""
-        for body, joints, torques in commands:
-            pybullet.setJointMotorControlArray(body, joints, pybullet.TORQUE_CONTROL, forces=torques,
-                                               physicsClientId=self.client)
 
     def save_snapshot(self) -> None:
         """Remember the current world (including contact caches) for :meth:`restore_snapshot`."""
@@ -195,23 +190,3 @@ def _flush_c_stdio() -> None:
     except (OSError, AttributeError):
         pass
 
-
-def project_points(world_to_clip: np.ndarray, points: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Pixel coordinates (k, 2) as (column, row) of world points (k, 3)."""
-    homogeneous = np.hstack([points, np.ones((len(points), 1))]) @ world_to_clip.T
-    ndc = homogeneous[:, :2] / homogeneous[:, 3:4]
-    return np.stack([(ndc[:, 0] + 1) * 0.5 * width, (1 - ndc[:, 1]) * 0.5 * height], axis=1)
-
-
-def draw_segment(image: np.ndarray, start: np.ndarray, end: np.ndarray, color: tuple[int, int, int],
-                 thickness: int = 2) -> None:
-    """Draw a line segment between two pixel positions into an RGB image, in place."""
-    length = int(math.ceil(np.linalg.norm(end - start))) + 1
-    samples = np.linspace(0.0, 1.0, max(length, 2))[:, None]
-    points = np.round(start + samples * (end - start)).astype(np.int64)
-    height, width = image.shape[:2]
-    for dx in range(-(thickness // 2), thickness - thickness // 2):
-        for dy in range(-(thickness // 2), thickness - thickness // 2):
-            cols, rows = points[:, 0] + dx, points[:, 1] + dy
-            keep = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
-            image[rows[keep], cols[keep]] = color

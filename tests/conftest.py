@@ -52,6 +52,26 @@ def scenario_dict(name: str = "planar_square", **changes: Any) -> dict[str, Any]
     return data
 
 
+def read_state(arm: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Joint positions (rad) and velocities (rad/s) of an env arm's chain joints, as arrays."""
+    positions, velocities = arm.read_state_lists()
+    return np.array(positions), np.array(velocities)
+
+
+def apply_torques(arm: Any, torques: list[float]) -> None:
+    """Joint torques (N m) on an env arm for the next physics step only (what the env's stepper sends)."""
+    import pybullet
+
+    body, joints, forces = arm.torque_command(torques)
+    pybullet.setJointMotorControlArray(body, joints, pybullet.TORQUE_CONTROL, forces=forces,
+                                       physicsClientId=arm.world.client)
+
+
+def nominal_initial_q(env: Any, agent: str) -> np.ndarray:
+    """The scenario's initial joint positions of ``agent`` (rad), before reset noise, as the env's task holds them."""
+    return env.task.initial_q[env.task.agent_index(agent)].copy()
+
+
 def random_actions(env: Any, rng: np.random.Generator, agents: list[str] | None = None,
                    scale: float = 1.0) -> dict[str, np.ndarray]:
     """A uniform [-scale, scale] action per agent from a numpy generator (reproducible streams)."""

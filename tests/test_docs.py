@@ -39,3 +39,14 @@ def test_generated_table_has_a_row_per_key():
     for spec in fields(Scenario):
         if spec.name != "name":
             assert f"``{spec.name}``" in table
+
+
+def test_scenario_docs_name_every_builtin():
+    """docs/scenarios.md documents the built-ins: every YAML file of ee_formation_env/builtin/ is named there."""
+    from ee_formation_env.builtin import BUILTIN_SCENARIOS
+
+    page = README.parent / "docs" / "scenarios.md"
+    if not page.is_file():
+        pytest.skip("docs/scenarios.md is not written yet")
+    text = page.read_text(encoding="utf-8")
+    assert [name for name in BUILTIN_SCENARIOS if f"`{name}`" not in text] == []

@@ -21,7 +21,7 @@ from ee_formation_env.env import PHYSICS_FAULTS
 from ee_formation_env import BUILTIN_SCENARIOS, FormationEnv
 from ee_formation_env.kinematics import rpy_to_matrix as rpy_matrix
 
-from conftest import CLOSING, random_actions, scenario_dict, two_planar_arms
+from conftest import CLOSING, random_actions, read_state, scenario_dict, two_planar_arms
 
 BUILTINS = sorted(BUILTIN_SCENARIOS)
 
@@ -137,7 +137,7 @@ def test_observation_contents_match_simulator(make_env, name):
                                    np.asarray(slot_errors).reshape(len(neighbours), -1), atol=1e-5)
         assert np.all(infos[agent]["edge_errors"][len(neighbours):] == 0.0)  # padded to the largest degree
         assert infos[agent]["edge_mask"].tolist() == [True] * len(neighbours) + [False] * padding_slots
-        q, dq = arm.read_state()
+        q, dq = read_state(arm)
         n = arm.n_joints
         np.testing.assert_allclose(parts.q, np.where(arm.model.continuous, (q + np.pi) % (2 * np.pi) - np.pi, q),
                                    atol=1e-6)
@@ -153,7 +153,7 @@ def test_observation_contents_match_simulator(make_env, name):
     state = env.state().astype(np.float64)
     n_agents = len(env.arms)
     np.testing.assert_allclose(state[:n_agents * m], ee[:, :m].ravel(), atol=2e-5)
-    joints = [arm.read_state() for arm in env.arms]
+    joints = [read_state(arm) for arm in env.arms]
     q_all = np.concatenate([np.where(arm.model.continuous, (q + np.pi) % (2 * np.pi) - np.pi, q)
                             for arm, (q, _) in zip(env.arms, joints)])
     np.testing.assert_allclose(state[n_agents * m:n_agents * m + len(q_all)], q_all, atol=1e-6)
@@ -232,13 +232,13 @@ def test_multi_step_determinism_independent_of_history(make_env, name):
 def test_same_seed_same_initial_obs_different_seed_different_q(make_env):
     env = make_env("spatial_tetrahedron")
     first, _ = env.reset(seed=11)
-    q_first = [q.copy() for q in (arm.read_state()[0] for arm in env.arms)]
+    q_first = [q.copy() for q in (read_state(arm)[0] for arm in env.arms)]
     env.step({a: env.action_space(a).sample() for a in env.agents})
     second, _ = env.reset(seed=11)
     for agent in first:
         assert np.array_equal(first[agent], second[agent])
     env.reset(seed=12)
-    q_other = [arm.read_state()[0] for arm in env.arms]
+    q_other = [read_state(arm)[0] for arm in env.arms]
     for q1, q2 in zip(q_first, q_other):
         assert not np.allclose(q1, q2)
     # The noise is uniform within +-initial_q_noise around the nominal q, and really used.
@@ -254,7 +254,7 @@ def test_zero_noise_gives_scenario_initial_q(make_env, name):
     for seed in (0, 1):
         env.reset(seed=seed)
         for arm, config in zip(env.arms, env.scenario.arms):
-            q, dq = arm.read_state()
+            q, dq = read_state(arm)
             assert np.array_equal(q, np.asarray(config.initial_q))
             assert np.array_equal(dq, np.zeros_like(dq))
 
@@ -270,7 +270,7 @@ def test_initial_noise_is_clipped_to_joint_limits(make_env):
     for seed in range(5):
         env.reset(seed=seed)
         for arm in env.arms:
-            q, _ = arm.read_state()
+            q, _ = read_state(arm)
             assert np.all(q >= arm.model.lower) and np.all(q <= arm.model.upper), q
             at_limit += int(q[6] == arm.model.upper[6])
     assert at_limit > 0  # some draws were clipped onto the limit
@@ -635,7 +635,7 @@ def test_other_urdfs(make_env, urdf, ee_link, q0, n_movable):
             _assert_obs_valid(env, observations)
         assert not any(terminations.values()), infos["arm_0"]["physics_fault"]
     assert steps == env.scenario.max_steps
-    assert not np.allclose(env.arms[0].read_state()[0], q0, atol=1e-3)  # gravity and torques moved it
+    assert not np.allclose(read_state(env.arms[0])[0], q0, atol=1e-3)  # gravity and torques moved it
     # The fingers are not agent joints: position motors hold them where they started.
     fingers_end = [pybullet.getJointState(body, j, physicsClientId=client)[0] for j in extra]
     np.testing.assert_allclose(fingers_end, fingers_start, atol=1e-3)

@@ -1,7 +1,8 @@
-"""Packaging: the wheel ships the package, its robot assets, and works when installed on its own."""
+"""Packaging: the wheel ships the package, its robot assets and built-in scenarios, and works installed on its own."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -48,6 +49,11 @@ def test_wheel_contents(wheel):
         "ee_formation_env"}
     entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
     assert "ee-formation = ee_formation_env.baselines.cli:main" in zipfile.ZipFile(wheel).read(entry_points).decode()
+    from ee_formation_env.builtin import BUILTIN_SCENARIOS
+
+    for scenario in BUILTIN_SCENARIOS:  # package data: the built-in scenarios' YAML files
+        assert f"ee_formation_env/builtin/{scenario}.yaml" in names, scenario
+    assert not any(name.startswith("tests/") for name in names)
     metadata = next(n for n in names if n.endswith(".dist-info/METADATA"))
     text = zipfile.ZipFile(wheel).read(metadata).decode()
     for dependency in ("pybullet", "pettingzoo", "gymnasium", "numpy", "pyyaml"):
@@ -61,7 +67,7 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
                              str(target), str(wheel)], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     code = (
-        "import ee_formation_env, pathlib\n"
+        "import ee_formation_env, json, pathlib\n"
         "print(pathlib.Path(ee_formation_env.__file__).resolve())\n"
         "from ee_formation_env.scenario import ROBOTS\n"
         "print(ROBOTS['pera_arm'].urdf.resolve())\n"
@@ -77,6 +83,9 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
         "    print('baselines', baselines.__file__)\n"
         "except ImportError:\n"
         "    print('no baselines')\n"
+        "from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario\n"
+        "print(len(BUILTIN_SCENARIOS), all(ee_formation_env.load_scenario(n).name == n for n in BUILTIN_SCENARIOS))\n"
+        "print(json.dumps({n: builtin_scenario(n) for n in BUILTIN_SCENARIOS}))\n"
     )
     environment = dict(os.environ, PYTHONPATH=str(target))
     run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=environment, capture_output=True,
@@ -89,3 +98,7 @@ def test_installed_wheel_finds_its_assets(wheel, tmp_path):
     assert lines[2] == "obs True"
     assert target.resolve() in Path(lines[3]).parents  # the learning wing installed inside the env's package
     assert lines[4] == "no baselines"
+    from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario
+
+    assert lines[5] == f"{len(BUILTIN_SCENARIOS)} True"  # every built-in loads from the installed package data
+    assert lines[6] == json.dumps({name: builtin_scenario(name) for name in BUILTIN_SCENARIOS})

@@ -17,7 +17,7 @@ import ee_formation_env
 from ee_formation_env import rendering
 from ee_formation_env.formation import Formation, FormationGraph
 from ee_formation_env.rendering import GHOST_COLOR, frame_points, ghost_positions
-from ee_formation_env.world import project_points
+from ee_formation_env.rendering import project_points
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,7 @@ import numpy as np
 import pybullet
 import pytest
 
-from conftest import scenario_dict
+from conftest import apply_torques, read_state, scenario_dict
 
 
 def _set_state(arm, q, dq) -> None:
@@ -29,14 +29,14 @@ def _bias(arm, q, dq) -> np.ndarray:
 
 
 def _kinetic_energy(arm) -> float:
-    q, dq = arm.read_state()
+    q, dq = read_state(arm)
     return 0.5 * float(dq @ _mass_matrix(arm, q) @ dq)
 
 
 def _zero_torques(env) -> None:
     """Zero torque on every arm for the next physics step."""
     for arm in env.arms:
-        arm.apply_torques([0.0] * arm.n_joints)
+        apply_torques(arm, [0.0] * arm.n_joints)
 
 
 # ------------------------------------------------------------------------------------------ planar arm model
@@ -87,9 +87,9 @@ def test_one_physics_step_follows_forward_dynamics(make_env):
         _set_state(arm, q, dq)
         acceleration = np.linalg.solve(_mass_matrix(arm, q), tau - _bias(arm, q, dq))
         for other in env.arms:
-            other.apply_torques(tau.tolist() if other is arm else [0.0] * other.n_joints)
+            apply_torques(other, tau.tolist() if other is arm else [0.0] * other.n_joints)
         env.world.step()
-        q_new, dq_new = arm.read_state()
+        q_new, dq_new = read_state(arm)
         measured = (dq_new - dq) / dt
         error = np.max(np.abs(measured - acceleration)) / np.max(np.abs(acceleration))
         worst = max(worst, error)
@@ -112,7 +112,7 @@ def test_env_step_holds_torque_for_every_physics_step(make_env, name, action_sca
     dt, skip = env.world.time_step, env.scenario.frame_skip
     predicted = []
     for i, (agent, arm) in enumerate(zip(env.agents, env.arms)):
-        q, dq = arm.read_state()
+        q, dq = read_state(arm)
         tau = actions[agent].astype(np.float64) * env.torque_limits[i]
         for _ in range(skip):
             dq = dq + dt * np.linalg.solve(_mass_matrix(arm, q), tau - _bias(arm, q, dq))
@@ -120,7 +120,7 @@ def test_env_step_holds_torque_for_every_physics_step(make_env, name, action_sca
         predicted.append((q, dq))
     env.step(actions)
     for arm, (q, dq) in zip(env.arms, predicted):
-        q_sim, dq_sim = arm.read_state()
+        q_sim, dq_sim = read_state(arm)
         np.testing.assert_allclose(dq_sim, dq, rtol=1e-7, atol=1e-9)
         np.testing.assert_allclose(q_sim, q, rtol=0, atol=1e-10)
         assert np.max(np.abs(dq_sim)) > 1e-3  # it moved
@@ -129,12 +129,12 @@ def test_env_step_holds_torque_for_every_physics_step(make_env, name, action_sca
 def test_zero_torque_under_gravity_moves_the_arm(make_env):
     env = make_env("spatial_tetrahedron", initial_q_noise=0.0, episode_seconds=0.2)
     observations, _ = env.reset(seed=0)
-    q0 = [arm.read_state()[0] for arm in env.arms]
+    q0 = [read_state(arm)[0] for arm in env.arms]
     zero = {a: np.zeros(7, np.float32) for a in env.agents}
     for _ in range(20):  # 0.1 s
         env.step(zero)
     for arm, start in zip(env.arms, q0):
-        q, dq = arm.read_state()
+        q, dq = read_state(arm)
         assert np.max(np.abs(q - start)) > 1e-3
         assert np.max(np.abs(dq)) > 1e-2
     # ... and gravity is what moves it: in zero gravity the arms stay put.
@@ -143,7 +143,7 @@ def test_zero_torque_under_gravity_moves_the_arm(make_env):
     for _ in range(20):
         still.step(zero)
     for arm, start in zip(still.arms, q0):
-        q, dq = arm.read_state()
+        q, dq = read_state(arm)
         np.testing.assert_allclose(q, start, atol=1e-12)
         np.testing.assert_allclose(dq, 0.0, atol=1e-12)
 
@@ -157,7 +157,7 @@ def _spin_straight_planar_arm(env, rate: float, seconds: float) -> tuple[float, 
     for _ in range(int(round(seconds * env.scenario.physics_hz))):
         _zero_torques(env)
         env.world.step()
-    return before, _kinetic_energy(arm), arm.read_state()[1]
+    return before, _kinetic_energy(arm), read_state(arm)[1]
 
 
 def test_no_link_damping(make_env):
@@ -200,7 +200,7 @@ def _coast(env, seconds: float) -> tuple[float, float]:
     """Give arm 0 a joint velocity, coast with zero torque; kinetic energy before and after."""
     env.reset(seed=0)
     arm = env.arms[0]
-    q, _ = arm.read_state()
+    q, _ = read_state(arm)
     _set_state(arm, q, 0.5 * np.array([1.0, -0.8, 0.6, 1.2, -1.0, 0.7, 0.5]))
     before = _kinetic_energy(arm)
     for _ in range(int(round(seconds * env.scenario.physics_hz))):
@@ -248,5 +248,5 @@ def test_planar_joints_are_continuous(make_env):
     for _ in range(100):  # 0.1 s at 20 rad/s: q1 goes from 3.0 to 5.0 rad, no limit stops it
         _zero_torques(env)
         env.world.step()
-    q, dq = env.arms[0].read_state()
+    q, dq = read_state(env.arms[0])
     assert q[0] == pytest.approx(5.0, abs=1e-6) and dq[0] == pytest.approx(20.0, abs=1e-6)

@@ -10,6 +10,8 @@ from ee_formation_env.kinematics import rpy_to_matrix
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.task import build_task
 
+from conftest import nominal_initial_q
+
 
 def test_builtin_task_derives_models_limits_and_poses():
     task = build_task(load_scenario("planar_square_rotated"))
@@ -42,4 +44,4 @@ def test_env_consumes_the_task_it_built():
     with ee_formation_env.parallel_env("planar_square") as env:
         assert env.nominal_models is env.task.models
         assert env.torque_limits is env.task.torque_limits
-        np.testing.assert_array_equal(env.nominal_initial_q("arm_1"), env.task.initial_q[1])
+        np.testing.assert_array_equal(nominal_initial_q(env, "arm_1"), env.task.initial_q[1])

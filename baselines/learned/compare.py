@@ -1,6 +1,6 @@
 """The comparison of a run: its learned policy and every reference policy on the same held-out seeds.
 
-Each policy runs ``eval_episodes`` episodes (seeds from :data:`~ee_formation_env.baselines.learned.config.EVAL_SEED_OFFSET`),
+Each policy runs ``eval_episodes`` episodes (seeds from :data:`~ee_formation_env.baselines.learned.training_env.EVAL_SEED_OFFSET`),
 each scored by :func:`ee_formation_env.baselines.metrics.run_episode` exactly as ``ee-formation evaluate`` scores
 it; the tables and the figure show the same summary.
 """
@@ -15,7 +15,8 @@ import numpy as np
 
 import ee_formation_env
 from ee_formation_env import baselines
-from ee_formation_env.baselines.learned.config import EVAL_SEED_OFFSET, TrainConfig
+from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 from ee_formation_env.baselines.learned.policy import learned_policies
 from ee_formation_env.baselines.metrics import format_table, run_episode, summarize
 

@@ -23,7 +23,6 @@ from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMI
 from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
 
 MODES = ("residual", "torque")
-EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
 
 
 @dataclass(frozen=True)

@@ -91,8 +91,7 @@ def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
     exploration noise is narrowed to ``IMITATION_LOG_STD``. Writes ``imitation.json``."""
     import torch
 
-    from ee_formation_env.baselines.learned.config import EVAL_SEED_OFFSET
-    from ee_formation_env.baselines.learned.training_env import make_training_env
+    from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, make_training_env
 
     venv = model.get_env()  # VecNormalize: the policy sees normalized observations
     env = make_training_env(args.scenario, args.training_overrides(), "torque")

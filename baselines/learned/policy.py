@@ -68,8 +68,6 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
         if predict is None:
             predict = lambda obs: model.predict(obs, deterministic=True)[0]  # noqa: E731
     else:
-        from ee_formation_env.baselines.learned.rllib_backend import rllib_predictor
-
         predict = rllib_predictor(run_dir)
     learned = LearnedPolicy(predict, normalizer)
     features = config.get("obs_features", "none")  # runs saved before the option had none
@@ -103,5 +101,22 @@ def _numpy_actor(model: Any) -> Callable[[np.ndarray], np.ndarray] | None:
         for step in steps:
             hidden = np.tanh(hidden) if step is None else hidden @ step[0] + step[1]
         return hidden
+
+    return predict
+
+
+def rllib_predictor(run_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
+    """The deterministic action (the Gaussian's mean) of the RLlib module a run saved."""
+    import torch
+
+    module = torch.load(run_dir / "rllib_module.pt", weights_only=False)
+    low, high = module.action_space.low, module.action_space.high
+
+    def predict(observation: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            output = module.forward_inference({"obs": torch.as_tensor(observation[None], dtype=torch.float32)})
+        logits = output["action_dist_inputs"][0].numpy()
+        mean = logits[: len(low)]  # a diagonal Gaussian: means first, then log-stds
+        return np.clip(mean, low, high)
 
     return predict

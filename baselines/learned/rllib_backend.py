@@ -11,7 +11,7 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -72,19 +72,3 @@ def _save_rllib_module(module: Any, out_dir: Path) -> None:
     torch.save(module, out_dir / "rllib_module.pt")
     dim = int(np.prod(module.observation_space.shape))
     ObservationNormalizer.identity(dim).save(out_dir / "obs_normalizer.pkl")
-
-
-def rllib_predictor(run_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
-    import torch
-
-    module = torch.load(run_dir / "rllib_module.pt", weights_only=False)
-    low, high = module.action_space.low, module.action_space.high
-
-    def predict(observation: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            output = module.forward_inference({"obs": torch.as_tensor(observation[None], dtype=torch.float32)})
-        logits = output["action_dist_inputs"][0].numpy()
-        mean = logits[: len(low)]  # a diagonal Gaussian: means first, then log-stds
-        return np.clip(mean, low, high)
-
-    return predict

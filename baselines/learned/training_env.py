@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from ee_formation_env.baselines.learned.config import TrainConfig
 
 TRAINING_MODES = ("torque", "residual")
+EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
 
 
 def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",

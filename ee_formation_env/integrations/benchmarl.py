@@ -13,6 +13,9 @@
 A task's config is a dict of scenario overrides (any top-level scenario key), plus optionally ``scenario``:
 a scenario file or dict to use instead of the member's built-in scenario (e.g. a mixed-robot team). Groups
 are :func:`ee_formation_env.integrations.torchrl.group_map`'s: one per robot kind.
+
+:class:`EEFormationTask` has one member per built-in scenario, derived from
+:data:`ee_formation_env.builtin.BUILTIN_SCENARIOS` (the YAML files of ``docs/scenarios.md``), never listed here.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from benchmarl.environments.common import Task, TaskClass
 from torchrl.data import Composite
 from torchrl.envs import EnvBase
 
+from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.integrations.torchrl import make_torchrl_env
 
@@ -89,14 +93,8 @@ class EEFormationTaskClass(TaskClass):
         return "ee_formation"
 
 
-class EEFormationTask(Task):
-    """The built-in scenarios as BenchMARL tasks (``ee_formation_env.scenario.BUILTIN_SCENARIOS``)."""
-
-    PLANAR_SQUARE = None
-    PLANAR_SQUARE_DISPLACEMENT = None
-    PLANAR_SQUARE_ROTATED = None
-    SPATIAL_TETRAHEDRON = None
-    SPATIAL_TETRAHEDRON_DISPLACEMENT = None
+class _EEFormationTaskBase(Task):
+    """The members' behaviour; the members themselves are made from the built-in registry below."""
 
     @staticmethod
     def associated_class():
@@ -105,3 +103,11 @@ class EEFormationTask(Task):
     def get_task(self, config: Optional[Dict[str, Any]] = None) -> TaskClass:
         """This task with ``config`` (scenario overrides; none: the built-in scenario as it is)."""
         return self.associated_class()(name=self.name, config=dict(config or {}))
+
+
+# One member per built-in scenario, ``planar_square`` -> ``EEFormationTask.PLANAR_SQUARE`` (BenchMARL's
+# convention: members are None-valued, numbered by Task.__new__; the task class reads the lower-cased name).
+EEFormationTask = _EEFormationTaskBase(
+    "EEFormationTask", [(name.upper(), None) for name in BUILTIN_SCENARIOS], module=__name__,
+    qualname="EEFormationTask")
+EEFormationTask.__doc__ = "The built-in scenarios as BenchMARL tasks (``ee_formation_env.builtin.BUILTIN_SCENARIOS``)."

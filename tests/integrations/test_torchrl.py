@@ -9,7 +9,7 @@ pytest.importorskip("benchmarl")
 
 from torchrl.envs.utils import MarlGroupMapType, check_env_specs  # noqa: E402
 
-from ee_formation_env.scenario import BUILTIN_SCENARIOS  # noqa: E402
+from ee_formation_env.builtin import BUILTIN_SCENARIOS  # noqa: E402
 from ee_formation_env.integrations.torchrl import group_map, make_torchrl_env  # noqa: E402
 
 KUKA = {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "initial_q": [0.0, 0.5, 0.0, -1.2, 0.0, 0.8, 0.0]}
@@ -85,3 +85,18 @@ def test_benchmarl_mappo_trains_two_iterations(tmp_path):
     experiment.run()
     assert experiment.n_iters_performed == 2
     assert experiment.total_frames == 80
+
+
+def test_benchmarl_tasks_are_the_builtin_registry():
+    from benchmarl.environments.common import Task
+
+    from ee_formation_env.integrations.benchmarl import EEFormationTask, EEFormationTaskClass
+
+    assert [member.name for member in EEFormationTask] == [name.upper() for name in BUILTIN_SCENARIOS]
+    assert [member.value for member in EEFormationTask] == list(range(1, len(BUILTIN_SCENARIOS) + 1))
+    assert issubclass(EEFormationTask, Task) and EEFormationTask.env_name() == "ee_formation"
+    for name in BUILTIN_SCENARIOS:
+        task = EEFormationTask[name.upper()].get_task()
+        assert isinstance(task, EEFormationTaskClass) and task.config == {}
+        assert task._scenario_and_overrides() == (name, {})
+    assert EEFormationTask.PLANAR_SQUARE.get_task({"episode_seconds": 5.0}).config == {"episode_seconds": 5.0}

@@ -13,7 +13,8 @@ import numpy as np  # noqa: E402
 
 from ee_formation_env import baselines  # noqa: E402
 from ee_formation_env.baselines.cli import train_command  # noqa: E402
-from ee_formation_env.baselines.learned.config import EVAL_SEED_OFFSET, PRESETS, TrainConfig  # noqa: E402
+from ee_formation_env.baselines.learned.config import PRESETS, TrainConfig  # noqa: E402
+from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET  # noqa: E402
 from ee_formation_env.baselines.learned.imitation import actor_mean, fit_actor  # noqa: E402
 from ee_formation_env.baselines.learned.sb3_backend import build_sb3_model, collected_steps  # noqa: E402
 from ee_formation_env.baselines.learned.imitation import demonstrations  # noqa: E402

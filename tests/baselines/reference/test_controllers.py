@@ -10,7 +10,8 @@ import ee_formation_env
 from ee_formation_env.baselines.reference.controllers import ControllerBatch, Gains, PolicyTeam
 from ee_formation_env.baselines.reference.gains import PAPER_GAINS, default_gains
 from ee_formation_env.baselines.metrics import run_episode
-from ee_formation_env.scenario import _square, builtin_scenario
+from ee_formation_env.builtin import builtin_scenario
+from ee_formation_env.generators import square_vertices as _square
 
 PAPER_2D_LIFTED = dict(frame_skip=1, torque_limits=1e7, max_joint_velocity=1000.0)
 
