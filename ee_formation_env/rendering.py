@@ -8,6 +8,8 @@ render after a reset, on the bases, every link frame and the ghost, so that a vi
 Colours: the current formation's edges are red; the ghost, the desired shape placed where it best fits the
 current end-effectors (:func:`ghost_positions`), is light blue, so that the gap between the two is the
 remaining formation error.
+
+Options and framing for users: see docs/spaces.md ("Rendering").
 """
 
 from __future__ import annotations

@@ -29,11 +29,14 @@ _ROLE = re.compile(r":(?:py:)?(?:func|class|mod|meth|attr|data|obj|exc|const):`~
 
 class MarkdownDocstrings(griffe.Extension):
     """Show the docstrings' reStructuredText roles (``:func:`name```) and ``::`` literal markers as Markdown
-    (inline code, a plain colon); the docstrings stay as they are in the code."""
+    (inline code, a plain colon), and point to the page of a table that the code fills in at import time;
+    the docstrings stay as they are in the code."""
 
     def on_object(self, *, obj: griffe.Object, **kwargs: Any) -> None:
         if obj.docstring is not None:
             text = _ROLE.sub(lambda match: f"`{match.group(1)}`", obj.docstring.value)
+            text = text.replace("{observation_table}", "(The observation table, filled in at import time, is on the"
+                                " Spaces and reward page.)")
             obj.docstring.value = re.sub(r"::\n", ":\n", text)
 
     def on_package(self, *, pkg: griffe.Module, **kwargs: Any) -> None:
