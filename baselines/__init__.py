@@ -1,11 +1,12 @@
 """Reference policies for ee-formation-env: the paper's three controllers, plus ``zero`` and ``random``.
 
-    import ee_formation_env, baselines
+    import ee_formation_env
+    from ee_formation_env.baselines import make_policy
     env = ee_formation_env.parallel_env("planar_square")
-    policies = {agent: baselines.make_policy("adaptive_jacobian", env, agent) for agent in env.possible_agents}
+    policies = {agent: make_policy("adaptive_jacobian", env, agent) for agent in env.possible_agents}
 
 See :mod:`ee_formation_env.baselines.reference.controllers` for the laws and :mod:`ee_formation_env.baselines.reference.gains` for default gains and the rule
-that derives them for any robot.
+that derives them for any robot; the laws and the gains rule are explained in docs/controllers.md.
 """
 
 from __future__ import annotations

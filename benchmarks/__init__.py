@@ -1,1 +1,1 @@
-"""Speed benchmarks of ee-formation-env: ``python -m benchmarks.run`` (see ``benchmarks/README.md``)."""
+"""Speed benchmarks of ee-formation-env: ``python -m benchmarks.run`` (see ``docs/performance.md``)."""

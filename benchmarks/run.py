@@ -382,7 +382,7 @@ def linear_fit(counts: Sequence[int], values: Sequence[float]) -> dict[str, floa
 
 
 def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """The speed targets (``benchmarks/README.md``), each with the measured value and whether it is met."""
+    """The speed targets (``docs/performance.md``), each with the measured value and whether it is met."""
     def find(section: str, scenario: str, frame_skip: int | None = None) -> dict[str, Any] | None:
         return next((r for r in results["rows"] if r["section"] == section and r.get("scenario") == scenario
                      and frame_skip in (None, r.get("frame_skip"))), None)

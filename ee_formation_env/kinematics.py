@@ -22,6 +22,8 @@ components are the constant zero. For a movable joint j with world axis omega_j 
 so that J(q, a)^T zeta = Z(q, zeta) a for every a.
 
 Units: lengths in m, angles in rad, torques in N m, velocities in rad/s.
+
+The PyBullet facts this relies on (frames of ``getJointInfo``, ``calculateJacobian``): see docs/physics.md.
 """
 
 from __future__ import annotations

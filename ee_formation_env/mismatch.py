@@ -6,6 +6,8 @@ by its own factor drawn uniformly from ``[1 - L, 1 + L]``, and every link mass a
 chain by a factor from ``[1 - M, 1 + M]`` (centres of mass stay where the URDF puts them). Draws come from ``numpy.random.default_rng(seed)``, once per
 environment (the bodies are loaded once; resets never reload them). ``L = M = 0`` (the default) means
 the simulated robots are exactly the nominal ones.
+
+How the reference controllers stand it: see docs/results.md ("Robustness under model mismatch").
 """
 
 from __future__ import annotations

@@ -8,6 +8,8 @@ An agent's observation is ``n_slots`` neighbour slots then its own joint state:
 Slots follow the order of the agent's edges in the scenario; padding slots are zero with mask 0. Bounds
 are finite: |z| by base distances plus reaches, ``q`` by the joint limits, ``dq`` by
 ``max_joint_velocity`` (faster is a physics fault). Observations are clipped into them.
+
+Spaces, reward and info for users: see docs/spaces.md.
 """
 
 from __future__ import annotations

@@ -11,6 +11,8 @@ remaining formation error.
 
 The pixel helpers (:func:`project_points`, :func:`draw_segment`) live here too: everything drawn into a frame
 is this module's; :mod:`ee_formation_env.world` only wraps the PyBullet client.
+
+Options and framing for users: see docs/spaces.md ("Rendering").
 """
 
 from __future__ import annotations

@@ -1,26 +1,16 @@
 """The per-agent reward: how close the agent's incident edges are to their lengths, in units of the success
 tolerance, on a log scale; plus a bonus on steps where all of them are within the tolerance.
 
-Why this shape (measured on ``planar_square``, whose 3 m edges must be held to 1 cm):
-
-- the error is measured relative to the *success tolerance* (an edge within ``position_tolerance`` m of
-  its length), not relative to the edge length: at the goal's precision a relative error is ~0.007, where
-  a kernel of the relative error (the former ``tanh``) is flat and separates solving from doing nothing
-  by a few percent only;
-- a log scale rises across the whole error range (doing nothing starts at ~40 tolerances, a random policy
-  at thousands) and is steepest near the goal; exponential kernels ``exp(-x)`` or ``exp(-x / 10)`` are
-  ~0 at the start and taught PPO nothing;
-- no velocity or torque penalty: holding a formation against gravity and reaching it in ~1 s needs the
-  full torque, and a torque penalty rewarded a residual policy for weakening its reference;
-- every reward is >= 0, so ending an episode early (a physics fault) never pays.
-
 ``r_i = formation * clip(log10(ceiling / (x_i + floor)) / log10(ceiling / floor), 0, 1)
         + in_tolerance * [every incident edge k has |e_k| <= tol_k]``
 
 with ``x_i = mean_k |e_k| / tol_k`` over agent i's incident edges, ``tol_k = 2 d*_k delta`` (distance
 formations, m^2: ``|z|^2 - d^2 ~ 2 d (|z| - d)``) or ``delta`` (displacement formations, m), ``delta =
 position_tolerance``. With the defaults, ``r_i`` is 1 at zero error, ~0.65 at one tolerance, 0.33 at ten,
-0 from a hundred on, plus 1 inside the tolerance: in [0, 2].
+0 from a hundred on, plus 1 inside the tolerance: in [0, 2]. Every reward is >= 0, and there is no velocity
+or torque penalty.
+
+Why this shape, with the measurements: see docs/spaces.md ("Why this reward").
 """
 
 from __future__ import annotations

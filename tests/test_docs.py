@@ -1,4 +1,9 @@
-"""The README's scenario-key table agrees with the one definition of the keys (the Scenario dataclass)."""
+"""The documentation's generated tables agree with the code, so that they cannot go stale.
+
+Each generated table sits in a docs page between ``<!-- generated: NAME -->`` and ``<!-- end generated -->``;
+on a mismatch the test prints the block to paste. The README keeps only links, the built-in table and the
+quick start, checked here too.
+"""
 
 from __future__ import annotations
 
@@ -8,30 +13,82 @@ from pathlib import Path
 
 import pytest
 
+import ee_formation_env
+from ee_formation_env.baselines.metrics import metric_definitions
 from ee_formation_env.scenario import Scenario, _default, scenario_keys_table
 
-README = Path(__file__).resolve().parent.parent / "README.md"
-_DOCUMENTED_ELSEWHERE = {"name", "arms", "edges", "shape", "formation", "dim"}  # the YAML example shows them
+ROOT = Path(__file__).resolve().parent.parent
+DOCS = ROOT / "docs"
+README = ROOT / "README.md"
 
 
-def _readme_key_rows() -> dict[str, str]:
+def _inline_rst(text: str) -> str:
+    """reStructuredText inline markup of one cell as Markdown: roles and ``literals`` to `code`, pipes escaped."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"``\1``", text)
+    parts = re.split(r"(``[^`]+``)", text)
+    return "".join(f"`{part[2:-2]}`" if part.startswith("``") else part.replace("|", "\\|") for part in parts)
+
+
+def rst_simple_table_to_markdown(table: str) -> str:
+    """A reStructuredText simple table (one line per row) as a Markdown table."""
+    lines = [line for line in table.strip("\n").splitlines()]
+    border = lines[0]
+    spans = [(match.start(), match.end()) for match in re.finditer(r"=+", border)]
+
+    def cells(line: str) -> list[str]:
+        bounds = [start for start, _ in spans] + [None]
+        return [line[bounds[k]:bounds[k + 1]].strip() for k in range(len(spans))]
+
+    header, *rows = [line for line in lines if not re.fullmatch(r"[= ]+", line)]
+    out = ["| " + " | ".join(cells(header)) + " |", "|" + "---|" * len(spans)]
+    out += ["| " + " | ".join(_inline_rst(cell) for cell in cells(row)) + " |" for row in rows]
+    return "\n".join(out)
+
+
+GENERATED = {
+    "scenario_keys_table": ("scenarios.md", lambda: rst_simple_table_to_markdown(scenario_keys_table())),
+    "metric_definitions": ("results.md", lambda: metric_definitions(markdown=True)),
+}
+
+
+def _generated_block(page: str, name: str) -> str:
+    text = (DOCS / page).read_text(encoding="utf-8")
+    match = re.search(rf"<!-- generated: {name} -->\n(.*?)\n<!-- end generated -->", text, re.S)
+    assert match, f"docs/{page} has no generated block {name!r}"
+    return match.group(1).strip()
+
+
+@pytest.mark.parametrize("name", sorted(GENERATED))
+def test_generated_tables_match_the_code(name):
+    page, make = GENERATED[name]
+    expected = make().strip()
+    assert _generated_block(page, name) == expected, (
+        f"docs/{page} is stale; replace its {name} block with:\n\n{expected}\n")
+
+
+def test_metric_definitions_are_also_on_the_training_page():
+    """train.py's comparison.md has the evaluation's columns: the training page shows the same table."""
+    assert _generated_block("training.md", "metric_definitions") == metric_definitions(markdown=True).strip()
+
+
+def _key_rows(page: str) -> dict[str, str]:
     rows = {}
-    for line in README.read_text(encoding="utf-8").splitlines():
+    for line in (DOCS / page).read_text(encoding="utf-8").splitlines():
         match = re.match(r"\| `(\w+)` \| ([^|]*) \|", line)
         if match and match.group(1) in {spec.name for spec in fields(Scenario)}:
             rows.setdefault(match.group(1), match.group(2).strip())
     return rows
 
 
-def test_readme_lists_every_scenario_key():
-    documented = set(_readme_key_rows())
-    assert {spec.name for spec in fields(Scenario)} - _DOCUMENTED_ELSEWHERE <= documented
+def test_scenarios_page_lists_every_scenario_key():
+    assert {spec.name for spec in fields(Scenario)} - {"name"} <= set(_key_rows("scenarios.md"))
 
 
 @pytest.mark.parametrize("key", ["physics_hz", "initial_q_noise", "joint_damping", "max_joint_velocity",
                                  "singularity_threshold"])
-def test_readme_numeric_defaults_match_the_dataclass(key):
-    assert float(_readme_key_rows()[key]) == _default(key)
+def test_scenarios_page_numeric_defaults_match_the_dataclass(key):
+    value = _key_rows("scenarios.md")[key].split()[0]
+    assert float(value) == _default(key)
 
 
 def test_generated_table_has_a_row_per_key():
@@ -41,12 +98,35 @@ def test_generated_table_has_a_row_per_key():
             assert f"``{spec.name}``" in table
 
 
-def test_scenario_docs_name_every_builtin():
-    """docs/scenarios.md documents the built-ins: every YAML file of ee_formation_env/builtin/ is named there."""
-    from ee_formation_env.builtin import BUILTIN_SCENARIOS
+def test_every_builtin_scenario_is_shown_with_its_image():
+    page = (DOCS / "scenarios.md").read_text(encoding="utf-8")
+    readme = README.read_text(encoding="utf-8")
+    for name in ee_formation_env.BUILTIN_SCENARIOS:
+        assert f"figures/scenario_{name}.png" in page
+        assert (DOCS / "figures" / f"scenario_{name}.png").is_file()
+        assert f"`{name}`" in readme
 
-    page = README.parent / "docs" / "scenarios.md"
-    if not page.is_file():
-        pytest.skip("docs/scenarios.md is not written yet")
-    text = page.read_text(encoding="utf-8")
-    assert [name for name in BUILTIN_SCENARIOS if f"`{name}`" not in text] == []
+
+def test_readme_quick_start_is_the_ci_test_command():
+    """.ci/run's step 1 is exactly the README's test command, and the README stays short."""
+    command = 'pip install torch==2.13.0 && pip install -e ".[test,train]" && python -m pytest -q'
+    readme = README.read_text(encoding="utf-8")
+    assert command in readme
+    assert command in (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+    assert 'pip install torch==2.13.0 && pip install -e ".[train]" && python train.py' in readme
+    assert len(readme.splitlines()) <= 210
+
+
+def test_every_page_is_in_the_navigation():
+    nav = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
+    for page in DOCS.glob("*.md"):
+        assert f": {page.name}" in nav, f"docs/{page.name} is not in mkdocs.yml's nav"
+
+
+def test_api_page_lists_every_deprecated_path():
+    """Each deprecated alias module (a ``forward`` of ``_deprecated``) is on the API page with its new home."""
+    api = (DOCS / "api.md").read_text(encoding="utf-8")
+    for module in (ROOT / "ee_formation_env").glob("*.py"):
+        match = re.search(r'forward\(__name__, "([\w.]+)"\)', module.read_text(encoding="utf-8"))
+        if match:
+            assert f"| `ee_formation_env.{module.stem}` | `{match.group(1)}` |" in api, module.name

@@ -38,7 +38,7 @@ def test_wheel_contents(wheel):
     for required in ("ee_formation_env/__init__.py", "ee_formation_env/env.py", "ee_formation_env/scenario.py",
                      "ee_formation_env/validation.py", "ee_formation_env/world.py", "ee_formation_env/robot.py",
                      "ee_formation_env/assets/__init__.py", "ee_formation_env/assets/planar_2link.urdf",
-                     "ee_formation_env/assets/pera_arm.urdf"):
+                     "ee_formation_env/assets/pera_arm.urdf", "ee_formation_env/py.typed"):
         assert required in names, required
     for required in ("ee_formation_env/integrations/sb3.py", "ee_formation_env/baselines/__init__.py",
                      "ee_formation_env/baselines/reference/controllers.py", "ee_formation_env/baselines/learned/config.py",
@@ -58,6 +58,8 @@ def test_wheel_contents(wheel):
     text = zipfile.ZipFile(wheel).read(metadata).decode()
     for dependency in ("pybullet", "pettingzoo", "gymnasium", "numpy", "pyyaml"):
         assert dependency in text.lower(), dependency
+    import ee_formation_env
+    assert f"\nVersion: {ee_formation_env.__version__}\n" in text  # the one definition of the version
 
 
 def test_installed_wheel_finds_its_assets(wheel, tmp_path):

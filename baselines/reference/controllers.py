@@ -13,58 +13,28 @@ agent's base frame (paper Sec. V):
   the fixed estimate ``a_hat`` and the internal model ``d(eta)/dt = -K_I eta + u``.
 - ``adaptive_jacobian`` (Theorem 4.2, law-III): law-II plus
   ``d(a_hat)/dt = -Gamma Z^T(q, e_hat) [alpha Z(q, e_hat) a_hat - dq]``, projected onto a parameter box;
-  the printed law has ``Gamma = 1`` (``Gains.adaptation_gain``, the default). A scalar Gamma > 0 only
-  rescales the estimate's term ``|a_tilde|^2 / Gamma`` of the Lyapunov function, as usual in adaptive
-  control. Why it is there: along any descent of the formation potential ``e_hat^T dx < 0``, and the
-  ``Z^T dq`` term moves a_hat by ``a_hat^T Z^T dq = e_hat^T J(q, a_hat) dq``, so the estimate shrinks in
-  proportion to the potential released (m^3 of e_hat times metres travelled): with Gamma = 1 a far
-  start drives it to the lower bound of its box within a second whatever alpha is.
+  the printed law has ``Gamma = 1`` (``Gains.adaptation_gain``, the default).
 
-Saturated springs (``Gains.spring_force`` = F finite; ``inf``, the default, is the paper's law): every
-edge is a virtual spring whose force saturates. Distance formations replace the potential
-``V = 1/2 sum_k e_k^2`` (whose gradient is the paper's e_hat) by ``V_F = sum_k rho_k(e_k)`` with the
-Huber function ``rho_k(e) = e^2 / 2`` for ``|e| <= c_k``, ``c_k |e| - c_k^2 / 2`` beyond, of level
-``c_k = F / (2 K_P d_k)``, so ``e_hat_i = 2 sum_j clip(e_ij, -c_ij, c_ij) z_ij``; displacement formations
-scale each ``e_k`` to length at most ``F / K_P``. Every law then uses this e_hat (law-III also in its
-regressor ``Z(q, e_hat)``). Why this form:
+Saturated springs (``Gains.spring_force`` = F finite; ``inf``, the default, is the paper's law): distance
+formations use ``e_hat_i = 2 sum_j clip(e_ij, -c_ij, c_ij) z_ij`` with ``c_k = F / (2 K_P d_k)`` (the
+gradient of a Huber potential, equal to the paper's near the target); displacement formations scale each
+``e_k`` to length at most ``F / K_P``. Every law uses this e_hat (law-III also in its regressor).
 
-- ``-K_P J^T e_hat`` is still the gradient field of one potential (``K_P V_F`` in joint space), with one
-  scalar K_P, as Theorems 3.1 and 4.2 assume; ``V_F`` has the same minimizers as ``V`` and coincides
-  with it where every ``|e_k| <= c_k``, so near the target the laws are the printed ones.
-- Far from the target each edge pulls with at most ``F |z_k| / d_k`` (F at the desired length) instead of
-  a force growing with the cube of the error, so a gain that is fast near the target no longer asks
-  far away for torques the actuators cannot give (which, clipped, also removes the damping).
-- Both ends of an edge know ``d_k`` (their observation), K_P and F, so they use the same ``c_k``:
-  the law stays distributed.
+Gradient-rate damping (``Gains.rate_gain`` = K_R > 0; 0, the default, is the paper's law): the spring
+term acts on ``e_hat + K_R d(e_hat)/dt``, the derivative the backward difference of the agent's own e_hat
+over one control step; law-III adapts with e_hat itself.
 
 Each law is written once, for a stack of agents (``batch_torques``): :class:`ControllerBatch` evaluates the
 agents that share a law, a chain and an observation layout in one set of numpy calls, and
-:class:`PolicyTeam` (used by :func:`ee_formation_env.baselines.metrics.run_episode` and the residual training env) groups a
-team's policies into such batches. A controller called alone is a batch of one, and gives bit for bit the
-same actions and internal states (tested): at these sizes a numpy call costs about the same for 1 agent as
-for 16, so a 4-agent team is ~4x cheaper to evaluate in one batch. The Jacobian-transpose term uses the
-regressor, ``J(q, a)^T e_hat = Z(q, e_hat) a``, so law-III's adaptation and its torque share one chain
-evaluation.
+:class:`PolicyTeam` groups a team's policies into such batches. A controller called alone is a batch of
+one and gives bit for bit the same actions and internal states. ``J(q, a)^T e_hat = Z(q, e_hat) a``: the
+torque and law-III's adaptation share one chain evaluation.
 
-Gradient-rate damping (``Gains.rate_gain`` = K_R > 0; 0, the default, is the paper's law): the spring
-term acts on ``e_hat + K_R d(e_hat)/dt``, the derivative taken as the backward difference of the agent's
-own e_hat over one control step (its observation at two steps: no neighbour velocity is needed), so
-``u = -K_P J^T (e_hat + K_R d(e_hat)/dt) - K_D dq + ...``; law-III adapts with e_hat itself. Why:
+Internal states are integrated once per control step ``dt``: ``eta`` by explicit Euler, ``a_hat`` by the
+linearly implicit Euler step ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq`` (stable for
+every dt, same fixed points).
 
-- ``-K_P J^T e_hat`` is unchanged (the gradient of one potential, one scalar K_P); the added term is,
-  in continuous time, the damping ``-K_R K_P J^T S(x) J dq`` (S the Hessian of the formation potential
-  in x), proportional to the formation's stiffness, positive semi-definite near the target.
-- The control is held over each step, so a spring acts on a state half a step old on average: a
-  negative damping ``K dt / 2`` per mode of stiffness K. Joint damping K_D must outweigh it on the
-  stiffest mode, and then over-damps the softest ones (their rate is about K / K_D): on an ill-conditioned
-  formation (stiffness eigenvalues 1e4 apart) they take minutes. The rate term damps each mode in
-  proportion to its own stiffness, which cancels the lag (K_R > dt / 2), so K_D can be ten times lower
-  (:mod:`ee_formation_env.baselines.reference.gains`).
-
-Internal states are integrated once per env step (the control step ``dt``): ``eta`` by explicit Euler,
-``a_hat`` by a linearly implicit Euler step, ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq``, because
-``alpha Z^T Z`` is stiff (rates of ~2000 1/s on the paper's planar arms, unstable for explicit Euler at
-any control step above 1 ms) while the implicit step has the same fixed points and is stable for all dt.
+Why each of these choices, with the measurements: see docs/controllers.md.
 """
 
 from __future__ import annotations

@@ -4,61 +4,28 @@ Built-in scenarios carry gains tuned for their default torque limits and rates (
 dropped by any override of their physics); :data:`PAPER_GAINS` are the paper's (they need torque limits
 lifted and 1 ms control steps). For any other scenario :func:`derive_gains` computes gains from the task
 (nominal models, torque limits, mounting, graph, shape and control step; no env needed) by
-:func:`formation_gains`. The law it tunes is the paper's with **saturated virtual springs**
-(:mod:`ee_formation_env.baselines.reference.controllers`, "Saturated springs"): each edge's spring pulls linearly (gain K_P) near its
-desired length and with a bounded force far from it, so the gain can be high near the target without
-asking far away for torque the actuators do not have (clipped, such a command also loses its damping:
-that is how unsaturated gains spin arms up to the velocity fault). K_P is one scalar for the whole team
-and each edge's force limit is the same at both its ends, so ``-K_P J^T e_hat`` stays the gradient of
-one potential (Theorems 3.1 and 4.2 assume it); damping, internal-model and adaptation gains are per arm.
-Rules, each evaluated at sampled configurations (seeded) plus the initial one:
+:func:`formation_gains`, for the paper's laws with saturated virtual springs
+(:mod:`ee_formation_env.baselines.reference.controllers`). K_P is one scalar for the whole team and each
+edge's force limit is the same at both its ends, so ``-K_P J^T e_hat`` stays the gradient of one potential;
+damping, internal-model and adaptation gains are per arm. The rules, each evaluated at sampled
+configurations (seeded) plus the initial one:
 
-1. **Damping**, per joint. Sampled velocity feedback ``dq+ = dq - dt H^-1 K_D dq`` is stable only while
-   ``dt rho(H^-1 K_D) < 2`` (``dt < 2 lambda_min(H) / K_D`` for a scalar gain). Each joint gets
-   ``K_D,j = min(K_D_max, 1 / (dt max_q (H^-1)_jj))`` (its effective inertia over the step), then all are
-   scaled down together until ``beta = dt rho(H^-1 K_D) <= 0.1`` at every sampled configuration
-   (``<= 1`` where gravity loads the joints, see below); ``K_D_max = 20 N m s/rad``. Why 0.1, far below
-   the limit: the softest modes of the formation are over-damped, their rate about ``kappa / beta`` per
-   step (rule 3's kappa of that mode), ten times that of ``beta = 1``; the stiff modes get their damping
-   from the gradient-rate term (rule 5), without which ``beta`` must stay above about ``kappa / 2`` of
-   the stiffest mode (the control is held over the step, see ``ee_formation_env.baselines.reference.controllers``). On the random
-   planar scenarios of ``benchmarks/random_scenarios.py`` (6-arm shapes whose stiffness eigenvalues span
-   1e4) ``beta = 1`` left two of ten scenarios 5-36 cm off after 20 s. Where gravity loads the joints,
-   law-II/III's internal model (K_I > 0) integrates the damping torque too, and ``beta = 0.1`` made it
-   oscillate (law-II and law-III then failed 5 of the 6 random spatial scenarios): those arms keep
-   ``beta <= 1``. Then ``K_D,j <= 0.5 spare_j / (0.5 rad/s)`` (spare torque: rule 2): the formation's
-   torque share must still move the joint at 0.5 rad/s against the damping (without this the PERA-like
-   arm, whose shoulder spends most of its 13.4 N m on gravity, crawls). A robot whose light distal joints
-   leave little damping at the scenario's control step needs a smaller step (``frame_skip``) or reflected
-   rotor inertia.
-2. **Spring forces** from the torque budget. The spare torque of joint j is its limit minus the largest
-   gravity torque it carries (never counted below 20 % of the limit); an end-effector force f asks joint
-   j for at most ``|J[:, j]| |f|``, so arm i can take ``F_i = 0.5 min_j spare_j / max_q |J[:, j](q)|``,
-   keeping the other half for damping. Edge k's spring saturates at ``F_k = min(F_tail, F_head)`` (N, at
-   its desired length).
-3. **Formation gain** K_P from the control step, consistently with rule 1. Near the target the springs
-   add the joint stiffness ``K_q = K_P J^T S J`` (block-diagonal J over the arms), with S = d(e_hat)/dx at
-   the target shape: ``4 R^T R`` (R the rigidity matrix) for distance formations, ``B B^T`` for
-   displacement ones. A sampled (semi-implicit Euler) mass-spring-damper with ``beta = dt rho(H^-1 K_D)``
-   and ``kappa = dt^2 rho(H^-1 K_q)`` is stable for ``beta < 2`` and ``kappa < 2 (2 - beta)``; with the
-   control held over the step (as the env does) and rule 5's rate term, every ``beta`` in [0, 1] is
-   stable up to ``kappa = 0.75``, and this rule takes ``kappa <= 0.5``:
-   ``K_P = 0.5 / (dt^2 lambda_max(S) max_i max_q lambda_max(J_i H_i^-1 J_i^T))`` (the lightest effective
-   end-effector mass of the team). The largest stable gain is the fastest near the target; 0.5 is the
-   value that measured best on the random planar scenarios (``benchmarks/random_scenarios.py``: 0.25 and
-   0.1 are slower, 1.0 shrinks the springs' linear range, ``F / (4 K_P d^2)`` in edge-length error, so
-   far that the saturated springs, which pull with constant force whatever the error, dominate).
-4. **Internal model and adaptation**: ``K_I = min(5, 0.1 / dt) 1/s`` when gravity loads the joints, else 0
-   (``INTERNAL_MODEL_GAIN``); with the arm's saturated gradient ``|e_hat| <= sum_k F_k / K_P``, ``Gamma``
-   lets the ``Z^T dq`` term move a_hat by at most 10 % of ``|a|`` over one reach of travel
-   (``ESTIMATE_CHANGE``), and ``alpha`` keeps the decay rate ``Gamma alpha |Z|^2`` at most 0.1 1/s
-   (``ADAPTATION_RATE``), ``|Z|^2`` the largest over sampled q and unit directions u.
-5. **Gradient-rate damping** ``K_R = 1.5 dt`` (``Gains.rate_gain``, ``ee_formation_env.baselines.reference.controllers``): the spring
-   acts on ``e_hat + K_R d(e_hat)/dt``. For one mode (mass m, stiffness k, damping d, ``kappa = k dt^2 / m``,
-   ``beta = d dt / m``, control held over the step, e_hat differenced over one step; :func:`mode_decay`)
-   1.5 dt damps the stiffest mode (``kappa = 0.5``) best at ``beta = 0.1`` (decay 0.18 per step, 0.13
-   at ``beta = 0``) and keeps every ``beta`` in [0, 1] stable up to ``kappa = 0.75``; without it
-   ``beta = 0.1`` is unstable at ``kappa = 0.5``.
+1. **Damping**, per joint: ``K_D,j = min(K_D_MAX, 1 / (dt max_q (H^-1)_jj))``, all scaled down together
+   until ``beta = dt rho(H^-1 K_D) <= BETA`` (``<= GRAVITY_BETA`` where gravity loads the joints), then
+   ``K_D,j <= 0.5 spare_j / JOINT_SPEED`` so that the formation's torque share still moves each joint.
+2. **Spring forces** from the torque budget: spare torque = limit minus the largest gravity torque (never
+   below ``SPARE_TORQUE_FLOOR`` of the limit); arm i takes ``F_i = TORQUE_SHARE min_j spare_j /
+   max_q |J[:, j](q)|``; edge k saturates at ``F_k = min(F_tail, F_head)`` (N).
+3. **Formation gain**: ``K_P = KAPPA / (dt^2 lambda_max(S) max_i max_q lambda_max(J_i H_i^-1 J_i^T))``, with
+   S = ``4 R^T R`` (distance, R the rigidity matrix) or ``B B^T`` (displacement) at the target shape.
+4. **Internal model and adaptation**: ``K_I = min(INTERNAL_MODEL_GAIN, 0.1 / dt)`` where gravity loads the
+   joints, else 0; ``Gamma`` bounds the ``Z^T dq`` term's change of a_hat to ``ESTIMATE_CHANGE`` of ``|a|``
+   over one reach, ``alpha`` the decay rate ``Gamma alpha |Z|^2`` to ``ADAPTATION_RATE``.
+5. **Gradient-rate damping** ``K_R = RATE_STEPS dt`` (``Gains.rate_gain``); :func:`mode_decay` is the
+   one-mode model behind rules 1, 3 and 5.
+
+The derivation of each rule, the stability limits and the measurements behind the constants: see
+docs/controllers.md ("Gains"); the rule on random scenarios: docs/results.md.
 """
 
 from __future__ import annotations

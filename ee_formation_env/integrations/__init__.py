@@ -7,4 +7,6 @@
 
 None of them imports the reference controllers or the learning tools (``ee_formation_env.baselines``): where a
 framework needs a learning tool (a residual env), the learning wing hands it a wrapped env.
+
+Usage: see docs/training.md; import paths, old and new: docs/api.md.
 """

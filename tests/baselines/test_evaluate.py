@@ -12,7 +12,7 @@ from ee_formation_env.baselines.evaluate import main
 from ee_formation_env.baselines.metrics import METRIC_COLUMNS, metric_definitions
 
 SHORT = ["--episodes", "1", "--set", "episode_seconds=0.3"]
-README = Path(__file__).resolve().parents[2] / "README.md"
+RESULTS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "results.md"  # where the metrics are defined for readers
 
 
 def _table_rows(output: str) -> dict[str, list[str]]:
@@ -67,8 +67,8 @@ def test_help_defines_every_column(capsys):
         assert " ".join(column.meaning.split()) in help_text
 
 
-def test_readme_shows_the_column_definitions():
-    assert metric_definitions(markdown=True) in README.read_text(encoding="utf-8")
+def test_results_page_shows_the_column_definitions():
+    assert metric_definitions(markdown=True) in RESULTS_PAGE.read_text(encoding="utf-8")
 
 
 def test_video_writes_one_file_per_episode_at_simulated_speed(tmp_path):
