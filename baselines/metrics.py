@@ -1,7 +1,13 @@
-"""Episode metrics: the one definition used by ``ee_formation_env.baselines.evaluate``, ``studies.reproduce`` and ``train.py``.
+"""Episode metrics: the one definition of success and settling, and the one episode loop.
+
+Used by ``ee_formation_env.baselines.evaluate``, ``train.py`` and every study (``studies.reproduce``,
+``studies.robustness``, ``studies.random_scenarios``).
 
 A policy here is anything with ``reset()`` and ``__call__(observation) -> action`` (normalized torques),
-one per agent. :func:`run_episode` rolls one seeded episode and returns :class:`EpisodeMetrics`.
+one per agent. :func:`run_episode` rolls one seeded episode and returns :class:`EpisodeMetrics`; its
+success and settling time come from :func:`settle`: the formation error (RMS over edges of ``|e_k|``)
+below :func:`formation_tolerance` from the settling time to the end of the episode, held at least
+:data:`DEFAULT_HOLD_SECONDS`, with no physics fault.
 """
 
 from __future__ import annotations
@@ -9,7 +15,7 @@ from __future__ import annotations
 import math
 import textwrap
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable, Mapping, Protocol, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
 
@@ -25,6 +31,42 @@ class Policy(Protocol):
 
 
 DEFAULT_HOLD_SECONDS = 1.0  # s: the formation must be held at least this long before the episode ends
+
+
+def settle(errors: Sequence[float] | np.ndarray, tolerance: float, dt: float,
+           hold_seconds: float = DEFAULT_HOLD_SECONDS, faulted: bool = False) -> tuple[bool, float]:
+    """Success and settling time of an episode: the one definition (every study and ``run_episode`` use it).
+
+    ``errors``: the formation error after each control step (formation units: m^2 for distance formations,
+    m for displacement ones), sample ``i`` at the end of step ``i + 1``; ``tolerance``: the threshold in the
+    same units (:func:`formation_tolerance`); ``dt``: the control step (s); ``hold_seconds`` (s);
+    ``faulted``: the episode had a physics fault.
+
+    The settling index is one past the last sample not below ``tolerance`` (a NaN counts as not below), and
+    the settling time (s) is that index times ``dt``: the time after which the error stays below the
+    tolerance to the end. It is NaN if the error never settles (its last sample is not below) or the
+    episode faulted. Success: settled, and the error was held below for at least ``hold_seconds``
+    (``(len(errors) - index) * dt``). Returns ``(success, settling_time)``.
+    """
+    series = np.asarray(errors, dtype=np.float64)
+    above = np.flatnonzero(~(series < tolerance))
+    settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
+    settled = settle_index < len(series) and not faulted
+    settling_time = settle_index * dt if settled else math.nan
+    held = (len(series) - settle_index) * dt if settled else 0.0
+    return bool(settled and held >= hold_seconds), float(settling_time)
+
+
+class Step(NamedTuple):
+    """One env step as :func:`run_episode` saw it (handed to its ``on_transition`` hook)."""
+
+    index: int  # 1 for the first step after the reset
+    actions: Mapping[str, np.ndarray]  # what the policies returned (normalized, before the env's clipping)
+    observations: Mapping[str, np.ndarray]  # after the step
+    rewards: Mapping[str, float]
+    terminations: Mapping[str, bool]
+    truncations: Mapping[str, bool]
+    infos: Mapping[str, Mapping[str, Any]]
 
 
 def formation_tolerance(env: FormationEnv, position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> float:
@@ -44,9 +86,9 @@ def formation_tolerance(env: FormationEnv, position_tolerance: float = DEFAULT_P
 class EpisodeMetrics:
     """What one episode achieved. Units: formation units (m^2 distance, m displacement), s, N m."""
 
-    success: bool  # error below tolerance from settling_time to the end, for at least hold_seconds
+    success: bool  # :func:`settle`: error below tolerance from settling_time to the end, for >= hold_seconds
     final_formation_error: float
-    settling_time: float  # s; first time after which the error stays below tolerance; nan if never
+    settling_time: float  # s, :func:`settle`: time after which the error stays below tolerance; nan if never
     control_energy: float  # sum over agents of the integral of |tau|^2 dt, N^2 m^2 s
     peak_torque: float  # N m, over all joints and steps
     saturation_fraction: float  # fraction of (step, joint) action entries clipped at the torque limit
@@ -67,12 +109,17 @@ class EpisodeMetrics:
 def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
                 record: bool = False, on_step: Callable[[FormationEnv], None] | None = None,
-                on_reset: Callable[[FormationEnv], None] | None = None) -> EpisodeMetrics:
-    """Roll one episode from ``reset(seed=seed)`` to its end with one policy per agent.
+                on_reset: Callable[[FormationEnv], None] | None = None,
+                on_transition: Callable[[FormationEnv, Step], bool | None] | None = None) -> EpisodeMetrics:
+    """Roll one episode from ``reset(seed=seed)`` to its end with one policy per agent: the one episode loop.
 
     ``record=True`` keeps time series (``t``, ``formation_error``, ``edge_errors`` per edge, ``ee`` world
     positions, ``q``, ``dq``, ``torque``) in ``metrics.trajectory``; ``on_step(env)`` is called after
     each step (e.g. to log a controller's internal state), ``on_reset(env)`` once after the reset.
+    ``on_transition(env, step)`` is called after each step too (after ``on_step``) with the :class:`Step`
+    (actions, observations, rewards, terminations, truncations, infos); a true return value stops the
+    episode there (the metrics then cover the steps run; success still needs the hold). Success and
+    settling time: :func:`settle` on the formation error after each step.
     """
     team = PolicyTeam(policies)  # like controllers evaluated together: the same actions, fewer calls
     observations, infos = env.reset(seed=seed)
@@ -90,6 +137,7 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
     fault = ""
     if record:
         _record(series, env, infos, 0.0, [np.zeros(len(limits)) for limits in env.torque_limits])
+    steps = 0
     while env.agents:
         actions = team(observations)
         observations, rewards, terminations, truncations, infos = env.step(actions)
@@ -112,17 +160,17 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
             _record(series, env, infos, first["sim_time"], torques)
         if on_step is not None:
             on_step(env)
+        steps += 1
+        if on_transition is not None and on_transition(env, Step(steps, actions, observations, rewards, terminations,
+                                                                 truncations, infos)):
+            break
 
     error_series = np.asarray(errors)
-    above = np.flatnonzero(~(error_series < tolerance))
-    settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
-    settled = settle_index < len(error_series) and not fault
-    settling_time = settle_index * dt if settled else math.nan
-    held = (len(error_series) - settle_index) * dt if settled else 0.0
+    success, settling_time = settle(error_series, tolerance, dt, hold_seconds, faulted=bool(fault))
     metrics = EpisodeMetrics(
-        success=bool(settled and held >= hold_seconds),
+        success=success,
         final_formation_error=float(error_series[-1]),
-        settling_time=float(settling_time),
+        settling_time=settling_time,
         control_energy=energy,
         peak_torque=peak,
         saturation_fraction=clipped / max(entries, 1),

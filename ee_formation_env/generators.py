@@ -21,10 +21,18 @@ import numpy as np
 from ee_formation_env.robots import SPATIAL_INITIAL_Q, ROBOTS
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix
 
-_PLANAR_LINK = 1.5  # m, both links of planar_2link
 _PLANAR_REACH_USED = 2.0  # m, initial base-to-end-effector distance of a planar arm
 _PLANAR_BASE_SPACING = 3.5  # m between neighbouring bases on the circle (keeps the arms apart)
 _SPATIAL_BASE_SPACING = 0.6  # m
+
+
+def planar_link_lengths() -> tuple[float, float]:
+    """The two link lengths (m) of ``planar_2link``, read from its kinematic model (the x offsets of its
+    ``joint_2`` and ``ee_joint`` origins, the chain's nominal parameters): the one source of these numbers."""
+    robot = ROBOTS["planar_2link"]
+    chain = chain_model(str(robot.urdf), robot.ee_link)
+    params = dict(zip(chain.param_names, chain.nominal_params))
+    return float(params["joint_2.x"]), float(params["ee_joint.x"])
 
 
 def square_vertices(side: float, centre: tuple[float, float] = (3.0, 3.0)) -> list[list[float]]:
@@ -59,9 +67,10 @@ def planar_ring(n_agents: int, **overrides: Any) -> dict[str, Any]:
     """``n_agents`` planar two-link arms (2 DOF) on a circle, distance formation, ``dim = 2``."""
     radius, angles = _ring(n_agents, _PLANAR_BASE_SPACING, minimum_radius=3.0)
     # Elbow-up inverse kinematics for an end-effector _PLANAR_REACH_USED ahead of the base (base x axis).
-    d, link = _PLANAR_REACH_USED, _PLANAR_LINK
-    elbow = math.acos((d * d - 2 * link * link) / (2 * link * link))
-    shoulder = -math.atan2(link * math.sin(elbow), link + link * math.cos(elbow))
+    d = _PLANAR_REACH_USED
+    upper, lower = planar_link_lengths()
+    elbow = math.acos((d * d - upper * upper - lower * lower) / (2 * upper * lower))
+    shoulder = -math.atan2(lower * math.sin(elbow), upper + lower * math.cos(elbow))
     arms, ee = [], []
     for angle in angles:
         base = [radius * math.cos(angle), radius * math.sin(angle), 0.0]

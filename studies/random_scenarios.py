@@ -10,8 +10,10 @@ rate, the mean and worst settling time of the successes, physics faults and arm 
 
 - **planar** (:func:`planar_scenario`): 3 to 6 ``planar_2link`` arms with bases on a ring of radius
   4-6 m (random ring offset, a random base yaw each), random initial q with the elbow away from its
-  singularities (|q2| in [0.4, pi - 0.4] rad), each target vertex inside its own arm's reach (0.8 to
-  2.6 m from its base; the arm reaches 3 m), a minimally rigid trilateration graph. 20 s episodes.
+  singularities (|q2| in [0.4, pi - 0.4] rad), each target vertex inside its own arm's reach (0.8 m to
+  the reach less 0.4 m from its base; the reach, 3 m, is the sum of the link lengths read from the arm's
+  kinematic model, :func:`ee_formation_env.generators.planar_link_lengths`), a minimally rigid
+  trilateration graph. 20 s episodes.
 - **spatial** (:func:`spatial_scenario`): 3 or 4 arms, each one of ``kuka_iiwa`` (``pybullet_data``
   ``kuka_iiwa/model.urdf``, end-effector ``lbr_iiwa_link_7``), ``franka_panda`` (``franka_panda/panda.urdf``,
   ``panda_hand``) and the built-in ``pera_arm``, mixed at random (heterogeneous teams), bases on a ring of
@@ -29,10 +31,13 @@ the flow leaves only slowly) or still falling (converging slowly along a weak mo
 shape, or an arm near its workspace boundary that can barely move its end-effector the way the error
 needs); or still converging (a transient, e_hat not small).
 
-**Success** means every edge length within :data:`EDGE_TOLERANCE` (1 cm) of its target at the end of the
-episode, with no physics fault; the **settling time** is the first time after which every edge stays
-within 1 cm until the end. Targets (checked and printed): planar >= 90 % of the scenarios for every
-formation law, spatial 100 %.
+Every run is rolled by :func:`ee_formation_env.baselines.metrics.run_episode`, and **success** and the
+**settling time** are its (:func:`ee_formation_env.baselines.metrics.settle`): the formation error (RMS
+over edges of ``|e_k|``) below :func:`ee_formation_env.baselines.metrics.formation_tolerance` (the edges'
+accuracy ``ee_formation_env.reward.DEFAULT_POSITION_TOLERANCE``, 1 cm) from the settling time to the end,
+held at least 1 s, with no physics fault. The largest edge-length error (m) is recorded along the way
+for the failure classification and the table. Targets (checked and printed): planar >= 90 % of the
+scenarios for every formation law, spatial 100 %. Results and their history: see docs/results.md.
 """
 
 from __future__ import annotations
@@ -57,15 +62,16 @@ from ee_formation_env.scenario import ROBOTS
 from ee_formation_env.formation import rigidity_matrix
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix
 
-if __package__ in (None, ""):  # run as a script: python benchmarks/random_scenarios.py
+if __package__ in (None, ""):  # run as a script: python studies/random_scenarios.py
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from ee_formation_env.baselines import make_policies  # noqa: E402
-from ee_formation_env.generators import trilateration_edges  # noqa: E402
+from ee_formation_env.baselines import REFERENCE_CONTROLLERS, make_policies  # noqa: E402
+from ee_formation_env.baselines.metrics import Step, run_episode  # noqa: E402
+from ee_formation_env.generators import planar_link_lengths, trilateration_edges  # noqa: E402
+from studies._common import max_edge_length_error  # noqa: E402
 
-EDGE_TOLERANCE = 0.01  # m: every edge length within this of its target counts as "in formation"
 PLANAR_SECONDS = 20.0
 SPATIAL_SECONDS = 30.0
-POLICIES = ("gradient", "approx_jacobian", "adaptive_jacobian")
+POLICIES = tuple(REFERENCE_CONTROLLERS)  # the paper's laws I, II and III
 TARGETS = {"planar": 0.9, "spatial": 1.0}  # required success rate per family and policy
 SINGULAR_MARGIN = 0.02  # m: a final smallest Jacobian singular value below this counts as singular
 EQUILIBRIUM_RATIO = 0.05  # a final gradient ratio below this: e_hat small for the edge errors
@@ -90,7 +96,7 @@ def planar_scenario(seed: int) -> dict[str, Any]:
     n_agents = int(rng.integers(3, 7))
     radius = float(rng.uniform(4.0, 6.0))
     offset = float(rng.uniform(-math.pi, math.pi))
-    link = 1.5  # m, both links of planar_2link
+    reach = sum(planar_link_lengths())  # m
     arms, targets = [], []
     for i in range(n_agents):
         angle = offset + 2 * math.pi * i / n_agents
@@ -100,7 +106,7 @@ def planar_scenario(seed: int) -> dict[str, Any]:
         arms.append({"robot": "planar_2link", "base_position": [*base.tolist(), 0.0], "base_rpy": [0.0, 0.0, yaw],
                      "initial_q": [float(rng.uniform(-math.pi, math.pi)), elbow]})
         # Target vertex: 0.8-2.6 m from its own base, within +-60 deg of the direction to the ring's centre.
-        distance = float(rng.uniform(0.8, 2 * link - 0.4))
+        distance = float(rng.uniform(0.8, reach - 0.4))
         direction = angle + math.pi + float(rng.uniform(-math.pi / 3, math.pi / 3))
         targets.append((base + distance * np.array([math.cos(direction), math.sin(direction)])).tolist())
     return {"name": f"random_planar_{seed}", "arms": arms, "edges": trilateration_edges(n_agents, 2),
@@ -230,8 +236,8 @@ class RunRecord:
     n_agents: int
     robots: str
     policy: str
-    success: bool
-    settling_time: float  # s, nan if the edges never stay within tolerance to the end
+    success: bool  # run_episode's (ee_formation_env.baselines.metrics.settle)
+    settling_time: float  # s, run_episode's; nan if the formation error never stays within tolerance to the end
     final_max_edge_error: float  # m, largest |edge length - target| at the end
     physics_fault: str
     contact_steps: int
@@ -264,12 +270,6 @@ class RunRecord:
         return "still converging at the horizon"
 
 
-def max_edge_length_error(env: FormationEnv) -> float:
-    """Largest |edge length - target length| over the edges (m), distance formations."""
-    z = env.graph.edge_vectors(env.end_effector_positions()[:, :env.dim])
-    return float(np.max(np.abs(np.linalg.norm(z, axis=1) - env.formation.desired)))
-
-
 def gradient_ratio(env: FormationEnv) -> float:
     """``max_i |e_hat_i| / (2 max_k |e_k| max_k |z_k|)`` with the paper's (unsaturated) e_hat: near 0 when the
     formation sits at an equilibrium of its gradient flow with nonzero edge errors."""
@@ -290,39 +290,33 @@ def rigidity_ratio(env: FormationEnv) -> float:
 
 
 def run_one(scenario: dict[str, Any], family: str, policy: str, **policy_kwargs: Any) -> RunRecord:
-    """Roll ``policy`` on ``scenario`` once (reset seed 0) and score it edge by edge."""
+    """Roll ``policy`` on ``scenario`` once (reset seed 0) with :func:`run_episode`; success and settling are
+    its, the final state and the largest edge-length error along the way feed the failure classification."""
     env = ee_formation_env.parallel_env(scenario)
     try:
         policies = make_policies(policy, env, **policy_kwargs)
-        observations, infos = env.reset(seed=0)
-        for p in policies.values():
-            p.reset()
-        dt = env.scenario.control_dt
-        errors, contacts, fault = [max_edge_length_error(env)], 0, ""
-        margin = min(info["singularity_margin"] for info in infos.values())
+        lengths: list[float] = []  # largest edge-length error (m): after the reset, then after each step
+        last: list[Step] = []
+
+        def watch(env: FormationEnv, step: Step) -> None:
+            lengths.append(max_edge_length_error(env))
+            last[:] = [step]
+
         start = time.perf_counter()
-        while env.agents:
-            actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
-            observations, _, _, _, infos = env.step(actions)
-            first = next(iter(infos.values()))
-            if first["physics_fault"] and not fault:  # an int code; the env keeps the reason
-                fault = env.physics_fault_reason
-            contacts += int(any(info["contacts"] > 0 for info in infos.values()))
-            margin = min(margin, min(info["singularity_margin"] for info in infos.values()))
-            errors.append(max_edge_length_error(env))
+        metrics = run_episode(env, policies, seed=0, on_reset=lambda env: lengths.append(max_edge_length_error(env)),
+                              on_transition=watch)
         wall = time.perf_counter() - start
-        series = np.asarray(errors)
-        above = np.flatnonzero(series >= EDGE_TOLERANCE)
-        settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
-        success = settle_index < len(series) and not fault
+        dt = env.scenario.control_dt
+        series = np.asarray(lengths)
+        infos = last[0].infos
         robots = ",".join(arm.robot or Path(arm.urdf).parent.name for arm in env.scenario.arms)
         final_margin = min(info["singularity_margin"] for info in infos.values())
         speed = max(float(np.max(np.abs(dq))) for dq in env.joint_velocities())
         back = min(len(series) - 1, int(round(TREND_SECONDS / dt)))
         trend = float(series[-1] / series[-1 - back] - 1.0) if back > 0 and series[-1 - back] > 0 else math.nan
-        return RunRecord(family, scenario["name"], env.scenario.n_agents, robots, policy, bool(success),
-                         settle_index * dt if success else math.nan, float(series[-1]), fault, contacts,
-                         float(margin), float(final_margin), gradient_ratio(env), speed, wall, trend,
+        return RunRecord(family, scenario["name"], env.scenario.n_agents, robots, policy, metrics.success,
+                         metrics.settling_time, float(series[-1]), metrics.physics_fault, metrics.contact_steps,
+                         metrics.min_singularity_margin, float(final_margin), gradient_ratio(env), speed, wall, trend,
                          rigidity_ratio(env), any(info["contacts"] > 0 for info in infos.values()))
     finally:
         env.close()

@@ -14,7 +14,9 @@ controllers' kinematic estimates ``a_hat`` are logged through its ``on_step`` ca
 
 Studies: ``planar`` (3.0 m square, 30 s), ``spatial`` (0.4 m tetrahedron, 50 s) and ``stall`` (4.0 m
 square: printed vs projected law under both presets). Each run writes a CSV of its time series; each
-study writes PNG figures; ``summary.json`` holds one row per run. See REPRODUCTION.md.
+study writes PNG figures; ``summary.json`` holds one row per run, with the episode's metrics (success and
+settling time as :func:`ee_formation_env.baselines.metrics.settle` defines them). Results and how they
+compare with the paper: see docs/reproduction.md.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -38,6 +39,7 @@ from ee_formation_env.baselines.reference.gains import PAPER_GAINS
 from ee_formation_env.baselines.metrics import EpisodeMetrics, run_episode
 from ee_formation_env.generators import square_vertices
 from ee_formation_env.scenario import builtin_scenario
+from studies._common import add_output_arguments, copy_figures, save_figure
 
 try:
     import matplotlib
@@ -53,7 +55,6 @@ QUICK_SECONDS = 2.0  # horizon cap of --quick
 CSV_PERIOD = 0.01  # s between CSV rows (the figures use every step)
 PLOT_POINTS = 4000  # at most this many samples per plotted line
 LOG_POINTS = 800  # samples per line on a log time axis
-DPI = 100
 JOINTS_DPI = 75  # the joint figures have 16 panels: a lower resolution keeps them under 200 kB
 
 # The paper's 2D preset needs 1 ms steps and unbounded torque (peaks of ~1e5 N m).
@@ -235,13 +236,6 @@ def _plot_trajectories(ax: Any, result: RunResult) -> None:
         ax.set_aspect("equal", adjustable="datalim")
 
 
-def _save(fig: Any, path: Path, dpi: int = DPI) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi, pil_kwargs={"optimize": True})
-    plt.close(fig)
-    return path
-
-
 # The paper's figure numbers (order of the figures in its LaTeX source).
 PAPER_FIGURES = {"planar": {"trajectories": 4, "edge_errors": 5, "estimates": 6, "joints": 7},
                  "spatial": {"trajectories": 9, "edge_errors": 10, "estimates": 11, "joints": 12}}
@@ -281,7 +275,7 @@ def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
         ax.legend(fontsize=7)
     fig.suptitle(f"{label}: end-effector trajectories (x start, o end; final formation edges in black) "
                  f"- paper Fig. {numbers['trajectories']}")
-    paths.append(_save(fig, out / f"{study}_trajectories.png"))
+    paths.append(save_figure(fig, out / f"{study}_trajectories.png"))
 
     fig, axes = plt.subplots(2, cols, figsize=(5.5 * cols, 6.5), sharex="col", squeeze=False)
     for c, result in enumerate(results):
@@ -297,7 +291,7 @@ def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
         axes[1, c].set_xlabel("t (s, log)")
         axes[0, c].legend(fontsize=7, ncol=2)
     fig.suptitle(f"{label}: inner distance errors - paper Fig. {numbers['edge_errors']}")
-    paths.append(_save(fig, out / f"{study}_edge_errors.png"))
+    paths.append(save_figure(fig, out / f"{study}_edge_errors.png"))
 
     n_agents = results[0].a_hat.shape[1]
     fig, axes = plt.subplots(n_agents, cols, figsize=(5.5 * cols, 2.0 * n_agents + 1), sharex="col", squeeze=False)
@@ -313,7 +307,7 @@ def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
         axes[0, c].legend(fontsize=7, ncol=2)
         axes[-1, c].set_xlabel("t (s, log)")
     fig.suptitle(f"{label}: kinematic parameter estimates - paper Fig. {numbers['estimates']}")
-    paths.append(_save(fig, out / f"{study}_estimates.png"))
+    paths.append(save_figure(fig, out / f"{study}_estimates.png"))
 
     fig, axes = plt.subplots(n_agents, 2 * cols, figsize=(3.7 * 2 * cols, 1.9 * n_agents + 1.2), sharex="col",
                              squeeze=False)
@@ -335,7 +329,7 @@ def study_figures(results: Sequence[RunResult], out: Path) -> list[Path]:
         axes[-1, 2 * c].set_xlabel("t (s, log)")
         axes[-1, 2 * c + 1].set_xlabel("t (s, log)")
     fig.suptitle(f"{label}: joint positions and velocities, one row per arm - paper Fig. {numbers['joints']}")
-    paths.append(_save(fig, out / f"{study}_joints.png", dpi=JOINTS_DPI))
+    paths.append(save_figure(fig, out / f"{study}_joints.png", dpi=JOINTS_DPI))
     return paths
 
 
@@ -367,7 +361,7 @@ def stall_figure(results: Sequence[RunResult], out: Path) -> list[Path]:
         axes[0, c].legend(fontsize=7)
         axes[1, c].legend(fontsize=7)
     fig.suptitle("Stall study, 4.0 m square, a_hat(0) = [2, 2]: printed vs projected adaptive law")
-    return [_save(fig, out / "stall_study.png")]
+    return [save_figure(fig, out / "stall_study.png")]
 
 
 # ---------------------------------------------------------------------------------------------- reporting
@@ -390,9 +384,7 @@ def format_summary(rows: Sequence[dict[str, Any]]) -> str:
 def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     """Command-line entry: run the selected studies, write CSVs, PNGs and summary.json; return the rows."""
     parser = argparse.ArgumentParser(prog="python -m studies.reproduce", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("results/reproduction"), help="output folder")
-    parser.add_argument("--figures-dir", type=Path, default=None, help="also copy the PNGs here")
-    parser.add_argument("--only", action="append", choices=STUDIES, help="run only this study (repeatable)")
+    add_output_arguments(parser, STUDIES, "results/reproduction")
     parser.add_argument("--quick", action="store_true", help=f"cap every horizon at {QUICK_SECONDS:g} s (tests)")
     args = parser.parse_args(argv)
     studies = args.only or list(STUDIES)
@@ -415,10 +407,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     stall = [r for r in results if r.spec.study == "stall"]
     if stall:
         figures += stall_figure(stall, args.out)
-    if args.figures_dir is not None:
-        args.figures_dir.mkdir(parents=True, exist_ok=True)
-        for path in figures:
-            shutil.copy2(path, args.figures_dir / path.name)
+    copy_figures(figures, args.figures_dir)
 
     rows = [result.summary() for result in results]
     (args.out / "summary.json").write_text(json.dumps(rows, indent=2) + "\n", encoding="utf-8")

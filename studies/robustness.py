@@ -4,14 +4,16 @@
                                    [--only mismatch|separating|stall|windup|spatial ...]
 
 Studies (the first three on the built-in planar square: four ``planar_2link`` arms, 3.0 m square, the
-project's tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; see REPRODUCTION.md):
+project's tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control):
 
 - ``mismatch``: the simulated ("true") arms differ from the nominal URDF the controllers know, by one of
   four kinds of size s, per arm, seeded: ``uniform`` (both link lengths scaled by 1 + s or 1 - s, one sign
   per arm), ``lengths`` (each length by its own factor 1 + s u, u uniform in [-1, 1]), ``offsets`` (each
-  joint origin moved by s * 1.5 m in a random in-plane direction: along the link, a modelled parameter,
-  and across it, an unmodelled one), ``zero_component`` (the tool frame moved sideways by s * 1.5 m: a
-  component that is zero in the nominal model, so no estimate a_hat can represent it). Law-I uses the
+  joint origin moved by s times its link's length, 1.5 m, in a random in-plane direction: along the link, a
+  modelled parameter, and across it, an unmodelled one), ``zero_component`` (the tool frame moved sideways
+  by s times the tool link's length: a component that is zero in the nominal model, so no estimate a_hat
+  can represent it). The link lengths are read from the nominal kinematic model
+  (:func:`ee_formation_env.generators.planar_link_lengths`). Law-I uses the
   nominal parameters, law-II keeps them fixed, law-III adapts them (projected onto the default box).
   For each run the paper's Proposition 4.1 quantities are computed along the trajectory:
   ``delta = max_t |J(q, a_hat) - J_true(q)|`` and ``delta* = lambda_4 / (4 lambda_Jhat lambda_3)``, with
@@ -31,10 +33,13 @@ project's tuned gains K_P 5, K_D 20, alpha 0.02, 50 N m limits, 100 Hz control; 
   arm scaled by its own factor in ``[1 - s, 1 + s]`` (``length``), every link mass and inertia by one in
   ``[1 - s, 1 + s]`` (``mass``), or both (``both``), s = 0.2, 0.5, 0.9, three mismatch seeds each, plus
   the unperturbed arms; the controllers keep the nominal model (law-I its nominal gravity torque too).
-  Recorded per run: final max |edge length - target| (m), settling time (every edge within 1 cm to the
-  end) and physics faults.
+  Recorded per run: final max |edge length - target| (m), success, settling time and physics faults.
 
-Outputs: ``robustness.json`` (every run) and PNG figures in ``--out`` (also copied to ``--figures-dir``).
+Every episode is rolled by :func:`ee_formation_env.baselines.metrics.run_episode`; success and settling
+time are its (:func:`ee_formation_env.baselines.metrics.settle`: the formation error below
+:func:`ee_formation_env.baselines.metrics.formation_tolerance`, edges within 1 cm in the RMS sense, from
+the settling time to the end, held at least 1 s, no physics fault). Outputs: ``robustness.json`` (every
+run) and PNG figures in ``--out`` (also copied to ``--figures-dir``). Results: see docs/results.md.
 """
 
 from __future__ import annotations
@@ -42,7 +47,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import shutil
 import tempfile
 import time
 import xml.etree.ElementTree as ElementTree
@@ -63,8 +67,10 @@ from ee_formation_env.baselines.reference.dynamics import nominal_dynamics  # no
 from ee_formation_env.baselines.metrics import run_episode  # noqa: E402
 from ee_formation_env.formation import rigidity_matrix  # noqa: E402
 from ee_formation_env.kinematics import chain_model  # noqa: E402
-from ee_formation_env.generators import square_vertices
+from ee_formation_env.generators import planar_link_lengths, square_vertices  # noqa: E402
+from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE  # noqa: E402
 from ee_formation_env.scenario import ROBOTS, builtin_scenario, load_scenario  # noqa: E402
+from studies._common import LAWS, add_output_arguments, copy_figures, max_edge_length_error, save_figure  # noqa: E402
 
 STUDIES = ("mismatch", "separating", "stall", "windup", "spatial")
 KINDS = ("uniform", "lengths", "offsets", "zero_component")
@@ -72,11 +78,7 @@ SIZES = (0.1, 0.3, 0.5)
 SEEDS = (0, 1, 2)
 SPATIAL_KINDS = ("length", "mass", "both")
 SPATIAL_SIZES = (0.2, 0.5, 0.9)
-EDGE_TOLERANCE = 0.01  # m: the spatial study's "in formation" (every edge length within 1 cm)
-LAWS = {"law-I": "gradient", "law-II": "approx_jacobian", "law-III": "adaptive_jacobian"}
 PLANAR_GAINS = Gains(**builtin_scenario("planar_square")["controller_gains"])  # its tuned gains (K_P 5, K_D 20)
-LINK = 1.5  # m, both links of the nominal planar_2link
-DPI = 100
 
 
 # ------------------------------------------------------------------------------------------ true robots
@@ -86,6 +88,7 @@ def perturbed_planar_urdf(kind: str, size: float, rng: np.random.Generator, dire
     tree = ElementTree.parse(source)
     joints = {joint.get("name"): joint.find("origin") for joint in tree.getroot().iter("joint")}
     origins = {name: np.array([float(v) for v in joints[name].get("xyz").split()]) for name in ("joint_2", "ee_joint")}
+    links = dict(zip(("joint_2", "ee_joint"), planar_link_lengths()))  # m, the link each joint origin ends
     if kind == "uniform":
         factor = 1.0 + size * rng.choice([-1.0, 1.0])
         origins = {name: xyz * factor for name, xyz in origins.items()}
@@ -94,9 +97,10 @@ def perturbed_planar_urdf(kind: str, size: float, rng: np.random.Generator, dire
     elif kind == "offsets":
         for name in origins:
             angle = rng.uniform(-math.pi, math.pi)
-            origins[name] = origins[name] + size * LINK * np.array([math.cos(angle), math.sin(angle), 0.0])
+            origins[name] = origins[name] + size * links[name] * np.array([math.cos(angle), math.sin(angle), 0.0])
     elif kind == "zero_component":
-        origins["ee_joint"] = origins["ee_joint"] + np.array([0.0, size * LINK * rng.choice([-1.0, 1.0]), 0.0])
+        origins["ee_joint"] = origins["ee_joint"] + np.array([0.0, size * links["ee_joint"] * rng.choice([-1.0, 1.0]),
+                                                              0.0])
     else:
         raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
     for name, xyz in origins.items():
@@ -289,28 +293,17 @@ def spatial_run(law: str, seconds: float, mismatch: dict[str, Any] | None) -> di
     env = ee_formation_env.parallel_env("spatial_tetrahedron", **overrides)
     try:
         policies = make_policies(LAWS[law], env)  # the scenario's tuned gains; nominal models
-        observations, _ = env.reset(seed=0)
-        lengths = []
+        lengths: list[float] = []  # largest edge-length error (m): after the reset, then after each step
 
-        def length_error() -> float:
-            z = env.graph.edge_vectors(env.end_effector_positions()[:, :env.dim])
-            return float(np.max(np.abs(np.linalg.norm(z, axis=1) - env.formation.desired)))
+        def log(env: Any) -> None:
+            lengths.append(max_edge_length_error(env))
 
-        lengths.append(length_error())
-        fault = ""
         start = time.perf_counter()
-        while env.agents:
-            observations, _, _, _, infos = env.step({a: policies[a](observations[a]) for a in env.agents})
-            if not fault and next(iter(infos.values()))["physics_fault"]:
-                fault = env.physics_fault_reason
-            lengths.append(length_error())
+        metrics = run_episode(env, policies, seed=0, on_reset=log, on_step=log)
         series = np.asarray(lengths)
-        above = np.flatnonzero(series >= EDGE_TOLERANCE)
-        settle_index = 0 if len(above) == 0 else int(above[-1]) + 1
-        success = settle_index < len(series) and not fault
         dt = env.scenario.control_dt
-        return {"law": law, "final_max_length_error": float(series[-1]), "success": bool(success),
-                "settling_time": settle_index * dt if success else math.nan, "fault": fault,
+        return {"law": law, "final_max_length_error": float(series[-1]), "success": metrics.success,
+                "settling_time": metrics.settling_time, "fault": metrics.physics_fault,
                 "t": (np.arange(len(series)) * dt).tolist(), "max_length_error": series.tolist(),
                 "wall_s": time.perf_counter() - start}
     finally:
@@ -360,13 +353,6 @@ def spatial_table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ figures
-def _save(fig: Any, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
-    return path
-
-
 def mismatch_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
     """Top: final max |e_k| vs size per kind (median and range over seeds) per law; bottom: delta vs delta*."""
     fig, axes = plt.subplots(2, len(KINDS), figsize=(4.2 * len(KINDS), 7.5), sharex=True, squeeze=False)
@@ -381,7 +367,7 @@ def mismatch_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
                                 marker="os^"[n], capsize=3, label=law)
         axes[0, c].set_yscale("log")
         axes[0, c].set_title(kind.replace("_", " "))
-        axes[0, c].axhline(2 * 3.0 * 0.01, color="grey", ls=":", lw=1)
+        axes[0, c].axhline(2 * 3.0 * DEFAULT_POSITION_TOLERANCE, color="grey", ls=":", lw=1)  # e ~ 2 d delta
         law2 = [r for r in rows if r["kind"] == kind and r["law"] == "law-II"]
         axes[1, c].plot([r["size"] for r in law2], [r["delta"] for r in law2], "o", label="delta (law-II)")
         axes[1, c].plot([r["size"] for r in law2], [r["delta_star"] for r in law2], "x", label="delta* (Prop. 4.1)")
@@ -392,7 +378,7 @@ def mismatch_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
     axes[0, 0].legend(fontsize=8)
     axes[1, 0].legend(fontsize=8)
     fig.suptitle("Model mismatch (planar square, 3 seeds per point; dotted: 1 cm edge-length error)")
-    return _save(fig, out / "robustness_mismatch.png")
+    return save_figure(fig, out / "robustness_mismatch.png")
 
 
 def separating_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
@@ -406,7 +392,7 @@ def separating_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
     ax.set_ylabel("max |e_k| (m^2, log)")
     ax.set_title("a_hat(0) = [2.7, 0.3], true [1.5, 1.5]: law-II vs law-III (3 seeds each)")
     ax.legend()
-    return _save(fig, out / "robustness_separating.png")
+    return save_figure(fig, out / "robustness_separating.png")
 
 
 def stall_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
@@ -431,7 +417,7 @@ def stall_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
         axes[0, c].set_title(f"K_P = {kp:g}")
         fig.colorbar(image, ax=axes[0, c], label="log10 final max |e_k| (m^2)")
     fig.suptitle("Printed law-III (no projection), a_hat(0) = [2, 2], 10 s: final max |e_k| (m^2)", fontsize=11)
-    return _save(fig, out / "robustness_stall_map.png")
+    return save_figure(fig, out / "robustness_stall_map.png")
 
 
 def windup_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
@@ -447,7 +433,7 @@ def windup_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
         ax.set_xlabel("t (s)")
         ax.legend()
     fig.suptitle("Law-II, spatial tetrahedron, torque limits halved (K_I = 1)")
-    return _save(fig, out / "robustness_windup.png")
+    return save_figure(fig, out / "robustness_windup.png")
 
 
 def spatial_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
@@ -464,22 +450,20 @@ def spatial_figure(rows: Sequence[dict[str, Any]], out: Path) -> Path:
             ax.semilogy(sizes[~faulted], values[~faulted], "os^"[n], color=f"C{n}", label=law, alpha=0.8)
             if faulted.any():
                 ax.semilogy(sizes[faulted], values[faulted], "x", color=f"C{n}", ms=9)
-        ax.axhline(EDGE_TOLERANCE, color="grey", ls=":", lw=1)
+        ax.axhline(DEFAULT_POSITION_TOLERANCE, color="grey", ls=":", lw=1)
         ax.set_title(f"{kind} mismatch" + (" (x: fault)" if c == 0 else ""))
         ax.set_xlabel("mismatch size s (factors in [1 - s, 1 + s])")
     axes[0, 0].set_ylabel("final max |edge length - target| (m, log)")
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("Spatial tetrahedron (PERA-like arms, gravity): model mismatch, 3 seeds per point; "
                  "dotted: 1 cm", fontsize=10)
-    return _save(fig, out / "robustness_spatial.png")
+    return save_figure(fig, out / "robustness_spatial.png")
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command-line entry: run the selected studies, write robustness.json and the figures."""
     parser = argparse.ArgumentParser(prog="python -m studies.robustness", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("results/robustness"))
-    parser.add_argument("--figures-dir", type=Path, default=None, help="also copy the PNGs here")
-    parser.add_argument("--only", action="append", choices=STUDIES, help="run only this study (repeatable)")
+    add_output_arguments(parser, STUDIES, "results/robustness")
     parser.add_argument("--quick", action="store_true", help="1 s horizons, a 2 x 2 stall map, one spatial case per kind (tests)")
     args = parser.parse_args(argv)
     studies = args.only or list(STUDIES)
@@ -512,10 +496,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 row.pop("max_abs_e", None)
                 row.pop("max_length_error", None)
     (args.out / "robustness.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
-    if args.figures_dir is not None:
-        args.figures_dir.mkdir(parents=True, exist_ok=True)
-        for path in figures:
-            shutil.copy2(path, args.figures_dir / path.name)
+    copy_figures(figures, args.figures_dir)
     return results
 
 

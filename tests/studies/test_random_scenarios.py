@@ -1,4 +1,4 @@
-"""The random-scenario generator of ``benchmarks/random_scenarios.py``: valid scenarios, deterministic."""
+"""The random-scenario generator of ``python -m studies.random_scenarios``: valid scenarios, deterministic."""
 
 from __future__ import annotations
 
@@ -13,10 +13,12 @@ import ee_formation_env
 from ee_formation_env.formation import required_rigidity_rank
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))  # benchmarks/ is a top-level folder of the repository, not an installed package
+sys.path.insert(0, str(REPO))  # studies/ is a top-level folder of the repository, not an installed package
 
-from studies.random_scenarios import (EDGE_TOLERANCE, max_edge_length_error, planar_scenario,  # noqa: E402
-                                         spatial_scenario)
+from ee_formation_env.baselines.metrics import formation_tolerance  # noqa: E402
+from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE  # noqa: E402
+from studies._common import max_edge_length_error  # noqa: E402
+from studies.random_scenarios import planar_scenario, spatial_scenario  # noqa: E402
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -30,8 +32,9 @@ def test_planar_scenarios_are_valid_and_match_the_recipe(seed):
         assert 0.4 <= abs(arm["initial_q"][1]) <= math.pi - 0.4  # elbow away from its singularities
         assert 0.8 - 1e-9 <= np.linalg.norm(np.array(target) - base) <= 2.6 + 1e-9  # inside its own reach (3 m)
     with ee_formation_env.parallel_env(scenario) as env:  # the env's own validation accepts it
-        env.reset(seed=0)
-        assert max_edge_length_error(env) > EDGE_TOLERANCE  # not already in formation
+        _, infos = env.reset(seed=0)
+        assert max_edge_length_error(env) > DEFAULT_POSITION_TOLERANCE  # not already in formation
+        assert next(iter(infos.values()))["formation_error"] > formation_tolerance(env)  # nor by success's measure
 
 
 @pytest.mark.parametrize("seed", range(2))
