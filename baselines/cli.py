@@ -14,27 +14,33 @@ import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
+from ee_formation_env.baselines.cli_errors import report_errors
+
 TRAIN_DESCRIPTION = "Train a shared formation policy and compare it with the reference controllers on the same metrics."
 
 
 def train_command(argv: Sequence[str] | None = None, prog: str = "train.py") -> int:
     """``train.py`` / ``ee-formation train``: parse the flags into a run configuration, then train (or, with
-    ``--eval-only RUN_DIR``, re-evaluate a saved run)."""
+    ``--eval-only RUN_DIR``, re-evaluate a saved run; ``--resume RUN_DIR``, continue one)."""
     from ee_formation_env.baselines.learned.config import TrainConfig
     from ee_formation_env.baselines.learned.run import evaluate_saved_run, train
 
     config = TrainConfig.from_args(argv, prog=prog, description=TRAIN_DESCRIPTION)
-    if config.eval_only:
-        evaluate_saved_run(config)
-    else:
-        train(config)
-    return 0
+
+    def run() -> int:
+        if config.eval_only:
+            evaluate_saved_run(config)
+        else:
+            train(config)
+        return 0
+
+    return report_errors(run, config.debug)
 
 
 def _evaluate(argv: Sequence[str]) -> int:
     from ee_formation_env.baselines.evaluate import main
 
-    return main(argv, prog="ee-formation evaluate")
+    return report_errors(lambda: main(argv, prog="ee-formation evaluate"), "--debug" in argv)
 
 
 def _study(module: str) -> Callable[[Sequence[str]], int]:

@@ -127,29 +127,57 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
     parser.add_argument("--video", metavar="DIR", type=Path,
                         help="also write one video per episode into DIR (MP4, or GIF without imageio-ffmpeg; "
                              "needs the 'video' extra)")
+    parser.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     args = parser.parse_args(argv)
+    # Every argument is checked before the first episode runs.
     if args.episodes < 1:
         parser.error("--episodes: expected an integer >= 1")
+    if not (math.isfinite(args.tolerance) and args.tolerance > 0):
+        parser.error(f"--tolerance: expected an edge accuracy > 0 m, got {args.tolerance}")
+    if args.seed < 0:
+        parser.error(f"--seed: expected an integer >= 0, got {args.seed}")
     names = list(POLICIES) if args.policy == "all" else [args.policy]
     for name in names:
         if name not in POLICIES:
             parser.error(f"--policy: unknown policy {name!r}; available: {list(POLICIES)} or 'all'")
+    if args.json and not Path(args.json).resolve().parent.is_dir():
+        parser.error(f"--json: the folder of {args.json} does not exist")
     if args.video is not None:
         require(["imageio"], "video", "--video")
+        if args.video.exists() and not args.video.is_dir():
+            parser.error(f"--video: {args.video} is a file, not a folder")
     try:
         overrides = _overrides(args.set)
-        results = {name: evaluate_policy(args.scenario, name, args.episodes, args.seed, args.tolerance, overrides,
-                                         video_dir=args.video) for name in names}
-    except ValueError as error:
+        ee_formation_env.parallel_env(args.scenario, **overrides).close()  # the scenario validates, or a clear error
+    except (ValueError, TypeError) as error:
+        if args.debug:
+            raise
         parser.error(str(error))
-    print(f"scenario {args.scenario}, {args.episodes} episodes from seed {args.seed}, tolerance {args.tolerance} m")
+    if args.video is not None:
+        args.video.mkdir(parents=True, exist_ok=True)
+    print(f"scenario {args.scenario}, {args.episodes} episodes from seed {args.seed}, tolerance {args.tolerance} m",
+          flush=True)
+
+    def progress(name: str, seed: int, metrics: EpisodeMetrics) -> None:
+        outcome = "success" if metrics.success else ("fault: " + metrics.physics_fault if metrics.physics_fault
+                                                      else "no success")
+        print(f"  {name}: episode {seed - args.seed + 1}/{args.episodes} (seed {seed}) {outcome}", file=sys.stderr,
+              flush=True)
+
+    results = {name: evaluate_policy(args.scenario, name, args.episodes, args.seed, args.tolerance, overrides,
+                                     video_dir=args.video, on_episode=progress) for name in names}
     print(format_table(results))
+    if args.video is not None:
+        print(f"wrote {len(names) * args.episodes} videos to {args.video.resolve()}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as handle:
             json.dump({"scenario": args.scenario, "episodes": args.episodes, "seed": args.seed,
                        "overrides": overrides, "results": results}, handle, indent=2, default=float)
+        print(f"wrote {Path(args.json).resolve()}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from ee_formation_env.baselines.cli_errors import report_errors
+
+    sys.exit(report_errors(main, "--debug" in sys.argv))

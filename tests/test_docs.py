@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from ee_formation_env.baselines.learned.config import TrainConfig
+
 import ee_formation_env
 from ee_formation_env.baselines.metrics import metric_definitions
 from ee_formation_env.scenario import Scenario, _default, scenario_keys_table
@@ -47,6 +49,7 @@ def rst_simple_table_to_markdown(table: str) -> str:
 
 GENERATED = {
     "scenario_keys_table": ("scenarios.md", lambda: rst_simple_table_to_markdown(scenario_keys_table())),
+    "train_flags": ("training.md", lambda: TrainConfig.flags_table()),
     "metric_definitions": ("results.md", lambda: metric_definitions(markdown=True)),
 }
 

@@ -23,10 +23,17 @@ from ee_formation_env.baselines.metrics import format_table, run_episode, summar
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
 
-def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path) -> dict[str, Any]:
-    """Evaluate the learned policy of the run in ``run_dir`` (its saved ``config``) and every reference policy
-    on the same held-out seeds, with the evaluation settings of ``args`` (``eval_episodes``, ``eval_seconds``,
-    ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md`` and ``.png``.
+def saved_scenario(config: dict[str, Any]) -> Any:
+    """The scenario a run saved (its parsed data), or, for runs saved without it, its name or file."""
+    return config.get("scenario_data") or config["scenario"]
+
+
+def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_dir: Path | None = None
+            ) -> dict[str, Any]:
+    """Evaluate the learned policy of the run in ``run_dir`` (its saved ``config``, on the scenario saved with
+    it) and every reference policy on the same held-out seeds, with the evaluation settings of ``args``
+    (``eval_episodes``, ``eval_seconds``, ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md``
+    and ``.png`` into ``results_dir`` (default: the run folder).
 
     Episodes run in ``--eval-workers`` processes (each its own env), or in this one with 0; an episode's
     result does not depend on where it runs (same seed, same episode, bit for bit).
@@ -36,7 +43,10 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path) -> dict[st
     names = ["learned", *baselines.POLICIES]
     jobs = [(name, seed) for name in names for seed in seeds]
     episodes: dict[tuple[str, int], Any] = {}
-    setup = (config["scenario"], overrides, str(run_dir), config)
+    results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
+    results_dir.mkdir(parents=True, exist_ok=True)
+    scenario = ee_formation_env.load_scenario(saved_scenario(config))
+    setup = (scenario, overrides, str(run_dir), config)
     bar = _evaluation_progress(len(jobs), args.no_progress)
 
     def done(job: tuple[str, int], metrics: Any) -> None:
@@ -66,7 +76,7 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path) -> dict[st
         bar.close()
     else:
         print(f"evaluated {len(names)} policies on {len(seeds)} seeds", flush=True)
-    error_unit = "m²" if ee_formation_env.load_scenario(config["scenario"]).formation == "distance" else "m"
+    error_unit = "m²" if scenario.formation == "distance" else "m"
     results: dict[str, Any] = {}
     for name in names:
         runs = [episodes[(name, seed)] for seed in seeds]
@@ -74,11 +84,11 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path) -> dict[st
         results[name]["per_episode"] = [e.as_dict() for e in runs]
     label = f"learned ({config['mode']})"
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results}
-    (run_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
+    (results_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
-    (run_dir / "comparison.md").write_text(
+    (results_dir / "comparison.md").write_text(
         f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
-    _plot(run_dir, results, label, error_unit)
+    _plot(run_dir, results_dir, results, label, error_unit)
     print(table)
     return comparison
 
@@ -115,7 +125,7 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
     overrides = TrainConfig.from_dict(config).training_overrides()
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
     returns = {}
-    with ee_formation_env.parallel_env(config["scenario"], **overrides) as env:
+    with ee_formation_env.parallel_env(saved_scenario(config), **overrides) as env:
         for name in baselines.POLICIES:
             policies = baselines.make_policies(name, env)
             returns[name] = float(np.mean([run_episode(env, policies, seed=seed).mean_return for seed in seeds]))
@@ -133,7 +143,7 @@ def _evaluation_progress(total: int, disabled: bool) -> Any:
     return tqdm(total=total, desc="evaluating", unit=" episodes")
 
 
-def _plot(run_dir: Path, results: dict[str, Any], label: str, error_unit: str) -> None:
+def _plot(run_dir: Path, results_dir: Path, results: dict[str, Any], label: str, error_unit: str) -> None:
     """``comparison.png``: the learning curve, then the final formation error and the success rate per
     policy as labelled horizontal bars (policy names stay readable; a 0 % bar shows as its empty track)."""
     import matplotlib
@@ -188,5 +198,5 @@ def _plot(run_dir: Path, results: dict[str, Any], label: str, error_unit: str) -
         axis.invert_yaxis()  # first policy on top, as in the table
     axes[2].set_yticklabels([])  # same rows as the middle panel
     figure.tight_layout()
-    figure.savefig(run_dir / "comparison.png", dpi=110)
+    figure.savefig(results_dir / "comparison.png", dpi=110)
     plt.close(figure)

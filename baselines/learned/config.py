@@ -134,13 +134,20 @@ class TrainConfig:
     max_train_seconds: float | None = _flag("sb3: stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     seed: int = _flag("training seed", 0, type=int)
-    out: str | None = _flag("run directory (default runs/<name>)")
-    eval_only: str | None = _flag("evaluate a saved run only", metavar="RUN_DIR")
+    out: str | None = _flag("run directory (default runs/<name>); a folder that already holds files is refused "
+                            "unless --overwrite or --resume")
+    overwrite: bool = _flag("replace what --out holds, once the new configuration has validated", False,
+                            action="store_true")
+    resume: str | None = _flag("continue the interrupted or checkpointed run in RUN_DIR to its budget, with its saved "
+                               "configuration (only evaluation flags may be given beside it)", metavar="RUN_DIR")
+    eval_only: str | None = _flag("evaluate a saved run only (its saved scenario; results in RUN_DIR/evaluations/)",
+                                  metavar="RUN_DIR")
     eval_episodes: int = _flag("held-out episodes per policy in the comparison", 10, type=int)
     eval_workers: int = _flag("processes for the evaluation episodes (0 = run them in this process)", 2, type=int)
     eval_seconds: float | None = _flag("episode length for the comparison, s (default: the scenario's)", type=float)
     address: str | None = _flag("rllib: address of an existing Ray cluster")
     no_progress: bool = _flag("no progress bars", False, action="store_true")
+    debug: bool = _flag("on an error, show the traceback instead of one line", False, action="store_true")
 
     # ------------------------------------------------------------------------------------------ presets
     @property
@@ -196,6 +203,12 @@ class TrainConfig:
             raise ValueError("--imitate: expected none, except with --mode torque, --backend sb3 and --algo ppo")
         if self.imitation_rounds < 1 or self.imitation_episodes < 1:
             raise ValueError("--imitation-rounds and --imitation-episodes must be >= 1")
+        if self.eval_seconds is not None and not (math.isfinite(self.eval_seconds) and self.eval_seconds > 0):
+            raise ValueError("--eval-seconds: expected a duration > 0 s")
+        if self.resume and (self.eval_only or self.overwrite):
+            raise ValueError("--resume: give it alone, without --eval-only or --overwrite")
+        if self.eval_only and self.overwrite:
+            raise ValueError("--overwrite: not with --eval-only (an evaluation never replaces a run)")
         if self.n_workers < 0 or self.eval_workers < 0:
             raise ValueError("--n-workers and --eval-workers must be >= 0")
         if self.in_process_envs and not (self.n_workers > 0 and 0 < self.in_process_envs < self.n_envs):
@@ -224,12 +237,14 @@ class TrainConfig:
         return overrides
 
     # ------------------------------------------------------------------------------------------ files
-    #: Fields that say where a run is, not what it is: not saved in its config.json.
-    LOCATION_FIELDS = ("out", "eval_only")
+    #: Fields that say where a run is or how this command behaves, not what the run is: not in its config.json.
+    UNSAVED_FIELDS = ("out", "eval_only", "overwrite", "resume", "debug")
+    #: Fields that a command on a saved run (``--resume``, ``--eval-only``) may set: how it is evaluated.
+    EVALUATION_FIELDS = ("eval_episodes", "eval_workers", "eval_seconds", "no_progress")
 
     def to_dict(self) -> dict[str, Any]:
-        """The saved settings (every field but :data:`LOCATION_FIELDS`), JSON-ready."""
-        return {spec.name: getattr(self, spec.name) for spec in fields(self) if spec.name not in self.LOCATION_FIELDS}
+        """The saved settings (every field but :data:`UNSAVED_FIELDS`), JSON-ready."""
+        return {spec.name: getattr(self, spec.name) for spec in fields(self) if spec.name not in self.UNSAVED_FIELDS}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "TrainConfig":
@@ -254,6 +269,23 @@ class TrainConfig:
             parser.add_argument("--" + spec.name.replace("_", "-"), **kwargs)
 
     @classmethod
+    def flags_table(cls) -> str:
+        """Every flag with its default and meaning, as a Markdown table (docs/training.md shows it)."""
+        lines = ["| flag | default | meaning |", "|---|---|---|"]
+        for spec in fields(cls):
+            flag = "--" + spec.name.replace("_", "-")
+            if spec.metadata.get("action") is argparse.BooleanOptionalAction:
+                flag = f"{flag}` / `--no-{spec.name.replace('_', '-')}"
+            default = "mode preset" if spec.default is None and spec.name in ModePreset.__dataclass_fields__ else (
+                "-" if spec.default is None else spec.default)
+            meaning = spec.metadata["help"].replace("|", "\\|")
+            choices = spec.metadata.get("choices")
+            if choices:
+                meaning += f" (one of: {', '.join(map(str, choices))})"
+            lines.append(f"| `{flag}` | {default} | {meaning} |")
+        return "\n".join(lines)
+
+    @classmethod
     def parser(cls, prog: str = "train.py", description: str | None = None) -> argparse.ArgumentParser:
         parser = argparse.ArgumentParser(prog=prog, description=description)
         cls.add_arguments(parser)
@@ -266,7 +298,16 @@ class TrainConfig:
         parser = cls.parser(prog, description)
         namespace = parser.parse_args(argv)
         try:
-            return cls(**vars(namespace)).resolved()
+            config = cls(**vars(namespace))
+            if config.resume or config.eval_only:  # the saved run's settings decide; only evaluation flags may change
+                defaults = vars(parser.parse_args([]))
+                given = [name for name, value in vars(namespace).items() if value != defaults[name]
+                         and name not in (*cls.UNSAVED_FIELDS, *cls.EVALUATION_FIELDS)]
+                if given:
+                    flag = "--resume" if config.resume else "--eval-only"
+                    raise ValueError(f"{flag}: the run's saved configuration is used; drop "
+                                     + ", ".join("--" + name.replace("_", "-") for name in given))
+            return config.resolved()
         except ValueError as error:
             parser.error(str(error))
             raise  # parser.error exits; this line is never reached

@@ -8,13 +8,13 @@ reference policy.
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.features import FeaturePolicy
 from ee_formation_env.baselines.learned.residual import ResidualPolicy
 
@@ -30,8 +30,9 @@ class ObservationNormalizer:
         return np.clip(normalized, -self.clip, self.clip).astype(np.float32)
 
     def save(self, path: Path) -> None:
-        with open(path, "wb") as handle:
-            pickle.dump({"mean": self.mean, "var": self.var, "clip": self.clip, "epsilon": self.epsilon}, handle)
+        """As JSON (``obs_normalizer.json``): plain numbers, exact (floats round-trip through their repr)."""
+        write_json(path, {"mean": np.asarray(self.mean).tolist(), "var": np.asarray(self.var).tolist(),
+                          "clip": None if np.isinf(self.clip) else float(self.clip), "epsilon": float(self.epsilon)})
 
     @classmethod
     def identity(cls, dim: int) -> "ObservationNormalizer":
@@ -40,8 +41,17 @@ class ObservationNormalizer:
 
     @classmethod
     def load(cls, path: Path) -> "ObservationNormalizer":
-        with open(path, "rb") as handle:
-            return cls(**pickle.load(handle))
+        data = read_json(path, "obs_normalizer.json")
+        try:
+            mean, var = np.asarray(data["mean"], dtype=np.float64), np.asarray(data["var"], dtype=np.float64)
+            clip = np.inf if data["clip"] is None else float(data["clip"])
+            epsilon = float(data["epsilon"])
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"obs_normalizer.json: malformed ({error})") from None
+        if mean.shape != var.shape or mean.ndim != 1:
+            raise ValueError(f"obs_normalizer.json: mean and var must be vectors of one length, got {mean.shape} "
+                             f"and {var.shape}")
+        return cls(mean, var, clip=clip, epsilon=epsilon)
 
 
 class LearnedPolicy:
@@ -57,18 +67,21 @@ class LearnedPolicy:
         return np.clip(self.predict(self.normalizer(observation)), -1.0, 1.0)
 
 
-def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[str, Any]:
-    """Per-agent policies of a saved run, the residual composition included."""
-    normalizer = ObservationNormalizer.load(run_dir / "obs_normalizer.pkl")
-    if config["backend"] == "sb3":
-        from stable_baselines3 import PPO, SAC
+MODEL_FOLDER = "model"  # a run's final model, in the checkpoint format
 
-        model = (PPO if config["algo"] == "ppo" else SAC).load(run_dir / "model.zip", device="cpu")
-        predict = _numpy_actor(model) if config["algo"] == "ppo" else None
+
+def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[str, Any]:
+    """Per-agent policies of a saved run (its ``model/`` folder), the residual composition included; nothing in
+    the files is executed (:mod:`ee_formation_env.baselines.learned.checkpoint`)."""
+    model_dir = Path(run_dir) / MODEL_FOLDER
+    normalizer = ObservationNormalizer.load(model_dir / "obs_normalizer.json")
+    if config["backend"] == "sb3":
+        policy = load_policy(model_dir)
+        predict = _numpy_actor(policy) if config["algo"] == "ppo" else None
         if predict is None:
-            predict = lambda obs: model.predict(obs, deterministic=True)[0]  # noqa: E731
+            predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
     else:
-        predict = rllib_predictor(run_dir)
+        predict = rllib_predictor(model_dir)
     learned = LearnedPolicy(predict, normalizer)
     features = config.get("obs_features", "none")  # runs saved before the option had none
     per_agent = {agent: learned if features == "none" else
@@ -82,13 +95,12 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
             for agent in env.possible_agents}
 
 
-def _numpy_actor(model: Any) -> Callable[[np.ndarray], np.ndarray] | None:
+def _numpy_actor(policy: Any) -> Callable[[np.ndarray], np.ndarray] | None:
     """PPO's deterministic action (the Gaussian's mean) as numpy matrix products, or None if the policy is not
     a plain MLP of ``Linear`` and ``Tanh`` layers. One agent at a time, as the evaluation calls it, this is
-    ~20x cheaper than ``model.predict``, whose per-call overhead would dominate a 30 s evaluation."""
+    ~20x cheaper than ``policy.predict``, whose per-call overhead would dominate a 30 s evaluation."""
     import torch
 
-    policy = model.policy
     layers = [*policy.mlp_extractor.policy_net, policy.action_net]
     if not isinstance(policy.features_extractor.flatten, torch.nn.Flatten) or not all(
             isinstance(layer, (torch.nn.Linear, torch.nn.Tanh)) for layer in layers):
@@ -105,12 +117,24 @@ def _numpy_actor(model: Any) -> Callable[[np.ndarray], np.ndarray] | None:
     return predict
 
 
-def rllib_predictor(run_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
-    """The deterministic action (the Gaussian's mean) of the RLlib module a run saved."""
+def rllib_predictor(model_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
+    """The deterministic action (the Gaussian's mean) of the RLlib module saved in ``model_dir``, rebuilt as
+    RLlib's default PPO module around its saved parameters (read with ``weights_only``)."""
+    import gymnasium
     import torch
+    from ray.rllib.algorithms.ppo import PPOConfig
 
-    module = torch.load(run_dir / "rllib_module.pt", weights_only=False)
-    low, high = module.action_space.low, module.action_space.high
+    description = read_json(model_dir / "rllib_module.json", "rllib_module.json")
+    config = PPOConfig().framework("torch")
+    spec = config.get_default_rl_module_spec()
+    spec.observation_space = gymnasium.spaces.Box(-np.inf, np.inf, tuple(description["observation_shape"]),
+                                                  dtype=np.float32)
+    low = np.asarray(description["action_low"], dtype=np.float32)
+    high = np.asarray(description["action_high"], dtype=np.float32)
+    spec.action_space = gymnasium.spaces.Box(low, high, dtype=np.float32)
+    spec.model_config = config.model_config
+    module = spec.build()
+    module.load_state_dict(load_tensors(model_dir / "rllib_module.pt", "rllib_module.pt"))
 
     def predict(observation: np.ndarray) -> np.ndarray:
         with torch.no_grad():

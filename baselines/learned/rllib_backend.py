@@ -6,7 +6,6 @@ RLlib pins its own gymnasium version, so it lives in the ``distributed`` extra a
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -16,11 +15,13 @@ from typing import Any
 import numpy as np
 
 from ee_formation_env.baselines.learned.config import TrainConfig
-from ee_formation_env.baselines.learned.policy import ObservationNormalizer
+from ee_formation_env.baselines.learned.interruption import StopRequest
+from ee_formation_env.baselines.learned.checkpoint import atomic_directory, write_json
+from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
 from ee_formation_env.baselines.learned.training_env import env_factory
 
 
-def train_rllib(args: TrainConfig, out_dir: Path) -> None:
+def train_rllib(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None) -> dict[str, Any]:
     """Train ``args`` (a resolved configuration) with RLlib's PPO; writes the module, an identity normalizer
     (RLlib's default has no observation filter), ``timing.json`` and ``learning_curve.csv`` into ``out_dir``."""
     import ray
@@ -47,28 +48,38 @@ def train_rllib(args: TrainConfig, out_dir: Path) -> None:
     )
     algorithm = config.build_algo() if hasattr(config, "build_algo") else config.build()
     started, history, steps = time.time(), [], 0
-    while steps < args.total_timesteps:
+    while steps < args.total_timesteps and not (stop is not None and stop.requested):
         result = algorithm.train()
         steps = int(result.get("num_env_steps_sampled_lifetime", steps + 2048) or steps + 2048)
         ret = result.get("env_runners", {}).get("episode_return_mean", math.nan)
         history.append((steps, float(ret) if ret is not None else math.nan))
-    (out_dir / "timing.json").write_text(json.dumps({"train_seconds": time.time() - started}))
-    checkpoint = algorithm.save(str((out_dir / "rllib_checkpoint").resolve()))
-    del checkpoint
-    module = algorithm.get_module("shared")
-    _save_rllib_module(module, out_dir)
+    interrupted = stop.signal_name if stop is not None and stop.requested else None
+    timing = {"train_seconds": time.time() - started, "agent_steps": steps, "interrupted": interrupted}
+    write_json(out_dir / "timing.json", timing)
+    # RLlib's own checkpoint, for RLlib users: it holds pickles and the project never reads it back.
+    algorithm.save(str((out_dir / "rllib_checkpoint").resolve()))
+    save_rllib_module(algorithm.get_module("shared"), out_dir / MODEL_FOLDER)
     with open(out_dir / "learning_curve.csv", "w", encoding="utf-8") as handle:
         handle.write("agent_steps,episode_return\n")
         handle.writelines(f"{s},{r}\n" for s, r in history)
     algorithm.stop()
     if not args.address:
         ray.shutdown()
+    return timing
 
 
-def _save_rllib_module(module: Any, out_dir: Path) -> None:
-    """Save the shared module's weights and an identity normalizer (RLlib's default has no obs filter)."""
+def save_rllib_module(module: Any, model_dir: Path) -> None:
+    """The shared module as plain data in ``model_dir`` (atomically): its parameters (``rllib_module.pt``, a
+    ``state_dict``), its spaces (``rllib_module.json``) and an identity normalizer (RLlib's default has no
+    observation filter). :func:`ee_formation_env.baselines.learned.policy.rllib_predictor` rebuilds it from
+    RLlib's default PPO module."""
     import torch
 
-    torch.save(module, out_dir / "rllib_module.pt")
-    dim = int(np.prod(module.observation_space.shape))
-    ObservationNormalizer.identity(dim).save(out_dir / "obs_normalizer.pkl")
+    with atomic_directory(model_dir) as partial:
+        torch.save(module.state_dict(), partial / "rllib_module.pt")
+        space = module.action_space
+        write_json(partial / "rllib_module.json", {"observation_shape": list(module.observation_space.shape),
+                                                    "action_low": space.low.tolist(),
+                                                    "action_high": space.high.tolist()})
+        dim = int(np.prod(module.observation_space.shape))
+        ObservationNormalizer.identity(dim).save(partial / "obs_normalizer.json")

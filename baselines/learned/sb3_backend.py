@@ -15,13 +15,27 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ee_formation_env.baselines.learned.checkpoint import (checkpoint_name, restore_checkpoint, save_checkpoint,
+                                                           write_json)
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
-from ee_formation_env.baselines.learned.policy import ObservationNormalizer
+from ee_formation_env.baselines.learned.interruption import StopRequest
+from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
 from ee_formation_env.baselines.learned.training_env import env_factory
 
 
-def build_sb3_model(args: TrainConfig, out_dir: Path | None) -> Any:
+def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
+    """The policy network's settings: the mode's hidden layers and, for PPO, the initial log standard deviation.
+
+    A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
+    policy starts far from "no correction" and a torque policy saturates its joints half of the time."""
+    kwargs: dict[str, Any] = dict(net_arch=list(args.ppo.net_arch))  # --imitate: the wider actor
+    if args.algo == "ppo":
+        kwargs["log_std_init"] = args.log_std_init
+    return kwargs
+
+
+def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str = "monitor.csv") -> Any:
     """The SB3 model (with its normalized, monitored VecEnv as ``model.get_env()``) that ``train_sb3`` trains;
     ``out_dir`` None: no monitor file and no TensorBoard logs (the throughput benchmark)."""
     from stable_baselines3 import PPO, SAC
@@ -36,15 +50,10 @@ def build_sb3_model(args: TrainConfig, out_dir: Path | None) -> Any:
     # No per-step infos cross the worker pipes: the learner reads none (the VecEnv adds what SB3 needs).
     venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers, info_keys=(),
                               in_process_envs=args.in_process_envs)
-    venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / "monitor.csv"))
+    venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / monitor_name))
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
-    # A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
-    # policy starts far from "no correction" and a torque policy saturates its joints half of the time.
-    settings = args.ppo  # the mode's; a copy of a reference controller (--imitate) gets a wider actor
-    policy_kwargs: dict[str, Any] = dict(net_arch=list(settings.net_arch))
-    if args.algo == "ppo":
-        policy_kwargs["log_std_init"] = args.log_std_init
-    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs,
+    settings = args.ppo
+    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs(args),
                   tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
     if args.algo == "ppo":
         rate = settings.learning_rate
@@ -62,33 +71,88 @@ def _linear_schedule(initial: float, progress_remaining: float) -> float:
     return initial * progress_remaining
 
 
-def train_sb3(args: TrainConfig, out_dir: Path) -> None:
-    """Train ``args`` (a resolved configuration) with SB3; writes the model, its observation normalization,
-    checkpoints, ``timing.json``, ``monitor.csv`` and ``learning_curve.csv`` into ``out_dir``."""
-    from stable_baselines3.common.callbacks import CheckpointCallback
-
-    model = build_sb3_model(args, out_dir)
+def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
+              resume_from: Path | None = None) -> dict[str, Any]:
+    """Train ``args`` (a resolved configuration) with SB3 into ``out_dir``: checkpoints during training, the final
+    model (``model/``, and ``model.zip`` for SB3 users), ``monitor*.csv`` and ``learning_curve.csv``; returns the
+    segment's timing. ``stop``: ends training at the next step once set (a signal); ``resume_from``: a
+    checkpoint of this run to continue from, to the budget."""
+    timing = _read_timing(out_dir) if resume_from is not None else {"segments": []}
+    segment = len(timing["segments"])
+    monitor_name = "monitor.csv" if segment == 0 else f"monitor-resumed-{segment}.csv"
+    model = build_sb3_model(args, out_dir, monitor_name)
     venv = model.get_env()
-    if args.imitate != "none":
-        imitate(model, args, out_dir)
-    checkpoints = CheckpointCallback(save_freq=max(args.total_timesteps // (4 * venv.num_envs), 1),
-                                     save_path=str(out_dir / "checkpoints"), name_prefix="model")
-    callbacks = [checkpoints]
-    if args.max_train_seconds is not None:
-        callbacks.append(_time_limit_callback(args.max_train_seconds))
-    if not args.no_progress:
-        callbacks.append(_progress_callback(collected_steps(args.total_timesteps, model, venv.num_envs)))
-    started = time.time()
-    if args.total_timesteps > 0:
-        model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
-    seconds = time.time() - started
-    (out_dir / "timing.json").write_text(json.dumps({"train_seconds": seconds, "agent_steps": model.num_timesteps,
-                                                     "agent_steps_per_s": model.num_timesteps / max(seconds, 1e-9)}))
-    model.save(out_dir / "model.zip")
-    ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
-        out_dir / "obs_normalizer.pkl")
-    venv.close()
-    _write_learning_curve_from_monitor(out_dir)
+    try:
+        if resume_from is not None:
+            restore_checkpoint(resume_from, model)
+        elif args.imitate != "none":
+            imitate(model, args, out_dir)
+        start_steps = int(model.num_timesteps)
+        saver = _checkpoint_callback(out_dir, args, max(args.total_timesteps // (4 * venv.num_envs), 1))
+        callbacks = [saver]
+        if stop is not None:
+            callbacks.append(_stop_callback(stop))
+        if args.max_train_seconds is not None:
+            callbacks.append(_time_limit_callback(args.max_train_seconds))
+        if not args.no_progress:
+            callbacks.append(_progress_callback(collected_steps(args.total_timesteps - start_steps, model,
+                                                                venv.num_envs)))
+        started = time.time()
+        remaining = args.total_timesteps - start_steps
+        if remaining > 0:
+            if resume_from is None:
+                model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
+            else:  # SB3 counts the budget from the restored step count: the schedules continue where they were
+                model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
+        seconds = time.time() - started
+        interrupted = stop.signal_name if stop is not None and stop.requested else None
+        save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
+                        {"interrupted": interrupted})
+        ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
+            out_dir / MODEL_FOLDER / "obs_normalizer.json")
+        model.save(out_dir / "model.zip")  # SB3's own format, for SB3 users; never read by the project
+    finally:
+        venv.close()
+    timing["segments"].append({"monitor": monitor_name, "start_agent_steps": start_steps,
+                               "agent_steps": int(model.num_timesteps), "train_seconds": seconds,
+                               "interrupted": interrupted})
+    timing.update(train_seconds=sum(s["train_seconds"] for s in timing["segments"]),
+                  agent_steps=int(model.num_timesteps), interrupted=interrupted)
+    timing["agent_steps_per_s"] = (model.num_timesteps - start_steps) / max(seconds, 1e-9)  # this segment's
+    write_json(out_dir / "timing.json", timing)
+    _write_learning_curve(out_dir, timing["segments"])
+    return timing
+
+
+def _read_timing(out_dir: Path) -> dict[str, Any]:
+    timing = json.loads((out_dir / "timing.json").read_text()) if (out_dir / "timing.json").is_file() else {}
+    timing.setdefault("segments", [])
+    return timing
+
+
+def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int) -> Any:
+    """Every ``every`` vec-env steps, a complete checkpoint (:func:`save_checkpoint`) of the model."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class CheckpointSaver(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.n_calls % every == 0:
+                save_checkpoint(out_dir / "checkpoints" / checkpoint_name(self.model.num_timesteps), self.model,
+                                args.algo, policy_kwargs(args), args.total_timesteps)
+            return True
+
+    return CheckpointSaver()
+
+
+def _stop_callback(stop: StopRequest) -> Any:
+    """Ends ``learn`` at the first step after ``stop`` was requested."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class StopOnRequest(BaseCallback):
+        def _on_step(self) -> bool:
+            return not stop.requested
+
+    return StopOnRequest()
 
 
 def _time_limit_callback(seconds: float) -> Any:
@@ -131,13 +195,18 @@ def _progress_callback(total: int) -> Any:
     return TrainingProgress()
 
 
-def _write_learning_curve_from_monitor(out_dir: Path) -> None:
-    """``learning_curve.csv``: agent steps so far and episode return (mean over agents), per episode."""
-    monitor = out_dir / "monitor.csv"
-    rows = []
-    if monitor.exists():
+def _write_learning_curve(out_dir: Path, segments: list[dict[str, Any]]) -> None:
+    """``learning_curve.csv``: agent steps so far and episode return (mean over agents), per training episode,
+    over every segment of the run (a resumed segment starts at its checkpoint's step count)."""
+    rows: list[tuple[int, float]] = []
+    for segment in segments:
+        start = int(segment["start_agent_steps"])
+        rows = [row for row in rows if row[0] <= start]  # episodes after the checkpoint were not kept
+        monitor = out_dir / segment["monitor"]
+        if not monitor.exists():
+            continue
         lines = [line for line in monitor.read_text().splitlines() if line and not line.startswith("#")]
-        total = 0
+        total = start
         for line in lines[1:]:
             reward, length, _ = (float(x) for x in line.split(","))
             total += int(length)

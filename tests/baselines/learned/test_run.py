@@ -20,9 +20,9 @@ from ee_formation_env.baselines.learned.sb3_backend import build_sb3_model, coll
 from ee_formation_env.baselines.learned.imitation import demonstrations  # noqa: E402
 from ee_formation_env.baselines.learned.training_env import make_training_env  # noqa: E402
 
-FAST = ["--n-envs", "1", "--n-workers", "0", "--eval-episodes", "2", "--eval-seconds", "0.3",
-        "--train-episode-seconds", "0.5", "--no-progress", "--eval-workers", "0", "--imitation-rounds", "1",
-        "--imitation-episodes", "2"]
+EVAL_FAST = ["--eval-episodes", "2", "--eval-seconds", "0.3", "--no-progress", "--eval-workers", "0"]
+FAST = ["--n-envs", "1", "--n-workers", "0", "--train-episode-seconds", "0.5", "--imitation-rounds", "1",
+        "--imitation-episodes", "2", *EVAL_FAST]
 METRIC_FIELDS = {"success_rate", "final_formation_error", "settling_time", "control_energy", "peak_torque",
                  "saturation_fraction", "min_singularity_margin", "contact_steps", "centroid_drift"}
 
@@ -35,8 +35,8 @@ def _comparison(run_dir):
 def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
     run_dir = tmp_path / "run"
     assert train_command(["--total-timesteps", "300", "--mode", mode, "--algo", algo, "--out", str(run_dir), *FAST]) == 0
-    for name in ("config.json", "model.zip", "obs_normalizer.pkl", "learning_curve.csv", "comparison.json",
-                 "comparison.md", "comparison.png"):
+    for name in ("config.json", "model.zip", "model/policy.pt", "model/policy.json", "model/obs_normalizer.json",
+                 "model/state.json", "learning_curve.csv", "comparison.json", "comparison.md", "comparison.png"):
         assert (run_dir / name).is_file(), name
     assert any((run_dir / "tensorboard").iterdir())
     config = json.loads((run_dir / "config.json").read_text())
@@ -54,21 +54,28 @@ def test_saved_model_reloads_and_reproduces_its_evaluation(tmp_path):
     run_dir = tmp_path / "run"
     train_command(["--total-timesteps", "300", "--out", str(run_dir), *FAST, "--eval-workers", "1"])  # in a worker
     first = _comparison(run_dir)["results"]["learned"]
-    train_command(["--eval-only", str(run_dir), *FAST])
-    again = _comparison(run_dir)["results"]["learned"]
+    assert train_command(["--eval-only", str(run_dir), *EVAL_FAST]) == 0
+    (evaluation,) = (run_dir / "evaluations").iterdir()  # beside the run's own results, which stay
+    again = json.loads((evaluation / "comparison.json").read_text())["results"]["learned"]
     assert again["per_episode"] == first["per_episode"]
+    assert _comparison(run_dir)["results"]["learned"] == first
 
 
-def test_bad_arguments_fail_before_training(tmp_path):
+def test_bad_arguments_fail_before_training(tmp_path, capsys):
     for bad in (["--total-timesteps", "0"], ["--residual-scale", "2"], ["--obs-features", "squared"],
                 ["--log-std-init", "nan"], ["--hold-penalty", "1.5"], ["--max-train-seconds", "0"],
-                ["--in-process-envs", "32"], ["--n-workers", "0", "--in-process-envs", "4"]):
+                ["--in-process-envs", "32"], ["--n-workers", "0", "--in-process-envs", "4"],
+                ["--eval-seconds", "-1"]):
         with pytest.raises(SystemExit):
             train_command([*bad, "--out", str(tmp_path / "x")])
+    # The library raises; the command prints one line naming the field and exits with 2.
+    capsys.readouterr()
+    assert train_command(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")]) == 2
+    assert capsys.readouterr().err.startswith("error: scenario:")
+    assert train_command(["--eval-only", str(tmp_path / "missing")]) == 2
+    assert "not found" in capsys.readouterr().err
     with pytest.raises(ValueError, match="scenario"):
-        train_command(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")])
-    with pytest.raises(SystemExit, match="not found"):
-        train_command(["--eval-only", str(tmp_path / "missing")])
+        train_command(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x"), "--debug"])
     assert not (tmp_path / "x").exists()
 
 
@@ -103,7 +110,7 @@ def test_rllib_smoke_run(tmp_path):
                        "--train-episode-seconds", "0.5", "--no-progress"]) == 0
     comparison = _comparison(run_dir)
     assert "learned" in comparison["results"]
-    assert (run_dir / "rllib_module.pt").is_file()
+    assert (run_dir / "model" / "rllib_module.pt").is_file()
 
 
 def test_progress_total_is_what_sb3_collects():

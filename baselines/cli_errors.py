@@ -1,0 +1,30 @@
+"""How the command-line tools report errors: one line ``error: <field>: <what>`` and exit status 2.
+
+The library raises ``ValueError``/``TypeError`` whose message starts with the field at fault; the tools print it
+without a traceback (``--debug`` shows it). A run stopped by SIGINT/SIGTERM exits with 128 + the signal's number.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+#: What the library raises for bad input (a message that starts with the field): a command prints it in one line.
+INPUT_ERRORS = (ValueError, TypeError)
+
+
+def report_errors(command: Callable[[], int], debug: bool) -> int:
+    """Run ``command``; bad input prints ``error: <field>: <what>`` to stderr and returns 2 (``debug``: raise it,
+    with its traceback). A run stopped by a signal returns 128 + the signal's number, after saying where it is."""
+    from ee_formation_env.baselines.learned.interruption import TrainingInterrupted
+
+    try:
+        return command()
+    except TrainingInterrupted as stopped:
+        print(str(stopped), file=sys.stderr)
+        return stopped.exit_code
+    except INPUT_ERRORS as error:
+        if debug:
+            raise
+        print(f"error: {error}", file=sys.stderr)
+        return 2
