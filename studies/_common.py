@@ -52,6 +52,19 @@ def copy_figures(paths: Iterable[Path], directory: Path | None) -> list[Path]:
     return copies
 
 
+def report_outputs(out: Path, copies: Sequence[Path] = ()) -> str:
+    """Print (and return) where a study wrote: its output folder with its file count and size, and the figures
+    copied elsewhere."""
+    files = [path for path in Path(out).rglob("*") if path.is_file()]
+    size = sum(path.stat().st_size for path in files) / 1e6
+    lines = [f"wrote {len(files)} files ({size:.1f} MB) to {Path(out).resolve()}"]
+    if copies:
+        lines.append(f"copied {len(copies)} figures to {Path(copies[0]).parent.resolve()}")
+    text = "\n".join(lines)
+    print(text, flush=True)
+    return text
+
+
 def add_output_arguments(parser: argparse.ArgumentParser, studies: Sequence[str], default_out: str) -> None:
     """The options every figure-writing study takes: ``--out``, ``--figures-dir`` and ``--only``."""
     parser.add_argument("--out", type=Path, default=Path(default_out), help=f"output folder (default {default_out})")

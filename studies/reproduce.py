@@ -39,7 +39,7 @@ from ee_formation_env.baselines.reference.gains import PAPER_GAINS
 from ee_formation_env.baselines.metrics import EpisodeMetrics, run_episode
 from ee_formation_env.generators import square_vertices
 from ee_formation_env.scenario import builtin_scenario
-from studies._common import add_output_arguments, copy_figures, save_figure
+from studies._common import add_output_arguments, copy_figures, report_outputs, save_figure
 
 try:
     import matplotlib
@@ -407,11 +407,12 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     stall = [r for r in results if r.spec.study == "stall"]
     if stall:
         figures += stall_figure(stall, args.out)
-    copy_figures(figures, args.figures_dir)
+    copies = copy_figures(figures, args.figures_dir)
 
     rows = [result.summary() for result in results]
     (args.out / "summary.json").write_text(json.dumps(rows, indent=2) + "\n", encoding="utf-8")
     print(format_summary(rows))
+    report_outputs(args.out, copies)
     return rows
 
 

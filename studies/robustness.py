@@ -70,7 +70,8 @@ from ee_formation_env.kinematics import chain_model  # noqa: E402
 from ee_formation_env.generators import planar_link_lengths, square_vertices  # noqa: E402
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE  # noqa: E402
 from ee_formation_env.scenario import ROBOTS, builtin_scenario, load_scenario  # noqa: E402
-from studies._common import LAWS, add_output_arguments, copy_figures, max_edge_length_error, save_figure  # noqa: E402
+from studies._common import (LAWS, add_output_arguments, copy_figures, max_edge_length_error,  # noqa: E402
+                             report_outputs, save_figure)
 
 STUDIES = ("mismatch", "separating", "stall", "windup", "spatial")
 KINDS = ("uniform", "lengths", "offsets", "zero_component")
@@ -496,7 +497,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 row.pop("max_abs_e", None)
                 row.pop("max_length_error", None)
     (args.out / "robustness.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
-    copy_figures(figures, args.figures_dir)
+    report_outputs(args.out, copy_figures(figures, args.figures_dir))
     return results
 
 

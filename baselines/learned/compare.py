@@ -15,6 +15,7 @@ import numpy as np
 
 import ee_formation_env
 from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 from ee_formation_env.baselines.learned.policy import learned_policies
@@ -143,6 +144,15 @@ def _evaluation_progress(total: int, disabled: bool) -> Any:
     return tqdm(total=total, desc="evaluating", unit=" episodes")
 
 
+def _learning_curve(path: Path) -> np.ndarray:
+    """``learning_curve.csv`` as rows (agent steps, return); none when no PPO step ran (``--imitate``)."""
+    try:
+        lines = path.read_text().splitlines()[1:]
+        return np.loadtxt(lines, delimiter=",", ndmin=2) if lines else np.empty((0, 2))
+    except (ValueError, UnicodeDecodeError) as error:
+        raise ValueError(f"learning_curve.csv: {path} is malformed ({str(error)[:200]})") from None
+
+
 def _plot(run_dir: Path, results_dir: Path, results: dict[str, Any], label: str, error_unit: str) -> None:
     """``comparison.png``: the learning curve, then the final formation error and the success rate per
     policy as labelled horizontal bars (policy names stay readable; a 0 % bar shows as its empty track)."""
@@ -155,8 +165,7 @@ def _plot(run_dir: Path, results_dir: Path, results: dict[str, Any], label: str,
     ticks = [label if n == "learned" else n for n in names]
     rows = np.arange(len(names))
     figure, axes = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1.2, 1, 1]})
-    lines = (run_dir / "learning_curve.csv").read_text().splitlines()[1:]  # none when no PPO step ran (--imitate)
-    curve = np.loadtxt(lines, delimiter=",", ndmin=2) if lines else np.empty((0, 2))
+    curve = _learning_curve(run_dir / "learning_curve.csv")
     if curve.size:
         axes[0].plot(curve[:, 0], curve[:, 1], ".", alpha=0.4, label="episode")
         if len(curve) >= 10:
@@ -165,7 +174,8 @@ def _plot(run_dir: Path, results_dir: Path, results: dict[str, Any], label: str,
                          label=f"mean of {window}")
     references_path = run_dir / "reference_returns.json"
     if references_path.is_file():  # each reference policy's return in the training episodes
-        for (name, value), color in zip(json.loads(references_path.read_text()).items(), plt.cm.Dark2.colors):
+        for (name, value), color in zip(read_json(references_path, "reference_returns.json").items(),
+                                        plt.cm.Dark2.colors):
             axes[0].axhline(value, linestyle="--", linewidth=1, color=color, label=name)
     if curve.size or references_path.is_file():
         axes[0].legend(loc="best", fontsize=7)

@@ -79,7 +79,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
     checkpoint of this run to continue from, to the budget."""
     timing = _read_timing(out_dir) if resume_from is not None else {"segments": []}
     segment = len(timing["segments"])
-    monitor_name = "monitor.csv" if segment == 0 else f"monitor-resumed-{segment}.csv"
+    # SB3 appends ".monitor.csv" to a monitor file name that does not end so
+    monitor_name = "monitor.csv" if segment == 0 else f"resumed-{segment}.monitor.csv"
     model = build_sb3_model(args, out_dir, monitor_name)
     venv = model.get_env()
     try:

@@ -1,0 +1,219 @@
+"""Runs you can trust: loading runs no code, interruption saves, resume continues, nothing is silently reused."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+from ee_formation_env.baselines.cli import train_command  # noqa: E402
+from ee_formation_env.baselines.learned import checkpoint  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[3]
+EVAL_FAST = ["--eval-episodes", "1", "--eval-seconds", "0.2", "--no-progress", "--eval-workers", "0"]
+FAST = ["--n-envs", "1", "--n-workers", "0", "--train-episode-seconds", "0.5", *EVAL_FAST]
+
+
+class Payload:
+    """Unpickling this writes a marker file: proof that a loader executed code from a run folder."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("safety") / "run"
+    assert train_command(["--total-timesteps", "400", "--mode", "torque", "--out", str(run_dir), *FAST]) == 0
+    return run_dir
+
+
+def _plant(path: Path, marker: Path) -> None:
+    if path.suffix == ".pt":  # a torch file whose tensors come with an object
+        import torch
+
+        torch.save({"weight": Payload(marker)}, path)
+    else:
+        path.write_bytes(pickle.dumps(Payload(marker)))
+
+
+def test_a_payload_planted_in_any_file_of_a_run_never_runs(trained_run, tmp_path, capsys):
+    files = sorted(path.relative_to(trained_run) for path in trained_run.rglob("*") if path.is_file()
+                   and "tensorboard" not in path.parts)
+    assert {Path("model/policy.pt"), Path("model/obs_normalizer.json"), Path("config.json"), Path("model.zip")} <= set(
+        files)
+    for relative in files:
+        copy = tmp_path / f"run-{len(list(tmp_path.iterdir()))}"
+        shutil.copytree(trained_run, copy)
+        marker = tmp_path / f"ran-{relative.name}"
+        _plant(copy / relative, marker)
+        status = train_command(["--eval-only", str(copy), *EVAL_FAST])
+        assert not marker.exists(), f"a payload in {relative} ran"
+        error = capsys.readouterr().err
+        if status != 0:  # a file evaluation needs: refused with an error naming it
+            assert status == 2 and relative.name in error, (relative, error)
+        shutil.rmtree(copy)
+
+
+def test_checkpoints_load_only_plain_tensors(trained_run, tmp_path):
+    (newest,) = checkpoint.checkpoints(trained_run)[-1:]
+    marker = tmp_path / "ran"
+    copy = tmp_path / "checkpoint"
+    shutil.copytree(newest, copy)
+    _plant(copy / "optimizer.pt", marker)
+    with pytest.raises(ValueError, match="optimizer.pt"):
+        checkpoint.load_tensors(copy / "optimizer.pt", "optimizer.pt")
+    assert not marker.exists()
+
+
+def test_an_interrupted_checkpoint_write_leaves_no_checkpoint_under_its_name(trained_run, tmp_path, monkeypatch):
+    from ee_formation_env.baselines.learned.config import TrainConfig
+    from ee_formation_env.baselines.learned.sb3_backend import build_sb3_model
+
+    model = build_sb3_model(TrainConfig.from_args(["--mode", "torque", *FAST]), None)
+    try:
+        target = tmp_path / "checkpoints" / checkpoint.checkpoint_name(0)
+        calls = []
+
+        def full_disk(data, path):
+            calls.append(path)
+            if len(calls) == 2:
+                raise OSError(28, "No space left on device")
+            return real_save(data, path)
+
+        import torch
+
+        real_save = torch.save
+        monkeypatch.setattr(torch, "save", full_disk)
+        with pytest.raises(OSError, match="No space"):
+            checkpoint.save_checkpoint(target, model, "ppo", {"net_arch": [8]}, 100)
+        assert not target.exists() and list((tmp_path / "checkpoints").iterdir()) == []
+        monkeypatch.setattr(torch, "save", real_save)
+        checkpoint.save_checkpoint(target, model, "ppo", {"net_arch": [8]}, 100)
+        assert (target / "state.json").is_file() and checkpoint.checkpoints(tmp_path) == [target]
+    finally:
+        model.get_env().close()
+
+
+def test_an_existing_run_folder_is_never_reused_silently(trained_run, tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    shutil.copytree(trained_run, run_dir)
+    before = (run_dir / "config.json").read_text()
+    assert train_command(["--total-timesteps", "300", "--out", str(run_dir), "--seed", "5", *FAST]) == 2
+    assert "--resume" in capsys.readouterr().err and (run_dir / "config.json").read_text() == before
+    # --overwrite replaces it only once the new configuration validates
+    assert train_command(["--total-timesteps", "300", "--out", str(run_dir), "--overwrite", "--scenario", "nope",
+                          *FAST]) == 2
+    assert (run_dir / "config.json").read_text() == before
+    assert train_command(["--total-timesteps", "300", "--out", str(run_dir), "--overwrite", "--seed", "5",
+                          *FAST]) == 0
+    assert json.loads((run_dir / "config.json").read_text())["seed"] == 5
+    assert not (run_dir / "evaluations").exists()
+
+
+def test_no_run_folder_before_the_scenario_validates(tmp_path, capsys):
+    unreachable = {"arms": [{"robot": "planar_2link", "base_position": [6.0 * k, 0, 0], "initial_q": [0.3, 1.0]}
+                            for k in range(3)], "edges": [[0, 1], [1, 2], [0, 2]],
+                   "shape": [[0, 0], [40, 0], [0, 40]], "dim": 2}
+    path = tmp_path / "far.json"
+    path.write_text(json.dumps(unreachable))
+    assert train_command(["--scenario", str(path), "--out", str(tmp_path / "run"), *FAST]) == 2
+    assert capsys.readouterr().err.startswith("error: ")
+    assert not (tmp_path / "run").exists()
+
+
+def test_eval_only_uses_the_saved_scenario_and_keeps_the_originals(tmp_path):
+    scenario = tmp_path / "square.json"
+    from ee_formation_env.builtin import builtin_scenario
+
+    scenario.write_text(json.dumps(builtin_scenario("planar_square")))
+    run_dir = tmp_path / "run"
+    assert train_command(["--scenario", str(scenario), "--total-timesteps", "300", "--out", str(run_dir),
+                          *FAST]) == 0
+    original = (run_dir / "comparison.json").read_text()
+    edited = builtin_scenario("planar_square")
+    edited["shape"] = [[2.0, 2.0], [4.5, 2.0], [4.5, 4.5], [2.0, 4.5]]  # the file changes after training
+    scenario.write_text(json.dumps(edited))
+    assert train_command(["--eval-only", str(run_dir), *EVAL_FAST]) == 0
+    (evaluation,) = (run_dir / "evaluations").iterdir()
+    again = json.loads((evaluation / "comparison.json").read_text())
+    assert again["results"]["learned"]["per_episode"] == json.loads(original)["results"]["learned"]["per_episode"]
+    assert (run_dir / "comparison.json").read_text() == original
+
+
+def test_resume_refuses_what_it_cannot_continue(trained_run, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        train_command(["--resume", str(trained_run), "--seed", "9"])
+    assert "--seed" in capsys.readouterr().err
+    assert train_command(["--resume", str(trained_run), *EVAL_FAST]) == 2  # complete: nothing to continue
+    assert "complete" in capsys.readouterr().err
+    assert train_command(["--resume", str(tmp_path / "nothing")]) == 2
+    assert "not found" in capsys.readouterr().err
+
+
+_TRAIN = [sys.executable, str(REPO / "train.py"), "--mode", "torque", "--n-steps", "64", "--train-episode-seconds",
+          "0.5", "--no-progress", *EVAL_FAST]
+
+
+def _wait_for(condition, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.2)
+    return False
+
+
+@pytest.mark.parametrize("signal_number, layout", [
+    pytest.param(signal.SIGINT, ["--n-envs", "2", "--n-workers", "1", "--in-process-envs", "1"], id="SIGINT"),  # Ctrl-C to the group
+    pytest.param(signal.SIGTERM, ["--n-envs", "1", "--n-workers", "0"], id="SIGTERM"),
+])
+def test_a_signal_stops_the_run_saves_it_and_resume_finishes_it(tmp_path, signal_number, layout):
+    run_dir = tmp_path / "run"
+    budget = 200_000  # far more than the seconds before the signal
+    process = subprocess.Popen([*_TRAIN, *layout, "--total-timesteps", str(budget), "--out", str(run_dir)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                               start_new_session=True)
+    try:
+        assert _wait_for(lambda: (run_dir / "monitor.csv").is_file() and (run_dir / "monitor.csv").stat().st_size
+                         > 200, 240), "training did not start"
+        sent = time.monotonic()
+        os.killpg(process.pid, signal_number)
+        _, err = process.communicate(timeout=60)
+        assert time.monotonic() - sent < 30  # within seconds (a loaded 2-core machine included)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 128 + signal_number, err
+    assert "--resume" in err and signal.Signals(signal_number).name in err
+    state = json.loads((run_dir / "model" / "state.json").read_text())
+    assert 0 < state["agent_steps"] < budget and state["interrupted"] == signal.Signals(signal_number).name
+    for name in ("policy.pt", "optimizer.pt", "vecnormalize.json", "obs_normalizer.json"):
+        assert (run_dir / "model" / name).is_file(), name
+    # Resume the run to a budget it can reach here: the saved configuration's, lowered in its config.json.
+    config = json.loads((run_dir / "config.json").read_text())
+    config["total_timesteps"] = state["agent_steps"] + 512
+    (run_dir / "config.json").write_text(json.dumps(config))
+    assert train_command(["--resume", str(run_dir), *EVAL_FAST]) == 0
+    timing = json.loads((run_dir / "timing.json").read_text())
+    assert [segment["interrupted"] for segment in timing["segments"]] == [signal.Signals(signal_number).name, None]
+    assert timing["segments"][1]["start_agent_steps"] == state["agent_steps"]
+    assert timing["agent_steps"] >= config["total_timesteps"]
+    assert json.loads((run_dir / "model" / "state.json").read_text())["interrupted"] is None
+    assert (run_dir / "comparison.json").is_file()
+    curve = (run_dir / "learning_curve.csv").read_text().splitlines()[1:]
+    steps = [int(line.split(",")[0]) for line in curve]
+    assert steps == sorted(steps) and steps[-1] > state["agent_steps"]
