@@ -173,16 +173,23 @@ class SharedPolicyVecEnv(VecEnv):
     :mod:`ee_formation_env.baselines.learned.residual` evaluate every env's reference controllers in one batch).
 
     Worker faults name the worker: its index, pid, the envs it steps (indices and scenario) and what it was
-    doing. A worker that dies (killed, crashed, out of memory) raises ``RuntimeError("env worker 1 (pid 1234,
-    envs 18-31 of planar_square) died (exit code -9: SIGKILL) during step")`` as soon as its end of the pipe
-    closes; an exception inside a worker raises ``RuntimeError("SharedPolicyVecEnv worker failed: env worker
-    ... raised ValueError(...) during step")`` with the worker's traceback; a worker that does not answer
-    within ``worker_timeout`` seconds (default 60, ``None``: wait forever) raises ``TimeoutError`` (saying
-    when it is stopped, e.g. by SIGSTOP). After a fault the VecEnv refuses further use; ``close()`` then ends
-    every worker (close, else terminate, else kill, each with a timeout), so none is left behind.
-    Workers ignore SIGINT: a Ctrl-C reaches the learner alone, which decides how to stop (save its model,
-    then ``close()``); SIGTERM still ends a worker, reported as a death. A worker whose learner dies (its
-    pipe closes, or its parent process ends) exits by itself.
+    doing; after one the VecEnv refuses further use.
+
+    - A worker that dies (killed, crashed, out of memory) raises ``RuntimeError("env worker 0 (pid 1234, envs
+      18-31 of planar_square) died (exit code -9: SIGKILL) during step")`` as soon as it ends.
+    - An exception inside a worker raises ``RuntimeError("SharedPolicyVecEnv worker failed: env worker 0 (pid
+      1234, env 0 of planar_square) raised ValueError(...) during step")``, followed by the worker's traceback.
+    - A worker that does not answer within ``worker_timeout`` seconds (default 60: a slow reset on a loaded
+      machine fits; ``None`` waits forever; the attribute may be changed after the start-up) raises
+      ``TimeoutError("env worker 1 (pid 1234, env 1 of planar_square) did not answer within 60 s during step;
+      it is stopped (SIGSTOP?) ...")``. The wait costs one ``select`` per answer: nothing measurable per step.
+    - ``close()`` ends every worker, after a fault too: asked to close, else terminated, else killed, each with
+      a timeout, so no process is left behind.
+
+    Workers ignore SIGINT: a Ctrl-C, sent to the whole process group, reaches the learner alone, which decides
+    how to stop (a trainer catching ``KeyboardInterrupt`` can still step, save its model, then ``close()``).
+    SIGTERM still ends a worker, reported as a death. A worker whose learner dies (its pipe closes or its
+    parent process ends) exits by itself.
     """
 
     def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None,
