@@ -16,14 +16,21 @@ Requires stable-baselines3 (the ``train`` extra). Agents must be homogeneous (sa
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
-from multiprocessing.connection import Connection
+import signal
+import time
+import traceback
+from multiprocessing.connection import Connection, wait
 from typing import Any, Callable, Sequence
 
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
 EnvFactory = Callable[[], Any]  # () -> a PettingZoo ParallelEnv (picklable for worker processes)
+
+DEFAULT_WORKER_TIMEOUT = 60.0  # s: a slow reset of 14 residual envs on a loaded 2-core machine fits well within it
+_CLOSE_TIMEOUT = 10.0  # s: at most this long for the workers to answer "close" before they are terminated
 
 
 class _EnvGroup:
@@ -80,12 +87,25 @@ class _EnvGroup:
 
 
 def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None) -> None:
+    # Ctrl-C goes to the whole process group: the learner decides how to stop (and can save its model first).
+    # SIGINT is blocked from the spawn until here (SharedPolicyVecEnv._start_worker), so none is missed.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    parent = multiprocessing.parent_process()
+    watched = [connection] if parent is None else [connection, parent.sentinel]
     group = None
     try:
         group = _EnvGroup(factories, info_keys)
         connection.send(("ok", None))
         while True:
-            command, payload = connection.recv()
+            # Wait for a command or for the learner's end: a killed learner leaves no orphan worker behind.
+            if connection not in wait(watched):
+                break
+            try:
+                command, payload = connection.recv()
+            except (EOFError, OSError):  # the learner closed its end of the pipe, or died
+                break
             if command == "reset":
                 connection.send(("ok", group.reset(payload)))
             elif command == "step":
@@ -98,11 +118,41 @@ def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: 
                 connection.send(("ok", None))
                 break
     except Exception as error:  # report to the parent instead of dying silently
-        connection.send(("error", repr(error)))
+        try:
+            connection.send(("error", (repr(error), traceback.format_exc())))
+        except OSError:  # the learner is gone
+            pass
     finally:
         if group is not None:
             group.close()
         connection.close()
+
+
+def _scenario_name(factory: EnvFactory) -> str | None:
+    """The scenario a factory builds, where that is cheap to read: a ``functools.partial`` whose first argument
+    (or ``scenario`` keyword) is a scenario name or a scenario dict with a ``name``."""
+    if not isinstance(factory, functools.partial):
+        return None
+    scenario = factory.args[0] if factory.args else factory.keywords.get("scenario")
+    if isinstance(scenario, dict):
+        scenario = scenario.get("name")
+    return scenario if isinstance(scenario, str) else None
+
+
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
+def _process_state(pid: int | None) -> str | None:
+    """The state letter of ``/proc/<pid>/stat`` (Linux; None elsewhere): "T" stopped, "Z" zombie, ..."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return None
 
 
 class SharedPolicyVecEnv(VecEnv):
@@ -121,10 +171,29 @@ class SharedPolicyVecEnv(VecEnv):
     ``step(actions)`` (one action dict per env) steps them all and returns each env's step result, exactly as
     its own ``step`` would. The envs of such a class are stepped through it (the residual envs of
     :mod:`ee_formation_env.baselines.learned.residual` evaluate every env's reference controllers in one batch).
+
+    Worker faults name the worker: its index, pid, the envs it steps (indices and scenario) and what it was
+    doing; after one the VecEnv refuses further use.
+
+    - A worker that dies (killed, crashed, out of memory) raises ``RuntimeError("env worker 0 (pid 1234, envs
+      18-31 of planar_square) died (exit code -9: SIGKILL) during step")`` as soon as it ends.
+    - An exception inside a worker raises ``RuntimeError("SharedPolicyVecEnv worker failed: env worker 0 (pid
+      1234, env 0 of planar_square) raised ValueError(...) during step")``, followed by the worker's traceback.
+    - A worker that does not answer within ``worker_timeout`` seconds (default 60: a slow reset on a loaded
+      machine fits; ``None`` waits forever; the attribute may be changed after the start-up) raises
+      ``TimeoutError("env worker 1 (pid 1234, env 1 of planar_square) did not answer within 60 s during step;
+      it is stopped (SIGSTOP?) ...")``. The wait costs one ``select`` per answer: nothing measurable per step.
+    - ``close()`` ends every worker, after a fault too: asked to close, else terminated, else killed, each with
+      a timeout, so no process is left behind.
+
+    Workers ignore SIGINT: a Ctrl-C, sent to the whole process group, reaches the learner alone, which decides
+    how to stop (a trainer catching ``KeyboardInterrupt`` can still step, save its model, then ``close()``).
+    SIGTERM still ends a worker, reported as a death. A worker whose learner dies (its pipe closes or its
+    parent process ends) exits by itself.
     """
 
     def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None,
-                 in_process_envs: int = 0):
+                 in_process_envs: int = 0, worker_timeout: float | None = DEFAULT_WORKER_TIMEOUT):
         if not factories:
             raise ValueError("factories: expected at least one env factory")
         if not isinstance(n_workers, int) or n_workers < 0:
@@ -135,6 +204,19 @@ class SharedPolicyVecEnv(VecEnv):
                              f"worker processes, got {in_process_envs!r}")
         if info_keys is not None and (isinstance(info_keys, str) or not all(isinstance(k, str) for k in info_keys)):
             raise TypeError(f"info_keys: expected None or a sequence of info key names, got {info_keys!r}")
+        if worker_timeout is not None and (isinstance(worker_timeout, bool) or
+                                           not isinstance(worker_timeout, (int, float)) or not worker_timeout > 0):
+            raise ValueError(f"worker_timeout: expected None or a number of seconds > 0, got {worker_timeout!r}")
+        self.worker_timeout = None if worker_timeout is None else float(worker_timeout)
+        # Set before anything can fail, so that close() (and __del__) always find them.
+        self._local: _EnvGroup | None = None
+        self._connections: list[Connection] = []
+        self._processes: list[multiprocessing.Process] = []
+        self._envs_per_worker: list[int] = []
+        self._worker_labels: list[str] = []
+        self._unanswered: list[int] = []  # per worker: commands sent whose answer is not read yet
+        self._faulty: set[int] = set()  # workers that died, failed or timed out
+        self._fault: str | None = None  # the first fault's message: the VecEnv is unusable after it
         probe = factories[0]()
         self.agents = list(probe.possible_agents)
         spaces = [(probe.observation_space(a), probe.action_space(a)) for a in self.agents]
@@ -152,25 +234,28 @@ class SharedPolicyVecEnv(VecEnv):
         self.n_envs = len(factories)
         self.n_workers = min(n_workers, self.n_envs - in_process_envs)
         self.n_local = self.n_envs if self.n_workers == 0 else in_process_envs  # envs stepped in this process
-        self._local: _EnvGroup | None = None
-        self._connections: list[Connection] = []
-        self._processes: list[multiprocessing.Process] = []
-        self._envs_per_worker: list[int] = []
-        if self.n_workers:
-            context = multiprocessing.get_context("spawn")
-            chunks = np.array_split(np.arange(self.n_local, self.n_envs), self.n_workers)
-            for chunk in chunks:
-                parent, child = context.Pipe()
-                process = context.Process(target=_worker, args=(child, [factories[i] for i in chunk], info_keys),
-                                          daemon=True)
-                process.start()
-                child.close()
-                self._connections.append(parent)
-                self._processes.append(process)
-                self._envs_per_worker.append(len(chunk))
-        if self.n_local:  # built while the workers build theirs
-            self._local = _EnvGroup(factories[:self.n_local], info_keys)
-        self._receive_workers()
+        try:
+            if self.n_workers:
+                context = multiprocessing.get_context("spawn")
+                chunks = np.array_split(np.arange(self.n_local, self.n_envs), self.n_workers)
+                for index, chunk in enumerate(chunks):
+                    chunk_factories = [factories[i] for i in chunk]
+                    parent, child = context.Pipe()
+                    process = context.Process(target=_worker, args=(child, chunk_factories, info_keys), daemon=True)
+                    self._start_worker(process)
+                    child.close()
+                    self._connections.append(parent)
+                    self._processes.append(process)
+                    self._envs_per_worker.append(len(chunk))
+                    self._unanswered.append(1)  # its start-up report
+                    self._worker_labels.append(self._label(index, process.pid, chunk, chunk_factories,
+                                                           factories[0], probe.scenario.name))
+            if self.n_local:  # built while the workers build theirs
+                self._local = _EnvGroup(factories[:self.n_local], info_keys)
+            self._receive_workers("start-up (building its envs)")
+        except BaseException:
+            self.close()
+            raise
         self._render_mode = probe_render_mode
         self._pending: np.ndarray | None = None
         super().__init__(self.n_envs * len(self.agents), spaces[0][0], spaces[0][1])
@@ -203,25 +288,49 @@ class SharedPolicyVecEnv(VecEnv):
                 np.concatenate([r[2] for r in results]), [info for r in results for info in r[3]])
 
     def close(self) -> None:
+        """Close every env; end every worker (asked to close, else terminated, else killed), within seconds even
+        after a fault: no worker process is left behind."""
         if self._local is not None:
             self._local.close()
             self._local = None
-        for connection, process in zip(self._connections, self._processes):
+        if not self._processes:
+            return
+        timeout = _CLOSE_TIMEOUT if self.worker_timeout is None else min(self.worker_timeout, _CLOSE_TIMEOUT)
+        deadline = time.monotonic() + timeout
+        for index, connection in enumerate(self._connections):
+            if index not in self._faulty and self._processes[index].is_alive():
+                try:
+                    connection.send(("close", None))
+                    self._unanswered[index] += 1
+                except OSError:
+                    self._faulty.add(index)
+        for index, (connection, process) in enumerate(zip(self._connections, self._processes)):
             try:
-                connection.send(("close", None))
-                connection.recv()
-            except (BrokenPipeError, EOFError, OSError):
+                # Read what it still owes (an interrupted step's answer, then the close's), so that it is not
+                # left blocked writing to a full pipe.
+                while index not in self._faulty and self._unanswered[index]:
+                    if not connection.poll(max(0.0, deadline - time.monotonic())):
+                        break
+                    connection.recv()
+                    self._unanswered[index] -= 1
+            except (OSError, EOFError):
                 pass
-            process.join(timeout=10)
-            if process.is_alive():
+            process.join(timeout=max(0.0, deadline - time.monotonic()))
+            if process.is_alive() and _process_state(process.pid) not in ("T", "t"):
                 process.terminate()
+                process.join(timeout=1.0)
+            if process.is_alive():  # stopped (SIGSTOP: SIGTERM would wait for a SIGCONT), or deaf to SIGTERM
+                process.kill()
+                process.join(timeout=1.0)
+            connection.close()
         self._connections, self._processes = [], []
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         if attr_name == "render_mode":
             return [self._render_mode] * self.num_envs
         per_env = [] if self._local is None else [getattr(env, attr_name) for env in self._local.envs]
-        per_env += [value for values in self._call_workers("get_attr", [attr_name] * self.n_workers)
+        per_env += [value for values in self._call_workers("get_attr", [attr_name] * self.n_workers,
+                                                           f"get_attr({attr_name!r})")
                     for value in values]
         per_slot = [value for value in per_env for _ in self.agents]
         return [per_slot[i] for i in self._get_indices(indices)]
@@ -237,9 +346,32 @@ class SharedPolicyVecEnv(VecEnv):
 
     def worker_pids(self) -> list[int]:
         """Process ids of the worker processes (empty when stepping in-process)."""
-        return [int(pid) for pid in self._call_workers("pid", [None] * self.n_workers)] if self._connections else []
+        if not self._connections:
+            return []
+        return [int(pid) for pid in self._call_workers("pid", [None] * self.n_workers, "pid")]
 
     # -- internals ------------------------------------------------------------------------------------
+    @staticmethod
+    def _start_worker(process: multiprocessing.Process) -> None:
+        """Start ``process`` with SIGINT blocked (its worker then ignores it), so that a Ctrl-C during its
+        start-up cannot end it; a SIGINT meant for this process meanwhile stays pending, delivered after."""
+        if not hasattr(signal, "pthread_sigmask"):
+            process.start()
+            return
+        previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+    @staticmethod
+    def _label(index: int, pid: int | None, chunk: np.ndarray, chunk_factories: Sequence[EnvFactory],
+               first_factory: EnvFactory, first_scenario: str) -> str:
+        envs = f"env {chunk[0]}" if len(chunk) == 1 else f"envs {chunk[0]}-{chunk[-1]}"
+        names = sorted({first_scenario if factory is first_factory else _scenario_name(factory) or "?"
+                        for factory in chunk_factories})
+        return f"env worker {index} (pid {pid}, {envs} of {', '.join(names)})"
+
     def _split_per_worker(self, items: Sequence[Any]) -> list[list[Any]]:
         out, start = [], 0
         for count in self._envs_per_worker:
@@ -254,26 +386,72 @@ class SharedPolicyVecEnv(VecEnv):
         try:
             local = [] if self._local is None else [local_call()]
         finally:
-            remote = self._receive_workers()  # read even if local_call raised: the pipes stay in step
+            remote = self._receive_workers(command)  # read even if local_call raised: the pipes stay in step
         return local + remote
 
-    def _call_workers(self, command: str, payloads: Sequence[Any]) -> list[Any]:
+    def _call_workers(self, command: str, payloads: Sequence[Any], doing: str) -> list[Any]:
         self._send_workers(command, payloads)
-        return self._receive_workers()
+        return self._receive_workers(doing)
 
     def _send_workers(self, command: str, payloads: Sequence[Any]) -> None:
-        for connection, payload in zip(self._connections, payloads):
-            connection.send((command, payload))
+        self._check_usable()
+        for index, (connection, payload) in enumerate(zip(self._connections, payloads)):
+            while self._unanswered[index]:  # an interrupted call's answer (a KeyboardInterrupt while waiting)
+                self._receive(index, "an earlier call")
+            try:
+                connection.send((command, payload))
+            except OSError:  # its end of the pipe is closed: it died
+                self._raise_fault(index, self._death(index, command))
+            self._unanswered[index] += 1
 
-    def _receive_workers(self) -> list[Any]:
-        return [self._receive(connection) for connection in self._connections]
+    def _receive_workers(self, doing: str) -> list[Any]:
+        return [self._receive(index, doing) for index in range(len(self._connections))]
 
-    @staticmethod
-    def _receive(connection: Connection) -> Any:
-        status, payload = connection.recv()
+    def _receive(self, index: int, doing: str) -> Any:
+        connection, process = self._connections[index], self._processes[index]
+        # One wait for the answer, the worker's end or the timeout (a few microseconds when the answer is there).
+        ready = wait([connection, process.sentinel], self.worker_timeout)
+        if connection in ready:
+            try:
+                status, payload = connection.recv()
+            except (EOFError, OSError):  # it died before answering
+                self._raise_fault(index, self._death(index, doing))
+        elif ready:
+            self._raise_fault(index, self._death(index, doing))
+        else:
+            state = _process_state(process.pid)
+            how = {"T": "; it is stopped (SIGSTOP?)", "t": "; it is stopped by a debugger",
+                   "D": "; it is waiting on the disk"}.get(state, "")
+            self._raise_fault(index, f"{self._worker_labels[index]} did not answer within {self.worker_timeout:g} s "
+                                     f"during {doing}{how} (worker_timeout: None waits forever)", TimeoutError)
+        self._unanswered[index] -= 1
         if status == "error":
-            raise RuntimeError(f"SharedPolicyVecEnv worker failed: {payload}")
+            error, trace = payload
+            self._raise_fault(index, f"SharedPolicyVecEnv worker failed: {self._worker_labels[index]} raised "
+                                     f"{error} during {doing}\nWorker traceback:\n{trace.rstrip()}")
         return payload
+
+    def _death(self, index: int, doing: str) -> str:
+        process = self._processes[index]
+        process.join(timeout=1.0)  # its pipe closes as it ends: the exit code follows within moments
+        code = process.exitcode
+        if code is None:
+            how = "closed its pipe but is still running"
+        elif code < 0:
+            how = f"exit code {code}: {_signal_name(-code)}"
+        else:
+            how = f"exit code {code}"
+        return f"{self._worker_labels[index]} died ({how}) during {doing}"
+
+    def _raise_fault(self, index: int, message: str, kind: type[Exception] = RuntimeError):
+        self._faulty.add(index)
+        if self._fault is None:
+            self._fault = message.split("\n", 1)[0]
+        raise kind(message)
+
+    def _check_usable(self) -> None:
+        if self._fault is not None:
+            raise RuntimeError(f"SharedPolicyVecEnv: unusable after a worker fault ({self._fault}); close it")
 
     def __del__(self) -> None:
         try:
