@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -57,15 +58,28 @@ class EpisodeVideo:
         try:
             import imageio_ffmpeg  # noqa: F401  (imageio's MP4 writer)
         except ImportError:
-            path = path.with_suffix(".gif")
+            path = path.with_name(path.name + ".gif")  # not with_suffix: a name may contain dots
             imageio.mimwrite(path, self.frames, duration=1000.0 / self.fps, loop=0)
         else:
-            path = path.with_suffix(".mp4")
+            path = path.with_name(path.name + ".mp4")
             # H.264 wants sides divisible by 16: pad by repeating the edge instead of letting imageio resize.
             height, width = self.frames[0].shape[:2]
             padding = ((0, -height % 16), (0, -width % 16), (0, 0))
             imageio.mimwrite(path, [np.pad(frame, padding, mode="edge") for frame in self.frames], fps=self.fps)
         return path
+
+
+def file_stem(name: str, fallback: str = "scenario", max_length: int = 100) -> str:
+    """``name`` as a safe file name: characters outside ``[A-Za-z0-9_.-]`` (path separators included) become
+    ``_``, leading dots are dropped (no ``..``, no hidden files), at most ``max_length`` characters."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", str(name)).lstrip(".")[:max_length]
+    return stem or fallback
+
+
+def video_path(video_dir: Path | str, scenario: str, policy: str, seed: int) -> Path:
+    """Where an episode's video goes: ``video_dir/<scenario>-<policy>-seed<k>`` (the writer adds ``.mp4`` or
+    ``.gif``), scenario and policy names made safe by :func:`file_stem`, so it is always inside ``video_dir``."""
+    return Path(video_dir) / f"{file_stem(scenario)}-{file_stem(policy, 'policy')}-seed{int(seed)}"
 
 
 def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
@@ -74,8 +88,9 @@ def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
                     on_episode: Callable[[str, int, EpisodeMetrics], None] | None = None) -> dict[str, Any]:
     """Summary (see :func:`ee_formation_env.baselines.metrics.summarize`) of ``policy`` over seeded episodes.
 
-    ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``),
-    rendered as ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode.
+    ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``; the
+    names made safe by :func:`file_stem`, so that a scenario's ``name`` cannot put it elsewhere), rendered as
+    ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode.
     """
     render_mode = None if video_dir is None else "rgb_array"
     results = []
@@ -88,7 +103,7 @@ def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
                 video = EpisodeVideo(env)
                 metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance,
                                       on_reset=video.capture, on_step=video.capture)
-                video.write(Path(video_dir) / f"{env.scenario.name}-{policy}-seed{seed + k}")
+                video.write(video_path(video_dir, env.scenario.name, policy, seed + k))
             results.append(metrics)
             if on_episode is not None:
                 on_episode(policy, seed + k, metrics)

@@ -51,10 +51,14 @@ def parallel_env(scenario: Any = "planar_square", render_mode: str | None = None
 
 def raw_env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,
             **overrides: Any):
-    """The AEC form of the env (PettingZoo's ``parallel_to_aec`` conversion)."""
-    from pettingzoo.utils.conversions import parallel_to_aec
+    """The AEC form of the env (PettingZoo's ``parallel_to_aec`` conversion, order-enforced as it does), whose
+    ``step`` checks each agent's action when it is given (:class:`ee_formation_env.aec.FormationAECEnv`)."""
+    from pettingzoo.utils.wrappers import OrderEnforcingWrapper
 
-    return parallel_to_aec(parallel_env(scenario, render_mode=render_mode, max_cycles=max_cycles, **overrides))
+    from ee_formation_env.aec import FormationAECEnv
+
+    return OrderEnforcingWrapper(FormationAECEnv(parallel_env(scenario, render_mode=render_mode,
+                                                              max_cycles=max_cycles, **overrides)))
 
 
 def env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,

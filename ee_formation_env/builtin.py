@@ -16,6 +16,8 @@ from typing import Any
 
 import yaml
 
+from ee_formation_env.inputs import excerpt
+
 _FILES = resources.files("ee_formation_env") / "builtin"
 
 BUILTIN_SCENARIOS: tuple[str, ...] = tuple(sorted(
@@ -26,7 +28,7 @@ BUILTIN_SCENARIOS: tuple[str, ...] = tuple(sorted(
 def builtin_scenario(name: str) -> dict[str, Any]:
     """A fresh plain-data copy of built-in scenario ``name`` (its YAML file, parsed)."""
     if name not in BUILTIN_SCENARIOS:
-        raise ValueError(f"scenario: unknown built-in scenario {name!r}; available: {sorted(BUILTIN_SCENARIOS)}")
+        raise ValueError(f"scenario: unknown built-in scenario {excerpt(name)}; available: {sorted(BUILTIN_SCENARIOS)}")
     return copy.deepcopy(_parsed(name))
 
 

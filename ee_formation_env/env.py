@@ -13,10 +13,11 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from ee_formation_env.formation import Formation, FormationGraph, formation_error_from_squares
+from ee_formation_env.inputs import check_seed, excerpt
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
-from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet
+from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet, check_start_contacts
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.reward import agent_error_ratios, edge_tolerances, rewards_from_ratios
 from ee_formation_env.task import build_task
@@ -115,8 +116,14 @@ class FormationEnv(ParallelEnv):
         self.action_spaces = dict(self._action_spaces)
 
         self.world = PhysicsWorld(self.scenario.physics_hz, self.scenario.gravity, render_mode)
-        self.arm_set = ArmSet(self.world, self.task)
-        self.arm_set.reset(list(self.task.initial_q))
+        try:  # a refusal after connecting (a URDF PyBullet rejects, arms in contact) leaves no client behind
+            self.arm_set = ArmSet(self.world, self.task)
+            self.arm_set.reset(list(self.task.initial_q))
+            if self.scenario.arm_collisions:
+                check_start_contacts(self.arm_set)
+        except BaseException:
+            self.world.close()
+            raise
         self.world.save_snapshot()
         self._torque_limits_flat = np.concatenate(self.task.torque_limits)
         self._edge_tolerances = edge_tolerances(self.task.formation.kind,
@@ -180,10 +187,11 @@ class FormationEnv(ParallelEnv):
         before. Initial joint positions are the scenario's plus uniform noise of half-width
         ``initial_q_noise`` (rad), clipped to the joint limits; velocities are zero.
         """
-        if seed is not None:
-            self.np_random, _ = seeding.np_random(seed)
+        seed = check_seed(seed)  # numpy integers are seeds too; negative ones are refused before any change
         if not self.world.connected:
             raise RuntimeError("reset: the environment is closed")
+        if seed is not None:
+            self.np_random, _ = seeding.np_random(seed)
         self.world.restore_snapshot()
         noise = self.scenario.initial_q_noise
         starts = []
@@ -329,17 +337,39 @@ class FormationEnv(ParallelEnv):
         """The agents' actions as one float64 vector, or the error of the first bad one (in agent order)."""
         checked = []
         for agent, part in zip(self.agents, parts):
-            shape = self._action_spaces[agent].shape
             try:
-                action = np.asarray(part, dtype=np.float64)
-            except (TypeError, ValueError):
+                checked.append(self._action_array(agent, part))
+            except ValueError:
                 self._raise_if_not_finite(checked)
-                raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}") from None
-            if action.shape != shape:
-                self._raise_if_not_finite(checked)
-                raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
-            checked.append(action)
+                raise
         return np.concatenate(checked)
+
+    def _action_array(self, agent: str, action: Any) -> np.ndarray:
+        """``agent``'s action as a float64 array of its shape; ``ValueError`` naming the agent if it is not a
+        numeric (bool, int or float; not string, object or complex) array of that shape."""
+        shape = self._action_spaces[agent].shape
+        try:
+            raw = np.asarray(action)
+            if raw.dtype.kind not in "biuf":
+                raise ValueError
+            array = raw.astype(np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}, got "
+                             f"{type(action).__name__} {excerpt(action)}") from None
+        if array.shape != shape:
+            raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {array.shape}")
+        return array
+
+    def check_action(self, agent: str, action: Any) -> None:
+        """Check one agent's action as :meth:`step` does (a numeric array of its action space's shape, finite);
+        ``ValueError`` naming the agent otherwise. Changes nothing (the AEC form checks each action with it
+        when it is given, before buffering it)."""
+        if agent not in self._action_spaces:
+            raise ValueError(f"actions: unknown agent {excerpt(agent)}; expected one of {self.possible_agents}")
+        array = self._action_array(agent, action)
+        if not np.all(np.isfinite(array)):
+            shape = self._action_spaces[agent].shape
+            raise ValueError(f"actions[{agent!r}]: expected finite values of shape {shape}, got {array.tolist()}")
 
     def _raise_if_not_finite(self, parts: list[np.ndarray]) -> None:
         """The error of the first of the (agent-ordered) actions with a non-finite entry, if any."""

@@ -21,6 +21,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ee_formation_env.inputs import excerpt
+
 
 @dataclass(frozen=True)
 class MismatchConfig:
@@ -42,20 +44,20 @@ def parse_mismatch(value: Any) -> MismatchConfig:
     if value is None:
         return MismatchConfig()
     if not isinstance(value, Mapping):
-        raise ValueError(f"model_mismatch: expected a dict with keys length, mass, seed; got {value!r}")
+        raise ValueError(f"model_mismatch: expected a dict with keys length, mass, seed; got {excerpt(value)}")
     unknown = set(value) - {"length", "mass", "seed"}
     if unknown:
-        raise ValueError(f"model_mismatch: unknown key(s) {sorted(unknown)}; allowed: ['length', 'mass', 'seed']")
+        raise ValueError(f"model_mismatch: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: ['length', 'mass', 'seed']")
     parsed: dict[str, Any] = {}
     for key in ("length", "mass"):
         if key in value:
             number = value[key]
             if isinstance(number, bool) or not isinstance(number, (int, float)) or not 0 <= number < 1:
-                raise ValueError(f"model_mismatch.{key}: expected a relative half-width in [0, 1), got {number!r}")
+                raise ValueError(f"model_mismatch.{key}: expected a relative half-width in [0, 1), got {excerpt(number)}")
             parsed[key] = float(number)
     if "seed" in value:
         if isinstance(value["seed"], bool) or not isinstance(value["seed"], int) or value["seed"] < 0:
-            raise ValueError(f"model_mismatch.seed: expected an integer >= 0, got {value['seed']!r}")
+            raise ValueError(f"model_mismatch.seed: expected an integer >= 0, got {excerpt(value['seed'])}")
         parsed["seed"] = value["seed"]
     return MismatchConfig(**parsed)
 

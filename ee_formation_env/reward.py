@@ -21,6 +21,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from ee_formation_env.inputs import excerpt
+
 DEFAULT_POSITION_TOLERANCE = 0.01  # m: the edge-length accuracy that counts as "in formation"
 
 
@@ -55,25 +57,25 @@ def parse_reward(value: Any) -> RewardConfig:
     if value is None:
         return RewardConfig()
     if not isinstance(value, Mapping):
-        raise ValueError(f"reward: expected a dict of RewardConfig fields, got {value!r}")
+        raise ValueError(f"reward: expected a dict of RewardConfig fields, got {excerpt(value)}")
     allowed = sorted(f.name for f in fields(RewardConfig))
     unknown = set(value) - set(allowed)
     if unknown:
-        raise ValueError(f"reward: unknown key(s) {sorted(unknown)}; allowed: {allowed}")
+        raise ValueError(f"reward: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {allowed}")
     parsed: dict[str, Any] = {}
     for key, number in value.items():
         if key == "team":
             if not isinstance(number, bool):
-                raise ValueError(f"reward.team: expected true or false, got {number!r}")
+                raise ValueError(f"reward.team: expected true or false, got {excerpt(number)}")
             parsed[key] = number
             continue
         if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
                 or not math.isfinite(number):
-            raise ValueError(f"reward.{key}: expected a finite number, got {number!r}")
+            raise ValueError(f"reward.{key}: expected a finite number, got {excerpt(number)}")
         if key in ("formation", "in_tolerance") and number < 0:
-            raise ValueError(f"reward.{key}: expected a weight >= 0, got {number!r}")
+            raise ValueError(f"reward.{key}: expected a weight >= 0, got {excerpt(number)}")
         if key in ("position_tolerance", "error_floor", "error_ceiling") and number <= 0:
-            raise ValueError(f"reward.{key}: expected a positive number, got {number!r}")
+            raise ValueError(f"reward.{key}: expected a positive number, got {excerpt(number)}")
         parsed[key] = float(number)
     return RewardConfig(**parsed)
 
@@ -89,7 +91,7 @@ def edge_tolerances(kind: str, desired_lengths: np.ndarray, position_tolerance: 
         return 2.0 * lengths * position_tolerance
     if kind == "displacement":
         return np.full(lengths.shape, float(position_tolerance))
-    raise ValueError(f"kind: expected 'distance' or 'displacement', got {kind!r}")
+    raise ValueError(f"kind: expected 'distance' or 'displacement', got {excerpt(kind)}")
 
 
 def agent_error_ratios(edge_abs_errors: np.ndarray, tolerances: np.ndarray, slot_edges: np.ndarray,

@@ -4,6 +4,9 @@
 from __future__ import annotations
 
 import tempfile
+import xml.etree.ElementTree as ElementTree
+from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pybullet
@@ -152,8 +155,9 @@ def _load_arms(world: PhysicsWorld, task: FormationTask) -> list[Arm]:
     scenario = task.scenario
     mismatch = scenario.model_mismatch
     if not mismatch.active:
-        return [Arm(world, arm, model, scenario.joint_damping, scenario.arm_collisions)
-                for arm, model in zip(scenario.arms, task.models)]
+        return [_loaded(i, arm, lambda arm=arm, model=model: Arm(world, arm, model, scenario.joint_damping,
+                                                                   scenario.arm_collisions))
+                for i, (arm, model) in enumerate(zip(scenario.arms, task.models))]
     rng = np.random.default_rng(mismatch.seed)
     arms = []
     with tempfile.TemporaryDirectory(prefix="ee_formation_") as directory:
@@ -164,5 +168,46 @@ def _load_arms(world: PhysicsWorld, task: FormationTask) -> list[Arm]:
             mass_scales = 1.0 + rng.uniform(-mismatch.mass, mismatch.mass, len(links))
             urdf = write_perturbed_urdf(arm.urdf, joints, links, length_scales, mass_scales, directory)
             true_model = SerialChain.from_urdf(urdf, arm.ee_link)
-            arms.append(Arm(world, arm, true_model, scenario.joint_damping, scenario.arm_collisions, urdf=urdf))
+            arms.append(_loaded(len(arms), arm, lambda: Arm(world, arm, true_model, scenario.joint_damping,
+                                                             scenario.arm_collisions, urdf=urdf)))
     return arms
+
+
+def _loaded(index: int, config: ArmConfig, load: Callable[[], Arm]) -> Arm:
+    """``load()``, with PyBullet's refusal of a URDF (``pybullet.error``, e.g. a mesh it cannot find or
+    parse) turned into a ``ValueError`` naming the arm and its URDF (the caller closes the world)."""
+    try:
+        return load()
+    except pybullet.error as error:
+        missing = missing_meshes(config.urdf)
+        hint = f"; mesh files not found next to it: {missing[:5]}" if missing else ""
+        raise ValueError(f"arms[{index}].urdf: PyBullet could not load {config.urdf} ({error}){hint}") from None
+
+
+def missing_meshes(urdf: str) -> list[str]:
+    """The ``<mesh filename>`` entries of ``urdf`` (not ``package://``) that name no file next to it."""
+    try:
+        root = ElementTree.parse(urdf).getroot()
+    except (ElementTree.ParseError, OSError):
+        return []
+    folder = Path(urdf).parent
+    names = [mesh.get("filename", "") for mesh in root.iter("mesh")]
+    return sorted({name for name in names
+                   if name and "://" not in name and not (folder / name).is_file()})
+
+
+def check_start_contacts(arm_set: ArmSet) -> None:
+    """Refuse arms that touch or overlap at their initial configurations (checked after loading, before the
+    first physics step; only while ``arm_collisions`` is on: the contact forces would throw them apart).
+    ``ValueError`` starting with ``arms:``, naming the first pair."""
+    client = arm_set.world.client
+    arms = arm_set.arms
+    for a in range(len(arms)):
+        for b in range(a + 1, len(arms)):
+            points = pybullet.getClosestPoints(arms[a].body, arms[b].body, 0.0, physicsClientId=client)
+            if points:
+                depth = -min(point[8] for point in points)
+                raise ValueError(
+                    f"arms: arm_{a} and arm_{b} are in contact at their initial configurations (initial_q, "
+                    f"penetration {max(depth, 0.0):.3f} m); move their bases apart, bend them away from each other, "
+                    "or set arm_collisions: false")

@@ -15,9 +15,11 @@ the one place where their defaults, units and meanings are written). Every one c
 ``parallel_env`` as an override.
 
 Arm keys: exactly one of ``robot`` (a built-in robot, see :data:`ee_formation_env.robots.ROBOTS`) or
-``urdf`` (a path, absolute, relative to the scenario file, or inside ``pybullet_data``); ``ee_link``
+``urdf`` (a path: absolute, or relative: looked up in the scenario file's folder first (the current
+directory for a dict), then in ``pybullet_data``); ``ee_link``
 (required with ``urdf``); ``base_position`` [x, y, z] m (default 0); ``base_rpy`` [roll, pitch, yaw] rad
-(default 0); ``initial_q`` rad (default all zeros).
+(default 0); ``initial_q`` rad (default: the robot's start pose ``ROBOTS[name].start_q``, a bent elbow;
+all zeros for an arm given by ``urdf``).
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ import yaml
 # ee_formation_env.builtin, the robots in ee_formation_env.robots.
 from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario  # noqa: F401
 from ee_formation_env.formation import FORMATION_KINDS
+from ee_formation_env.inputs import (MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PHYSICS_HZ, MAX_SCENARIO_FILE_BYTES,
+                                     BoundedSafeLoader, excerpt, is_real_number)
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 from ee_formation_env.reward import RewardConfig, parse_reward
 from ee_formation_env.robots import ROBOTS, SPATIAL_INITIAL_Q, RobotSpec  # noqa: F401
@@ -49,7 +53,7 @@ class ArmConfig:
     ee_link: str
     base_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
     base_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    initial_q: tuple[float, ...] | None = None  # None: all zeros
+    initial_q: tuple[float, ...] | None = None  # None: the robot's start_q (all zeros for a URDF)
     robot: str | None = None  # built-in robot name, if the arm was given as one
 
 
@@ -229,16 +233,15 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
         elif text.endswith((".yaml", ".yml", ".json")):
             path = Path(text)
             if not path.is_file():
-                raise ValueError(f"scenario: file not found: {text}")
-            with open(path, encoding="utf-8") as handle:
-                data = json.load(handle) if text.endswith(".json") else yaml.safe_load(handle)
+                raise ValueError(f"scenario: file not found: {excerpt(text)}")
+            data = _read_scenario_file(path)
             if not isinstance(data, dict):
-                raise ValueError(f"scenario: {text} must contain a mapping, got {type(data).__name__}")
+                raise ValueError(f"scenario: {excerpt(text)} must contain a mapping, got {type(data).__name__}")
             name = str(data.pop("name", path.stem))
             base_dir = path.resolve().parent
         else:
             raise ValueError(
-                f"scenario: {text!r} is neither a built-in scenario {sorted(BUILTIN_SCENARIOS)} "
+                f"scenario: {excerpt(text)} is neither a built-in scenario {sorted(BUILTIN_SCENARIOS)} "
                 "nor a .yaml/.yml/.json file"
             )
     else:
@@ -258,26 +261,49 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
     return _parse(name, data, base_dir)
 
 
+def _read_scenario_file(path: Path) -> Any:
+    """The plain data of a YAML/JSON scenario file, within :data:`MAX_SCENARIO_FILE_BYTES` and (YAML) the
+    alias-expansion bound of :class:`~ee_formation_env.inputs.BoundedSafeLoader`."""
+    size = path.stat().st_size
+    if size > MAX_SCENARIO_FILE_BYTES:
+        raise ValueError(f"scenario: {excerpt(str(path))} is {size} bytes; a scenario file is at most "
+                         f"{MAX_SCENARIO_FILE_BYTES} bytes")
+    with open(path, "rb") as handle:
+        raw = handle.read(MAX_SCENARIO_FILE_BYTES + 1)
+    if len(raw) > MAX_SCENARIO_FILE_BYTES:  # grew since stat
+        raise ValueError(f"scenario: {excerpt(str(path))} is over {MAX_SCENARIO_FILE_BYTES} bytes")
+    try:
+        text = raw.decode("utf-8")
+        if path.suffix == ".json":
+            return json.loads(text)
+        return yaml.load(text, Loader=BoundedSafeLoader)  # noqa: S506 (a SafeLoader subclass)
+    except RecursionError:
+        raise ValueError(f"scenario: {excerpt(str(path))} is nested too deeply") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as error:
+        raise ValueError(f"scenario: {excerpt(str(path))} is not valid {'JSON' if path.suffix == '.json' else 'YAML'}: "
+                         f"{excerpt(str(error))}") from None
+
+
 def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     unknown = set(data) - _TOP_LEVEL_KEYS
     if unknown:
-        raise ValueError(f"scenario: unknown key(s) {sorted(unknown)}; allowed: {sorted(_TOP_LEVEL_KEYS)}")
+        raise ValueError(f"scenario: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {sorted(_TOP_LEVEL_KEYS)}")
     for required in ("arms", "shape"):
         if required not in data:
-            raise ValueError(f"scenario: missing required key {required!r}")
+            raise ValueError(f"scenario: missing required key {excerpt(required)}")
 
     arms_data = data["arms"]
     if not isinstance(arms_data, (list, tuple)) or len(arms_data) < 2:
-        raise ValueError(f"arms: expected a list of at least 2 arm dicts, got {arms_data!r}")
+        raise ValueError(f"arms: expected a list of at least 2 arm dicts, got {excerpt(arms_data)}")
     arms = tuple(_parse_arm(i, arm, base_dir) for i, arm in enumerate(arms_data))
     n_agents = len(arms)
 
     dim = data.get("dim", _default("dim"))
     if dim not in (2, 3) or isinstance(dim, bool):
-        raise ValueError(f"dim: expected 2 or 3, got {dim!r}")
+        raise ValueError(f"dim: expected 2 or 3, got {excerpt(dim)}")
     formation = data.get("formation", _default("formation"))
     if formation not in FORMATION_KINDS:
-        raise ValueError(f"formation: expected one of {list(FORMATION_KINDS)}, got {formation!r}")
+        raise ValueError(f"formation: expected one of {list(FORMATION_KINDS)}, got {excerpt(formation)}")
 
     edges = _parse_edges(data, n_agents)
     shape = _float_array("shape", data["shape"], ndim=2)
@@ -290,12 +316,19 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs: dict[str, Any] = {}
     kwargs["physics_hz"] = _positive("physics_hz", data.get("physics_hz", _default("physics_hz")))
     frame_skip = data.get("frame_skip", _default("frame_skip"))
-    if not isinstance(frame_skip, (int, np.integer)) or isinstance(frame_skip, bool) or frame_skip < 1:
-        raise ValueError(f"frame_skip: expected an integer >= 1, got {frame_skip!r}")
+    if not isinstance(frame_skip, (int, np.integer)) or isinstance(frame_skip, (bool, np.bool_)) or frame_skip < 1:
+        raise ValueError(f"frame_skip: expected an integer >= 1, got {excerpt(frame_skip)}")
+    if frame_skip > MAX_FRAME_SKIP:
+        raise ValueError(f"frame_skip: expected at most {MAX_FRAME_SKIP} physics steps per env step, got "
+                         f"{excerpt(frame_skip)}")
     kwargs["frame_skip"] = int(frame_skip)
     if kwargs["physics_hz"] < 60.0:
         raise ValueError(f"physics_hz: expected at least 60 Hz for a stable torque-controlled arm, got {kwargs['physics_hz']}")
+    if kwargs["physics_hz"] > MAX_PHYSICS_HZ:
+        raise ValueError(f"physics_hz: expected at most {MAX_PHYSICS_HZ:g} Hz, got {kwargs['physics_hz']:g}")
     kwargs["episode_seconds"] = _positive("episode_seconds", data.get("episode_seconds", _default("episode_seconds")))
+    if kwargs["episode_seconds"] > MAX_EPISODE_SECONDS:
+        raise ValueError(f"episode_seconds: expected at most {MAX_EPISODE_SECONDS:g} s, got {kwargs['episode_seconds']:g}")
     if kwargs["episode_seconds"] * kwargs["physics_hz"] / kwargs["frame_skip"] < 1:
         raise ValueError(
             f"episode_seconds: {kwargs['episode_seconds']} s is shorter than one control step "
@@ -304,14 +337,14 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["torque_limits"] = _parse_torque_limits(data.get("torque_limits"), n_agents)
     gravity = _float_array("gravity", data.get("gravity", _default("gravity")), ndim=1)
     if gravity.shape != (3,):
-        raise ValueError(f"gravity: expected 3 numbers (m/s^2), got {data.get('gravity')!r}")
+        raise ValueError(f"gravity: expected 3 numbers (m/s^2), got {excerpt(data.get('gravity'))}")
     kwargs["gravity"] = tuple(gravity.tolist())
     noise = data.get("initial_q_noise", _default("initial_q_noise"))
     kwargs["initial_q_noise"] = _non_negative("initial_q_noise", noise)
     for flag in ("arm_collisions", "terminate_on_contact"):
         value = data.get(flag, _default(flag))
         if not isinstance(value, bool):
-            raise ValueError(f"{flag}: expected true or false, got {value!r}")
+            raise ValueError(f"{flag}: expected true or false, got {excerpt(value)}")
         kwargs[flag] = value
     damping = data.get("joint_damping", _default("joint_damping"))
     kwargs["joint_damping"] = damping if damping == "urdf" else _non_negative("joint_damping", damping)
@@ -330,16 +363,16 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
 def _parse_arm(index: int, arm: Any, base_dir: Path) -> ArmConfig:
     where = f"arms[{index}]"
     if not isinstance(arm, Mapping):
-        raise ValueError(f"{where}: expected a dict, got {arm!r}")
+        raise ValueError(f"{where}: expected a dict, got {excerpt(arm)}")
     unknown = set(arm) - _ARM_KEYS
     if unknown:
-        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(_ARM_KEYS)}")
+        raise ValueError(f"{where}: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {sorted(_ARM_KEYS)}")
     if ("robot" in arm) == ("urdf" in arm):
         raise ValueError(f"{where}: give exactly one of 'robot' (one of {sorted(ROBOTS)}) or 'urdf'")
     robot = arm.get("robot")
     if "robot" in arm:
         if not isinstance(robot, str) or robot not in ROBOTS:
-            raise ValueError(f"{where}.robot: unknown robot {robot!r}; available: {sorted(ROBOTS)}")
+            raise ValueError(f"{where}.robot: unknown robot {excerpt(robot)}; available: {sorted(ROBOTS)}")
         urdf = str(ROBOTS[robot].urdf)
         ee_link = arm.get("ee_link", ROBOTS[robot].ee_link)
     else:
@@ -348,13 +381,13 @@ def _parse_arm(index: int, arm: Any, base_dir: Path) -> ArmConfig:
             raise ValueError(f"{where}.ee_link: required when the arm is given by 'urdf'")
         ee_link = arm["ee_link"]
     if not isinstance(ee_link, str) or not ee_link:
-        raise ValueError(f"{where}.ee_link: expected a link name, got {ee_link!r}")
+        raise ValueError(f"{where}.ee_link: expected a link name, got {excerpt(ee_link)}")
     position = _float_array(f"{where}.base_position", arm.get("base_position", [0.0, 0.0, 0.0]), ndim=1)
     rpy = _float_array(f"{where}.base_rpy", arm.get("base_rpy", [0.0, 0.0, 0.0]), ndim=1)
     if position.shape != (3,):
-        raise ValueError(f"{where}.base_position: expected [x, y, z] in m, got {arm.get('base_position')!r}")
+        raise ValueError(f"{where}.base_position: expected [x, y, z] in m, got {excerpt(arm.get('base_position'))}")
     if rpy.shape != (3,):
-        raise ValueError(f"{where}.base_rpy: expected [roll, pitch, yaw] in rad, got {arm.get('base_rpy')!r}")
+        raise ValueError(f"{where}.base_rpy: expected [roll, pitch, yaw] in rad, got {excerpt(arm.get('base_rpy'))}")
     initial_q = None
     if arm.get("initial_q") is not None:
         initial_q = tuple(_float_array(f"{where}.initial_q", arm["initial_q"], ndim=1).tolist())
@@ -363,28 +396,29 @@ def _parse_arm(index: int, arm: Any, base_dir: Path) -> ArmConfig:
 
 
 def resolve_urdf(value: Any, base_dir: Path, where: str = "urdf") -> str:
-    """Resolve a URDF given as a path (absolute, or relative to ``base_dir`` or the CWD) or a pybullet_data name."""
+    """Resolve a URDF given as a path: absolute; or relative, looked up in ``base_dir`` (the scenario file's
+    folder; the current directory for a scenario given as a dict or name) first, then in ``pybullet_data``."""
     if not isinstance(value, (str, os.PathLike)):
-        raise ValueError(f"{where}: expected a path, got {value!r}")
-    candidates = [Path(value)]
-    if not Path(value).is_absolute():
-        candidates.append(base_dir / value)
+        raise ValueError(f"{where}: expected a path, got {excerpt(value)}")
+    if Path(value).is_absolute():
+        candidates = [Path(value)]
+    else:
         import pybullet_data  # local import: only needed for pybullet_data names
 
-        candidates.append(Path(pybullet_data.getDataPath()) / value)
+        candidates = [base_dir / value, Path(pybullet_data.getDataPath()) / value]
     for candidate in candidates:
         if candidate.is_file():
             return str(candidate.resolve())
-    raise ValueError(f"{where}: URDF not found: {os.fspath(value)!r} (looked in {[str(c) for c in candidates]})")
+    raise ValueError(f"{where}: URDF not found: {excerpt(os.fspath(value))} (looked in {[str(c) for c in candidates]})")
 
 
 def _parse_edges(data: Mapping[str, Any], n_agents: int) -> np.ndarray:
     if ("edges" in data) == ("incidence" in data):
         raise ValueError("scenario: give exactly one of 'edges' (list of [tail, head]) or 'incidence' (matrix B)")
     if "edges" in data:
-        edges = np.asarray(data["edges"])
+        edges = np.asarray(data["edges"]) if _only_numbers(data["edges"], 2) else np.empty((0, 0), dtype=object)
         if edges.ndim != 2 or edges.shape[1] != 2 or len(edges) == 0 or not np.issubdtype(edges.dtype, np.integer):
-            raise ValueError(f"edges: expected a non-empty list of [tail, head] integer pairs, got {data['edges']!r}")
+            raise ValueError(f"edges: expected a non-empty list of [tail, head] integer pairs, got {excerpt(data['edges'])}")
         for k, (tail, head) in enumerate(edges.tolist()):
             if not (0 <= tail < n_agents and 0 <= head < n_agents):
                 raise ValueError(
@@ -406,7 +440,7 @@ def edges_from_incidence(incidence: Any, n_agents: int) -> np.ndarray:
         tails, heads = np.flatnonzero(column == 1), np.flatnonzero(column == -1)
         if len(tails) != 1 or len(heads) != 1 or np.count_nonzero(column) != 2:
             raise ValueError(
-                f"incidence: column {k + 1} ({column.tolist()}) is not an edge: each column needs exactly "
+                f"incidence: column {k + 1} ({excerpt(column.tolist())}) is not an edge: each column needs exactly "
                 "one +1 (tail) and one -1 (head)"
             )
         edges.append([int(tails[0]), int(heads[0])])
@@ -427,7 +461,7 @@ def _parse_torque_limits(value: Any, n_agents: int) -> Any:
         return tuple(_positive("torque_limits", v) for v in value)
     raise ValueError(
         "torque_limits: expected null (URDF efforts), a positive number (N m), a list per joint "
-        f"or a list of lists per arm, got {value!r}"
+        f"or a list of lists per arm, got {excerpt(value)}"
     )
 
 
@@ -436,33 +470,53 @@ def _parse_controller_gains(value: Any) -> ControllerGains | None:
         return value
     names = [f.name for f in fields(ControllerGains)]
     if not isinstance(value, Mapping) or set(value) != set(names):
-        raise ValueError(f"controller_gains: expected null or a dict with keys {names}, got {value!r}")
+        raise ValueError(f"controller_gains: expected null or a dict with keys {names}, got {excerpt(value)}")
     return ControllerGains(**{key: _non_negative(f"controller_gains.{key}", value[key]) for key in names})
 
 
+def _only_numbers(value: Any, depth: int) -> bool:
+    """Whether ``value`` is a number, or nested lists/tuples/arrays (at most ``depth`` deep) of numbers only
+    (ints and floats; booleans and strings are not numbers here)."""
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "iuf" and value.ndim <= depth
+    if isinstance(value, (list, tuple)):
+        return depth > 0 and all(_only_numbers(item, depth - 1) for item in value)
+    return is_real_number(value)
+
+
 def _float_array(name: str, value: Any, ndim: int) -> np.ndarray:
+    if not _only_numbers(value, ndim):
+        raise ValueError(f"{name}: expected numbers (not strings or booleans), got {excerpt(value)}")
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected numbers, got {value!r}") from None
+        raise ValueError(f"{name}: expected numbers, got {excerpt(value)}") from None
     if array.ndim != ndim:
-        raise ValueError(f"{name}: expected a {'list' if ndim == 1 else 'list of lists'} of numbers, got {value!r}")
+        raise ValueError(f"{name}: expected a {'list' if ndim == 1 else 'list of lists'} of numbers, got {excerpt(value)}")
     if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name}: expected finite numbers, got {value!r}")
+        raise ValueError(f"{name}: expected finite numbers, got {excerpt(value)}")
     return array
 
 
 def _positive(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise ValueError(f"{name}: expected a positive number, got {value!r}")
-    if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name}: expected a positive finite number, got {value!r}")
+    if not is_real_number(value):
+        raise ValueError(f"{name}: expected a positive number, got {excerpt(value)}")
+    if not _finite(value) or value <= 0:
+        raise ValueError(f"{name}: expected a positive finite number, got {excerpt(value)}")
     return float(value)
 
 
 def _non_negative(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise ValueError(f"{name}: expected a number >= 0, got {value!r}")
-    if not math.isfinite(value) or value < 0:
-        raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    if not is_real_number(value):
+        raise ValueError(f"{name}: expected a number >= 0, got {excerpt(value)}")
+    if not _finite(value) or value < 0:
+        raise ValueError(f"{name}: expected a finite number >= 0, got {excerpt(value)}")
     return float(value)
+
+
+def _finite(value: Any) -> bool:
+    """``math.isfinite`` that is False (instead of raising) for an int too large for a float."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False

@@ -17,7 +17,8 @@ import numpy as np
 
 from ee_formation_env.formation import Formation, FormationGraph
 from ee_formation_env.kinematics import SerialChain, chain_model, rpy_to_matrix
-from ee_formation_env.scenario import Scenario
+from ee_formation_env.robots import ROBOTS
+from ee_formation_env.scenario import ArmConfig, Scenario
 from ee_formation_env.validation import check_task
 from ee_formation_env.workspace import workspace
 
@@ -81,14 +82,23 @@ def build_task(scenario: Scenario) -> FormationTask:
         formation=Formation(FormationGraph(scenario.n_agents, scenario.edges), scenario.formation,
                             np.asarray(scenario.shape)),
         torque_limits=tuple(_torque_limits(scenario, i, model) for i, model in enumerate(models)),
-        initial_q=tuple(np.zeros(model.n_joints) if arm.initial_q is None else np.asarray(arm.initial_q, dtype=np.float64)
-                        for arm, model in zip(scenario.arms, models)),
+        initial_q=tuple(_initial_q(arm, model) for arm, model in zip(scenario.arms, models)),
         reaches=tuple(workspace(arm.urdf, arm.ee_link, scenario.dim).reach for arm in scenario.arms),
         base_positions=np.array([arm.base_position for arm in scenario.arms], dtype=np.float64),
         base_rotations=np.stack([rpy_to_matrix(arm.base_rpy) for arm in scenario.arms]),
     )
     check_task(scenario, task.models, task.initial_q, task.graph, task.reaches)
     return task
+
+
+def _initial_q(arm: ArmConfig, model: SerialChain) -> np.ndarray:
+    """The arm's ``initial_q`` (rad); if it gives none, its robot's default start pose (``ROBOTS[...].start_q``),
+    or all zeros for an arm given by its URDF."""
+    if arm.initial_q is not None:
+        return np.asarray(arm.initial_q, dtype=np.float64)
+    if arm.robot is not None and len(ROBOTS[arm.robot].start_q) == model.n_joints:
+        return np.asarray(ROBOTS[arm.robot].start_q, dtype=np.float64)
+    return np.zeros(model.n_joints)
 
 
 def _torque_limits(scenario: Scenario, index: int, model: SerialChain) -> np.ndarray:

@@ -7,7 +7,8 @@ described with the scenario format in ``docs/scenarios.md``.
 
 Checks, each failure a ``ValueError`` naming the problem:
 
-- every arm's URDF parses, its end-effector link exists and the chain is serial and revolute;
+- every arm's URDF parses, its end-effector link exists and the chain is serial and revolute; no link has a
+  negative mass or an inertia tensor that is not positive semi-definite;
 - ``initial_q`` has one entry per joint and lies within the joint limits;
 - planar (``dim = 2``) scenarios use arms that move in their base x-y plane, with yaw-only bases;
 - the graph is connected; for distance formations it is infinitesimally rigid at the shape (a
@@ -20,15 +21,19 @@ Checks, each failure a ``ValueError`` naming the problem:
 from __future__ import annotations
 
 import math
+import os
 import warnings
+import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 
 from typing import Sequence
 
 from ee_formation_env.formation import FormationGraph, check_rigidity
+from ee_formation_env.inputs import excerpt
 from ee_formation_env.kinematics import SerialChain, rpy_to_matrix, singularity_margins
-from ee_formation_env.scenario import Scenario
+from ee_formation_env.robots import ROBOTS
+from ee_formation_env.scenario import ArmConfig, Scenario
 from ee_formation_env.workspace import workspace
 
 
@@ -119,9 +124,50 @@ def check_task(scenario: Scenario, models: Sequence[SerialChain], initial_q: Seq
         )
 
 
+def check_inertials(urdf: str | os.PathLike, where: str = "urdf") -> None:
+    """Refuse a URDF link whose mass is negative or non-finite, or whose inertia tensor is non-finite or not
+    positive semi-definite (PyBullet accepts them and the dynamics then break mid-episode). Massless links
+    (mass 0, inertia 0, e.g. an end-effector frame) are fine. ``ValueError`` starting with ``where``."""
+    try:
+        root = ElementTree.parse(urdf).getroot()
+    except (ElementTree.ParseError, OSError):
+        return  # the kinematic model's parser reports unreadable files
+    for link in root.iter("link"):
+        name = link.get("name", "?")
+        inertial = link.find("inertial")
+        if inertial is None:
+            continue
+        mass_el, inertia_el = inertial.find("mass"), inertial.find("inertia")
+        if mass_el is not None:
+            mass = _urdf_number(mass_el.get("value", "0"))
+            if not (math.isfinite(mass) and mass >= 0):
+                raise ValueError(f"{where}: link {name} has mass {excerpt(mass_el.get('value'))} kg; a link's mass "
+                                 "must be a finite number >= 0")
+        if inertia_el is not None:
+            values = {key: _urdf_number(inertia_el.get(key, "0"))
+                      for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}
+            tensor = np.array([[values["ixx"], values["ixy"], values["ixz"]],
+                               [values["ixy"], values["iyy"], values["iyz"]],
+                               [values["ixz"], values["iyz"], values["izz"]]])
+            if not np.all(np.isfinite(tensor)):
+                raise ValueError(f"{where}: link {name} has a non-finite inertia {values}")
+            eigenvalues = np.linalg.eigvalsh(tensor)
+            if eigenvalues[0] < -1e-9 * max(1.0, float(np.abs(eigenvalues).max())):
+                raise ValueError(f"{where}: link {name} has an inertia tensor that is not positive semi-definite "
+                                 f"(principal moments {np.round(eigenvalues, 6).tolist()} kg m^2; {values})")
+
+
+def _urdf_number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
 def _check_arm(index: int, q0: np.ndarray, model: SerialChain, scenario: Scenario) -> None:
     where = f"arms[{index}]"
     arm = scenario.arms[index]
+    check_inertials(arm.urdf, f"{where}.urdf")
     if q0.shape != (model.n_joints,):
         raise ValueError(
             f"{where}.initial_q: expected {model.n_joints} values (joints {list(model.joint_names)}), "
@@ -146,5 +192,16 @@ def _check_arm(index: int, q0: np.ndarray, model: SerialChain, scenario: Scenari
     if margin < scenario.singularity_threshold:
         raise ValueError(
             f"{where}.initial_q: {q0.tolist()} is at a kinematic singularity (smallest Jacobian singular "
-            f"value {margin:.2e} m < singularity_threshold {scenario.singularity_threshold:.1e} m)"
+            f"value {margin:.2e} m < singularity_threshold {scenario.singularity_threshold:.1e} m); "
+            + _bent_pose_hint(arm, model)
         )
+
+
+def _bent_pose_hint(arm: ArmConfig, model: SerialChain) -> str:
+    """A concrete suggestion of an initial_q away from singularities."""
+    if arm.robot is not None and len(ROBOTS[arm.robot].start_q) == model.n_joints:
+        return f"start with a bent elbow, e.g. initial_q: {list(ROBOTS[arm.robot].start_q)} ({arm.robot}'s default)"
+    bent = [0.0] * model.n_joints
+    bent[min(1, model.n_joints - 1)] = 1.0
+    return (f"bend a joint away from the stretched pose, e.g. initial_q: {bent} (check it is within the joint "
+            "limits)")

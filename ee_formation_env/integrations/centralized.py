@@ -13,6 +13,7 @@ import gymnasium
 import numpy as np
 
 from ee_formation_env.env import FormationEnv
+from ee_formation_env.inputs import check_seed
 
 
 class CentralizedFormationEnv(gymnasium.Env):
@@ -38,13 +39,15 @@ class CentralizedFormationEnv(gymnasium.Env):
         self._splits = np.cumsum([s.shape[0] for s in action_spaces])[:-1]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        seed = check_seed(seed)  # numpy integers too; a negative seed is a ValueError naming seed, nothing reset
         super().reset(seed=seed)
         observations, infos = self.parallel_env.reset(seed=seed, options=options)
         return self._joint(observations), self._info(infos)
 
     def step(self, action: np.ndarray):
         agents = self.parallel_env.agents
-        actions = dict(zip(agents, np.split(np.asarray(action, dtype=np.float64), self._splits)))
+        # Split as given: the parallel env checks each part (numeric, shape, finite) before anything changes.
+        actions = dict(zip(agents, np.split(np.asarray(action), self._splits)))
         observations, rewards, terminations, truncations, infos = self.parallel_env.step(actions)
         reward = float(np.mean(list(rewards.values())))
         return (self._joint(observations), reward, any(terminations.values()), any(truncations.values()),

@@ -178,6 +178,7 @@ def test_heterogeneous_agents_are_rejected():
                  {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "base_position": [1.0, 0, 0],
                   "initial_q": [0, 0.5, 0, -1.2, 0, 0.6, 0]}],
         "edges": [[0, 1]], "shape": [[0, 0, 0], [0.2, 0, 0]], "formation": "displacement", "dim": 3,
+        "arm_collisions": False,  # the planar arm's first link starts through the kuka's base
     }
     with pytest.raises(ValueError, match="parameter sharing"):
         SharedPolicyVecEnv([functools.partial(make_training_env, scenario)], n_workers=0)
