@@ -101,10 +101,19 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         started = time.time()
         remaining = args.total_timesteps - start_steps
         if remaining > 0:
-            if resume_from is None:
-                model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
-            else:  # SB3 counts the budget from the restored step count: the schedules continue where they were
-                model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
+            try:
+                if resume_from is None:
+                    model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
+                else:  # SB3 counts the budget from the restored step count: the schedules continue where they were
+                    model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
+            except (RuntimeError, TimeoutError) as fault:  # an env worker died or stopped: the model itself is fine
+                save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
+                                {"interrupted": f"{type(fault).__name__}: {fault}"})
+                ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
+                    out_dir / MODEL_FOLDER / "obs_normalizer.json")
+                raise RuntimeError(f"training: {fault}; the model at {model.num_timesteps} agent steps is saved in "
+                                   f"{out_dir / MODEL_FOLDER}: `python train.py --resume {out_dir}` continues "
+                                   "the run") from fault
         seconds = time.time() - started
         interrupted = stop.signal_name if stop is not None and stop.requested else None
         save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,

@@ -168,6 +168,19 @@ _TRAIN = [sys.executable, str(REPO / "train.py"), "--mode", "torque", "--n-steps
           "0.5", "--no-progress", *EVAL_FAST]
 
 
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is ``pid`` (from /proc)."""
+    children = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            children.append(int(stat.parent.name))
+    return children
+
+
 def _wait_for(condition, seconds: float) -> bool:
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
@@ -217,3 +230,25 @@ def test_a_signal_stops_the_run_saves_it_and_resume_finishes_it(tmp_path, signal
     curve = (run_dir / "learning_curve.csv").read_text().splitlines()[1:]
     steps = [int(line.split(",")[0]) for line in curve]
     assert steps == sorted(steps) and steps[-1] > state["agent_steps"]
+
+
+def test_a_dead_worker_is_named_and_the_model_is_kept(tmp_path):
+    run_dir = tmp_path / "run"
+    process = subprocess.Popen([*_TRAIN, "--n-envs", "2", "--n-workers", "1", "--in-process-envs", "1",
+                                "--total-timesteps", "200000", "--out", str(run_dir)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, cwd=tmp_path, start_new_session=True)
+    try:
+        assert _wait_for(lambda: (run_dir / "monitor.csv").is_file() and (run_dir / "monitor.csv").stat().st_size
+                         > 200, 240), "training did not start"
+        workers = _children(process.pid)
+        assert workers, "no worker process"
+        for pid in workers:
+            os.kill(int(pid), signal.SIGKILL)
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode != 0
+    assert "env worker 0" in err and "SIGKILL" in err and "--resume" in err, err[-2000:]
+    state = json.loads((run_dir / "model" / "state.json").read_text())
+    assert state["agent_steps"] > 0 and "died" in state["interrupted"]
