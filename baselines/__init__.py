@@ -1,12 +1,14 @@
-"""Reference policies for ee-formation-env: the paper's three controllers, plus ``zero`` and ``random``.
+"""Baselines of ee-formation-env: the reference policies (this module's registry), the metrics, and the wings
+``reference`` (the paper's three laws, their gains rule, nominal dynamics) and ``learned`` (training).
 
     import ee_formation_env
-    from ee_formation_env.baselines import make_policy
+    from ee_formation_env.baselines import make_policies
     env = ee_formation_env.parallel_env("planar_square")
-    policies = {agent: make_policy("adaptive_jacobian", env, agent) for agent in env.possible_agents}
+    policies = make_policies("adaptive_jacobian", env)   # one per agent; also "gradient", "approx_jacobian", ...
 
-See :mod:`ee_formation_env.baselines.reference.controllers` for the laws and :mod:`ee_formation_env.baselines.reference.gains` for default gains and the rule
-that derives them for any robot; the laws and the gains rule are explained in docs/controllers.md.
+The policies: :data:`POLICIES` (the laws of :data:`REFERENCE_CONTROLLERS`, plus ``zero`` and ``random``). The laws
+are in :mod:`ee_formation_env.baselines.reference.controllers`, the gains rule in
+:mod:`ee_formation_env.baselines.reference.gains`; docs/controllers.md explains both.
 """
 
 from __future__ import annotations

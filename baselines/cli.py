@@ -47,14 +47,14 @@ def _study(module: str) -> Callable[[Sequence[str]], int]:
     def run(argv: Sequence[str]) -> int:
         checkout = Path.cwd()
         if not (checkout / "studies" / f"{module}.py").is_file() or not (checkout / "ee_formation_env").is_dir():
-            raise SystemExit(f"ee-formation: the study {module!r} runs from the root of a checkout of the "
+            raise ValueError(f"{module.replace('_', '-')}: the study runs from the root of a checkout of the "
                              f"repository (it is not installed): cd there and run it again, or `python -m "
                              f"studies.{module}`")
         sys.path.insert(0, str(checkout))
         importlib.import_module(f"studies.{module}").main(list(argv))  # returns its results; they are written
         return 0
 
-    return run
+    return lambda argv: report_errors(lambda: run(argv), "--debug" in argv)
 
 
 COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {

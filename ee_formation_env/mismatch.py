@@ -71,11 +71,6 @@ def write_perturbed_urdf(urdf: str, chain_joints: list[str], chain_links: list[s
     """
     tree = ElementTree.parse(urdf)
     root = tree.getroot()
-    source_dir = Path(urdf).resolve().parent
-    for mesh in root.iter("mesh"):
-        filename = mesh.get("filename", "")
-        if filename and "://" not in filename and not os.path.isabs(filename):
-            mesh.set("filename", str(source_dir / filename))
     joints = {joint.get("name"): joint for joint in root.iter("joint")}
     for name, scale in zip(chain_joints, length_scales):
         origin = joints[name].find("origin")
@@ -95,6 +90,18 @@ def write_perturbed_urdf(urdf: str, chain_joints: list[str], chain_links: list[s
             for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"):
                 if inertia.get(key) is not None:
                     inertia.set(key, repr(float(inertia.get(key)) * float(scale)))
+    return write_urdf_copy(tree, urdf, directory)
+
+
+def write_urdf_copy(tree: ElementTree.ElementTree, source: str | os.PathLike, directory: str | os.PathLike) -> str:
+    """Write an edited URDF ``tree`` read from ``source`` as a new file in ``directory``; return its path.
+
+    Relative mesh paths are made absolute (against ``source``'s folder), so the copy loads from anywhere."""
+    source_dir = Path(source).resolve().parent
+    for mesh in tree.getroot().iter("mesh"):
+        filename = mesh.get("filename", "")
+        if filename and "://" not in filename and not os.path.isabs(filename):
+            mesh.set("filename", str(source_dir / filename))
     handle, path = tempfile.mkstemp(suffix=".urdf", dir=directory)
     with os.fdopen(handle, "wb") as out:
         tree.write(out)

@@ -68,6 +68,7 @@ from ee_formation_env.baselines.metrics import run_episode  # noqa: E402
 from ee_formation_env.formation import rigidity_matrix  # noqa: E402
 from ee_formation_env.kinematics import chain_model  # noqa: E402
 from ee_formation_env.generators import planar_link_lengths, square_vertices  # noqa: E402
+from ee_formation_env.mismatch import write_urdf_copy  # noqa: E402
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE  # noqa: E402
 from ee_formation_env.scenario import ROBOTS, builtin_scenario, load_scenario  # noqa: E402
 from studies._common import (LAWS, add_output_arguments, copy_figures, max_edge_length_error,  # noqa: E402
@@ -106,13 +107,7 @@ def perturbed_planar_urdf(kind: str, size: float, rng: np.random.Generator, dire
         raise ValueError(f"kind: expected one of {KINDS}, got {kind!r}")
     for name, xyz in origins.items():
         joints[name].set("xyz", " ".join(repr(float(v)) for v in xyz))
-    # Absolute mesh paths so the copy loads from the temporary directory.
-    for mesh in tree.getroot().iter("mesh"):
-        if mesh.get("filename") and not Path(mesh.get("filename")).is_absolute():
-            mesh.set("filename", str(source.parent / mesh.get("filename")))
-    path = Path(tempfile.mkstemp(suffix=".urdf", dir=directory)[1])
-    tree.write(path)
-    return str(path)
+    return write_urdf_copy(tree, source, directory)
 
 
 # ------------------------------------------------------------------------------------- Prop. 4.1 numbers
