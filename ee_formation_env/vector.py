@@ -371,10 +371,14 @@ class VectorFormationEnv:
 
     def _measure_rows(self, rows: np.ndarray) -> Measurement:
         """Read the copies ``rows`` and derive everything in one batched pass (faults per copy)."""
-        q, dq = self._read_states(rows)
+        return self._derive(*self._read_states(rows))
+
+    def _derive(self, q: np.ndarray, dq: np.ndarray) -> Measurement:
+        """Everything derived from stacked joint states (k, T), in one batched pass (faults per copy)."""
+        rows = q.shape[0]
         limit = self.scenario.max_joint_velocity
-        faults = np.zeros(len(rows), dtype=np.int64)
-        reasons = np.full(len(rows), "", dtype=object)
+        faults = np.zeros(rows, dtype=np.int64)
+        reasons = np.full(rows, "", dtype=object)
         # The single env's test, per copy: NaN fails the comparison, a non-finite q makes its row sum non-finite.
         healthy = (np.abs(dq).max(axis=1) <= limit) & np.isfinite(q.sum(axis=1))
         if not healthy.all():
@@ -452,16 +456,23 @@ class VectorFormationEnv:
         """Step every copy with checked, clipped actions (K, T); the SAME_STEP autoreset of ended copies."""
         torques = normalized * self._torque_limits_flat  # (K, T), N m
         frame_skip = self.scenario.frame_skip
-        contacts = []
+        contacts, positions, velocities = [], [], []
+        # Each copy is read right after it steps, while its client's state is still in the CPU caches.
         for arm_set, row in zip(self._arm_sets, torques):
             arm_set.step(row, frame_skip)
+            for arm in arm_set.arms:
+                q, dq = arm.read_state_lists()
+                positions += q
+                velocities += dq
             contacts.append(arm_set.contacts_per_arm())
         self._step_counts += 1
         self._clipped_actions += clipped
         self._clipped_step = clipped
         self._contacts = np.array(contacts, dtype=np.int64).reshape(self.num_envs, self.task.n_agents)
         self._torques = torques
-        self._measurement = measured = self._measure_rows(np.arange(self.num_envs))
+        shape = (self.num_envs, self.n_joints)
+        self._measurement = measured = self._derive(np.array(positions).reshape(shape),
+                                                    np.array(velocities).reshape(shape))
 
         observer = self._observer
         observations = observer.observation_matrix(measured.slot_z, measured.slot_errors, measured.q_observed,

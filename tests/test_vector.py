@@ -242,3 +242,38 @@ def test_bad_actions_raise_the_single_env_errors_before_any_copy_moves(closer):
     batched.close()
     with pytest.raises(RuntimeError, match="closed"):
         batched.reset()
+
+
+# ------------------------------------------------------------------------------------------ Gymnasium make_vec
+def test_gymnasium_make_vec_is_k_centralized_envs(closer):
+    """``make_vec(id, K, "vector_entry_point")``: copy k is ``gymnasium.make(id)`` reset with seed + k, through
+    TimeLimit truncations and SAME_STEP autoresets."""
+    import gymnasium
+
+    count, limit = 3, 25
+    vector = closer(gymnasium.make_vec("EEFormation/PlanarSquare-v0", num_envs=count,
+                                       vectorization_mode="vector_entry_point", max_episode_steps=limit))
+    singles = [closer(gymnasium.make("EEFormation/PlanarSquare-v0", max_episode_steps=limit)) for _ in range(count)]
+    assert vector.metadata["autoreset_mode"] == gymnasium.vector.AutoresetMode.SAME_STEP
+    assert vector.single_observation_space == singles[0].observation_space
+    assert vector.single_action_space == singles[0].action_space
+    assert vector.observation_space.shape == (count, *singles[0].observation_space.shape)
+    observations, infos = vector.reset(seed=11)
+    for k, single in enumerate(singles):
+        s_obs, s_info = single.reset(seed=11 + k)
+        assert np.array_equal(observations[k], s_obs) and infos["formation_error"][k] == s_info["formation_error"]
+    rng = np.random.default_rng(0)
+    ends = 0
+    for _ in range(60):
+        actions = rng.uniform(-1, 1, vector.action_space.shape).astype(np.float32)
+        observations, rewards, terminations, truncations, infos = vector.step(actions)
+        for k, single in enumerate(singles):
+            s_obs, s_reward, s_term, s_trunc, s_info = single.step(actions[k])
+            assert rewards[k] == s_reward and terminations[k] == s_term and truncations[k] == s_trunc
+            if s_term or s_trunc:
+                ends += 1
+                assert infos["_final_obs"][k] and np.array_equal(infos["final_obs"][k], s_obs)
+                assert infos["final_info"]["formation_error"][k] == s_info["formation_error"]
+                s_obs, s_info = single.reset()
+            assert np.array_equal(observations[k], s_obs) and infos["formation_error"][k] == s_info["formation_error"]
+    assert ends == 2 * count
