@@ -54,8 +54,14 @@ truncations (K,), infos of (K, N, ...) per-agent and (K,) per-copy arrays. The d
 
 **Physics layout: one PyBullet client per copy**, each the single env's own world (same bodies, same
 saved state, same solver settings), so each copy's physics is the single env's bit for bit by
-construction; and one client per copy measured faster than one client holding all K formations placed
-apart (``docs/performance.md``, "Batched env"). The PyBullet calls (torques, ``stepSimulation``,
+construction (an ended copy's world is restored from its own snapshot, contact caches included). It was
+measured against the other layout, all K formations in one client placed 10 m apart (their bodies never
+meet in the broadphase, so they never collide), by ``python -m benchmarks.run --sections vector``: at
+K >= 16 the K clients stepped in turn are the faster floor (planar_square 59k vs 56k formation physics
+steps/s at K = 16, 64k vs 31k at K = 64; spatial_tetrahedron 19k vs 15k and 19k vs 2.8k), since one
+``stepSimulation`` over one big world costs more than linearly in its bodies. The price is memory: about
+30 MB per copy (one client each) against 1-8 MB per formation sharing a client (``docs/performance.md``,
+"Batched env"). The PyBullet calls (torques, ``stepSimulation``,
 joint-state reads, contacts) are per client, as PyBullet has no batched query; everything else
 (kinematics, singularity margins, edges, observations, rewards, infos, fault and action checks) is one
 numpy pass over the K x N agents, with the single env's own functions
@@ -74,7 +80,7 @@ Arguments of ``ee_formation_env.vector_env``:
 argument       meaning
 ============== ============================================================================================
 ``scenario``   a built-in name, a YAML/JSON path, a dict or a :class:`~ee_formation_env.scenario.Scenario`
-``num_envs``   K >= 1, the number of copies (each one PyBullet client, about 28 MB resident)
+``num_envs``   K >= 1, the number of copies (each one PyBullet client, about 30 MB resident)
 ``max_cycles`` truncate episodes after this many env steps (as :func:`ee_formation_env.parallel_env`)
 ``**overrides`` top-level scenario keys replaced (as :func:`ee_formation_env.parallel_env`)
 ============== ============================================================================================
@@ -187,6 +193,8 @@ class VectorFormationEnv:
         self._torques = np.zeros((K, self.n_joints))
         self._measurement: Measurement | None = None
         self._last_reasons = np.full(K, "", dtype=object)
+        masks = np.array(self._observer.slot_masks)
+        self._edge_masks = np.broadcast_to(masks, (K, *masks.shape))
         self._needs_reset = True
 
     # ------------------------------------------------------------------------------------------ spaces
@@ -495,11 +503,10 @@ class VectorFormationEnv:
 
     def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:
         """The infos of every (copy, agent) as stacked arrays (the array API's form)."""
-        K = self.num_envs
         return {
             "formation_error": formation_errors_from_squares(measured.edge_squares),
             "edge_errors": self._observer.padded_slot_errors(measured.slot_errors),
-            "edge_mask": np.broadcast_to(np.array(self._observer.slot_masks), (K, *np.shape(self._observer.slot_masks))).copy(),
+            "edge_mask": self._edge_masks.copy(),  # fresh each call: infos of different calls share no object
             "singularity_margin": measured.singularity_margins,
             "torque_saturation": self._clipped_step / self._joint_counts,
             "applied_torque": self._torques.copy(),
@@ -515,7 +522,7 @@ class VectorFormationEnv:
 
     def _info_dicts(self, infos: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
         """agent -> dict of (K, ...) arrays, from the stacked infos."""
-        per_agent = {key: np.moveaxis(infos[key], 1, 0) for key in PER_AGENT_INFO}
+        per_agent = {key: infos[key].swapaxes(0, 1) for key in PER_AGENT_INFO}  # agent-major views
         result = {}
         for i, (agent, joints, part) in enumerate(zip(self.possible_agents, self._joint_slices, self.observation_slices)):
             info = {key: values[i] for key, values in per_agent.items()}
