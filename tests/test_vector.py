@@ -96,6 +96,26 @@ def test_copies_are_the_single_env_bit_for_bit_through_autoresets(make_pair, sce
     assert seen["ends"].tolist() == [2] * count and not seen["faults"]
 
 
+MIXED_TEAM = {  # two 7-DOF arms and a 2-DOF one: kinematics evaluated per model group, with the copy axis
+    "arms": [{"robot": "pera_arm", "base_position": [0.0, 0.0, 0.0]},
+             {"robot": "pera_arm", "base_position": [1.2, 0.0, 0.0], "base_rpy": [0.0, 0.0, 3.14159]},
+             {"robot": "planar_2link", "base_position": [0.6, 1.2, 0.0], "base_rpy": [1.5708, 0.0, 0.0]}],
+    "edges": [[0, 1], [1, 2], [0, 2]], "shape": [[0.0, 0.0, 0.5], [0.6, 0.0, 0.5], [0.3, 0.4, 0.5]], "dim": 3,
+}
+
+
+@pytest.mark.parametrize("scenario, overrides", [
+    (MIXED_TEAM, {}),
+    ("planar_square", {"model_mismatch": {"length": 0.1, "mass": 0.1}, "reward": {"team": True}}),
+    ("planar_square_rotated", {"frame_skip": 1}),
+    ("spatial_tetrahedron_displacement", {}),
+], ids=["mixed_team", "model_mismatch_team_reward", "rotated_frame_skip_1", "spatial_displacement"])
+def test_copies_are_the_single_env_for_other_teams_and_options(make_pair, scenario, overrides):
+    batched, singles = make_pair(scenario, 2, max_cycles=30, **overrides)
+    seen = run_and_compare(batched, singles, seed=1, actions_at=random_batched_actions(batched, 4), steps=40)
+    assert seen["ends"].tolist() == [1, 1]
+
+
 def test_contacts_between_arms_match(make_pair):
     """Two planar arms driven into each other: the contact points of every copy are the single env's."""
     batched, singles = make_pair(two_planar_arms(initial_q_noise=0.05), 2, episode_seconds=2.0)
