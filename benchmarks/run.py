@@ -22,7 +22,10 @@ Sections:
   settings, built by ``ee_formation_env.baselines.learned.sb3_backend.build_sb3_model``): training throughput in agent steps/s, updates included;
 - ``scaling``: 2, 4, 8 and 16 arms on a minimally rigid graph (:mod:`ee_formation_env.generators`), 2-DOF planar
   and 7-DOF spatial arms: raw floor, ``env.step`` at ``frame_skip`` 1, and reset cost;
-- ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios.
+- ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios;
+- ``vector``: the batched env (``ee_formation_env.vector_env``) at K = 1, 4, 16, 64 copies, zero actions at the
+  scenario's frame_skip, against the raw floor of the same K formations in both physics layouts (K clients,
+  each stepping its formation; one client holding all K, placed 10 m apart), and resident memory per formation.
 
 Figures: physics steps/s, env steps/s, the ratio to the raw floor of the same bodies (physics steps/s
 over raw physics steps/s) and the real-time factor (simulated seconds per wall-clock second).
@@ -53,7 +56,8 @@ if __package__ in (None, ""):  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from ee_formation_env.generators import planar_ring, spatial_ring  # noqa: E402
 
-SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset")
+SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset", "vector")
+VECTOR_COUNTS = (1, 4, 16, 64)  # copies K of the batched env (--quick: 1 and 4)
 ARM_COUNTS = (2, 4, 8, 16)
 # train.py runs whose training throughput is measured: the default run first (the target applies to it).
 # The others: every env in worker processes, every env in-process, the first layout (8 envs x 128 steps), torque mode.
@@ -76,10 +80,14 @@ class Budget:
     scaling_repeats: int
 
 
+    vector_physics_steps: int = 64 * 600  # formation physics steps per vector-section run (all K copies together)
+
+
 FULL = Budget(physics_steps=10_000, closed_loop_seconds=30.0,
               closed_loop_seconds_spatial=10.0, sb3_steps=512, training_updates=4, resets=200, repeats=5, scaling_repeats=3)
 QUICK = Budget(physics_steps=200, closed_loop_seconds=0.5,
-               closed_loop_seconds_spatial=0.2, sb3_steps=16, training_updates=1, resets=5, repeats=1, scaling_repeats=1)
+               closed_loop_seconds_spatial=0.2, sb3_steps=16, training_updates=1, resets=5, repeats=1, scaling_repeats=1,
+               vector_physics_steps=4 * 40)
 
 
 # ---------------------------------------------------------------------------------------------- timers
@@ -372,6 +380,181 @@ def bench_resets(names: Sequence[str], budget: Budget) -> list[dict[str, Any]]:
     return rows
 
 
+# ---------------------------------------------------------------------------------------------- vector
+def resident_mb() -> float:
+    """This process's resident memory, MB (Linux ``/proc``; 0 where unavailable)."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def _torque_commands(arm_sets: Sequence[Any]) -> list[tuple[int, list[int], list[float]]]:
+    return [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm_set in arm_sets for arm in arm_set.arms]
+
+
+def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None) -> float:
+    """Raw floor, one client per formation: every copy of ``venv`` (reset) steps its own client ``steps``
+    physics steps, zero torques re-sent before each; no env logic. ``lockstep = frame_skip``: the clients take
+    turns, ``frame_skip`` physics steps each (what any env that steps all copies per call must do); None:
+    each client runs all its steps in one go (free-running, cache-warm: a bound no lockstep env reaches)."""
+    venv.reset(seed=0)
+    set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
+    clients = [(world.client, _torque_commands([arm_set])) for world, arm_set in zip(venv._worlds, venv._arm_sets)]
+    chunk = lockstep or steps
+    start = time.perf_counter()
+    for _ in range(steps // chunk):
+        for client, commands in clients:
+            for _ in range(chunk):
+                for body, joints, forces in commands:
+                    set_motors(body, joints, torque_control, forces=forces, physicsClientId=client)
+                step(physicsClientId=client)
+    return time.perf_counter() - start
+
+
+_MEMORY_PROBE = """
+import json, sys, warnings
+sys.path.insert(0, {repo!r})
+from benchmarks.run import resident_mb, OneClientFormations
+import ee_formation_env
+name, layout, counts = {name!r}, {layout!r}, {counts!r}
+probe = ee_formation_env.vector_env(name, num_envs=1)
+kept, built, rss = [], 0, {{}}
+base = resident_mb()
+for count in counts:  # cumulative: memory is measured as it grows, never after a free
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if layout == "clients":
+            kept.append(ee_formation_env.vector_env(name, num_envs=count - built))
+        elif kept:
+            kept[0].add(count - built)
+        else:
+            kept.append(OneClientFormations(probe, count))
+    built = count
+    rss[count] = resident_mb() - base
+print(json.dumps(rss))
+"""
+
+
+def memory_growth(name: str, layout: str, counts: Sequence[int]) -> dict[int, float]:
+    """Resident MB of ``counts`` formations (cumulative, in a fresh process) in one layout: ``clients`` (the
+    batched env's copies, one client each) or ``one_client`` (all formations in one client)."""
+    import subprocess
+
+    repo = str(Path(__file__).resolve().parent.parent)
+    code = _MEMORY_PROBE.format(repo=repo, name=name, layout=layout, counts=list(counts))
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=repo, timeout=600)
+    if run.returncode != 0:
+        raise RuntimeError(f"memory probe failed: {run.stderr[-2000:]}")
+    return {int(k): v for k, v in json.loads(run.stdout.strip().splitlines()[-1]).items()}
+
+
+class OneClientFormations:
+    """The raw floor's other layout: K formations of one scenario in one PyBullet client, each formation's
+    bases shifted by ``spacing`` m along x (far enough apart that no pair between formations overlaps in the
+    broadphase, so they never collide: no filter table is needed), loaded as the env loads its arms."""
+
+    def __init__(self, venv: Any, count: int, spacing: float = 10.0):
+        import dataclasses
+
+        from ee_formation_env.robot import Arm
+        from ee_formation_env.world import PhysicsWorld
+
+        self._venv, self._spacing, self._replace, self._arm = venv, spacing, dataclasses.replace, Arm
+        self.world = PhysicsWorld(venv.scenario.physics_hz, venv.scenario.gravity)
+        self.arms: list[Any] = []
+        self.count = 0
+        self.add(count)
+
+    def add(self, count: int) -> None:
+        """Load ``count`` more formations (at their initial configurations) and save the world."""
+        scenario, task = self._venv.scenario, self._venv.task
+        for k in range(self.count, self.count + count):
+            for config, arm in zip(scenario.arms, self._venv._arm_sets[0].arms):
+                shifted = self._replace(config, base_position=(config.base_position[0] + k * self._spacing,
+                                                               *config.base_position[1:]))
+                loaded = self._arm(self.world, shifted, arm.model, scenario.joint_damping, scenario.arm_collisions)
+                self.arms.append(loaded)
+        self.count += count
+        q0 = list(task.initial_q)
+        for i, arm in enumerate(self.arms):
+            arm.reset_state(q0[i % len(q0)])
+        self.world.save_snapshot()
+
+    def time(self, steps: int) -> float:
+        self.world.restore_snapshot()
+        client = self.world.client
+        commands = [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm in self.arms]
+        set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
+        start = time.perf_counter()
+        for _ in range(steps):
+            for body, joints, forces in commands:
+                set_motors(body, joints, torque_control, forces=forces, physicsClientId=client)
+            step(physicsClientId=client)
+        return time.perf_counter() - start
+
+    def close(self) -> None:
+        self.world.close()
+
+
+def time_vector_steps(venv: Any, steps: int) -> float:
+    """Seconds for ``steps`` calls of the batched env's ``step`` with zero actions (dict API; autoreset)."""
+    actions = {agent: np.zeros(venv.batched_action_space(agent).shape, dtype=np.float32) for agent in venv.possible_agents}
+    venv.reset(seed=0)
+    start = time.perf_counter()
+    for _ in range(steps):
+        venv.step(actions)
+    return time.perf_counter() - start
+
+
+def bench_vector(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
+    """Section ``vector``: formation physics steps/s of ``vector_env`` at K copies against the raw floor of the
+    same K formations in both layouts (K clients stepped in lockstep at frame_skip; one client holding all K):
+    the faster is the row's floor. Also the free-running K-client floor (reference) and resident memory per
+    formation in each layout (measured as it grows, in a fresh process)."""
+    rows = []
+    for name in ("planar_square", "spatial_tetrahedron"):
+        memory = {layout: memory_growth(name, layout, counts) for layout in ("clients", "one_client")}
+        for count in counts:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                venv = ee_formation_env.vector_env(name, num_envs=count)
+            one_client = OneClientFormations(venv, count)
+            scenario = venv.scenario
+            fs, hz = scenario.frame_skip, scenario.physics_hz
+            env_steps = max(1, budget.vector_physics_steps // (count * fs))  # per copy
+            physics = env_steps * fs  # per copy
+            try:
+                times = interleaved({
+                    "clients": lambda: time_floor_clients(venv, physics, lockstep=fs),
+                    "clients_free": lambda: time_floor_clients(venv, physics),
+                    "one_client": lambda: one_client.time(physics),
+                    "vector": lambda: time_vector_steps(venv, env_steps),
+                }, max(1, min(budget.repeats, 3)))
+            finally:
+                venv.close()
+                one_client.close()
+            floors = {key: count * physics / min(times[key]) for key in ("clients", "clients_free", "one_client")}
+            floor_layout = max(("clients", "one_client"), key=floors.get)
+            floor = floors[floor_layout]
+            common = dict(scenario=name, n_arms=scenario.n_agents, num_envs=count, raw_physics_steps_per_s=floor,
+                          floor_layout=floor_layout, floor_clients_physics_steps_per_s=floors["clients"],
+                          floor_clients_free_physics_steps_per_s=floors["clients_free"],
+                          floor_one_client_physics_steps_per_s=floors["one_client"])
+            for key, what in (("clients", f"raw floor, {count} clients in lockstep ({fs} physics steps each per turn)"),
+                              ("clients_free", f"raw floor, {count} clients, each run through (free-running)"),
+                              ("one_client", f"raw floor, one client holding {count} formations")):
+                rss = memory["one_client" if key == "one_client" else "clients"][count]
+                rows.append(_row("vector", f"{name}, K={count}: {what}", times[key], count * physics, 1, hz, floor,
+                                 layout=key, rss_mb=rss, rss_mb_per_formation=rss / count, **common))
+            rss = memory["clients"][count]
+            rows.append(_row("vector", f"{name}, K={count}: vector_env step (dict API, zero actions, frame_skip {fs})",
+                             times["vector"], count * env_steps, fs, hz, floor, layout="vector_env", rss_mb=rss,
+                             rss_mb_per_formation=rss / count, **common))
+    return rows
+
+
 # ---------------------------------------------------------------------------------------------- report
 def linear_fit(counts: Sequence[int], values: Sequence[float]) -> dict[str, float]:
     """Least-squares ``value = intercept + slope * n`` and its largest relative residual."""
@@ -409,6 +592,12 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
     for family, fit in results.get("scaling_fits", {}).items():
         add(f"scaling {family}: per-arm env.step cost, {max(ARM_COUNTS)} arms / 4 arms", fit["per_arm_cost_ratio"],
             1.25, False, "x")
+    for scenario in ("planar_square", "spatial_tetrahedron"):
+        batched = [r for r in results["rows"] if r["section"] == "vector" and r.get("layout") == "vector_env"
+                   and r["scenario"] == scenario and r["num_envs"] >= 16]
+        if batched:
+            add(f"vector_env / faster raw floor, K >= 16 (lowest), {scenario}",
+                min(r["ratio_to_raw"] for r in batched), 0.8, True, "x")
     return targets
 
 
@@ -420,7 +609,7 @@ def format_tables(results: dict[str, Any]) -> str:
     lines = ["| section | case | physics steps/s | env steps/s | x raw floor | real-time factor | us/env step |",
              "|---|---|---:|---:|---:|---:|---:|"]
     for r in results["rows"]:
-        if r["section"] in ("reset", "sb3_training") or r.get("skipped"):
+        if r["section"] in ("reset", "sb3_training", "vector") or r.get("skipped"):
             continue
         lines.append(f"| {r['section']} | {r['case']} | {_fmt(r['physics_steps_per_s'], ',.0f')} | "
                      f"{_fmt(r['env_steps_per_s'], ',.0f')} | {_fmt(r['ratio_to_raw'], '.2f')} | "
@@ -440,6 +629,20 @@ def format_tables(results: dict[str, Any]) -> str:
     if training:
         lines += ["", "| training throughput | agent steps/s |", "|---|---:|"]
         lines += [f"| {r['case']} | {r['agent_steps_per_s']:,.0f} |" for r in training]
+    batched = [r for r in results["rows"] if r["section"] == "vector" and r.get("layout") == "vector_env"]
+    if batched:
+        lines += ["", "| batched env | K | physics steps/s | floor, K clients (lockstep) | floor, one client | "
+                  "x faster floor | floor, K clients (free-running) | MB per formation (K clients) | "
+                  "MB per formation (one client) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        one_client = {(r["scenario"], r["num_envs"]): r for r in results["rows"]
+                      if r["section"] == "vector" and r.get("layout") == "one_client"}
+        for r in batched:
+            other = one_client.get((r["scenario"], r["num_envs"]), {})
+            lines.append(f"| {r['scenario']} | {r['num_envs']} | {r['physics_steps_per_s']:,.0f} | "
+                         f"{r['floor_clients_physics_steps_per_s']:,.0f} | {r['floor_one_client_physics_steps_per_s']:,.0f} | "
+                         f"{r['ratio_to_raw']:.2f} | {r['floor_clients_free_physics_steps_per_s']:,.0f} | "
+                         f"{r['rss_mb_per_formation']:.1f} | "
+                         f"{_fmt(other.get('rss_mb_per_formation'), '.1f')} |")
     resets = [r for r in results["rows"] if r["section"] == "reset"]
     if resets:
         lines += ["", "| reset | arms | ms |", "|---|---:|---:|"]
@@ -500,6 +703,10 @@ def run(quick: bool = False, sections: Sequence[str] = SECTIONS, progress: Calla
     if "reset" in sections:
         progress("reset")
         results["rows"] += bench_resets(("planar_square", "spatial_tetrahedron"), budget)
+    if "vector" in sections:
+        counts = VECTOR_COUNTS[:2] if quick else VECTOR_COUNTS
+        progress(f"vector: vector_env at K = {list(counts)} against the raw floor of both layouts")
+        results["rows"] += bench_vector(budget, counts)
     results["targets"] = evaluate_targets(results)
     results["machine"]["load_average_end"] = list(os.getloadavg())
     results["wall_seconds"] = time.time() - started

@@ -5,6 +5,7 @@ Quick use::
     import ee_formation_env
     env = ee_formation_env.parallel_env("planar_square")          # or pettingzoo.make("parallel", "ee_formation/planar_square-v0")
     observations, infos = env.reset(seed=0)
+    batched = ee_formation_env.vector_env("planar_square", num_envs=16)  # 16 copies, one step call
 
 Registered ids: PettingZoo ``ee_formation/<scenario>-v0`` for every built-in scenario; Gymnasium
 (centralized, one joint observation and action) ``EEFormation/PlanarSquare-v0`` and
@@ -22,7 +23,7 @@ from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.robots import ROBOTS
 from ee_formation_env.scenario import Scenario, load_scenario
 
-__all__ = ["FormationEnv", "Scenario", "load_scenario", "parallel_env", "env", "raw_env",
+__all__ = ["FormationEnv", "Scenario", "load_scenario", "parallel_env", "vector_env", "env", "raw_env",
            "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]
 __version__ = "0.1.0"
 
@@ -47,6 +48,17 @@ def parallel_env(scenario: Any = "planar_square", render_mode: str | None = None
     ``episode_seconds = max_cycles * control_dt``.
     """
     return FormationEnv(scenario, render_mode=render_mode, **_with_max_cycles(scenario, max_cycles, overrides))
+
+
+def vector_env(scenario: Any = "planar_square", num_envs: int = 1, max_cycles: int | None = None,
+               **overrides: Any):
+    """The batched env: ``num_envs`` copies of the scenario stepped by one call, observations agent ->
+    ``(num_envs, obs_dim)`` (:class:`ee_formation_env.vector.VectorFormationEnv`; its module docstring
+    documents conventions, spaces, autoreset and layout). ``max_cycles`` and ``overrides`` as in
+    :func:`parallel_env`."""
+    from ee_formation_env.vector import VectorFormationEnv
+
+    return VectorFormationEnv(scenario, num_envs=num_envs, **_with_max_cycles(scenario, max_cycles, overrides))
 
 
 def raw_env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,

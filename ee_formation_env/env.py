@@ -115,16 +115,7 @@ class FormationEnv(ParallelEnv):
         self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
         self.action_spaces = dict(self._action_spaces)
 
-        self.world = PhysicsWorld(self.scenario.physics_hz, self.scenario.gravity, render_mode)
-        try:  # a refusal after connecting (a URDF PyBullet rejects, arms in contact) leaves no client behind
-            self.arm_set = ArmSet(self.world, self.task)
-            self.arm_set.reset(list(self.task.initial_q))
-            if self.scenario.arm_collisions:
-                check_start_contacts(self.arm_set)
-        except BaseException:
-            self.world.close()
-            raise
-        self.world.save_snapshot()
+        self.world, self.arm_set = build_world(self.task, render_mode)
         self._torque_limits_flat = np.concatenate(self.task.torque_limits)
         self._edge_tolerances = edge_tolerances(self.task.formation.kind,
                                                 np.linalg.norm(self.task.formation.desired_vectors, axis=1),
@@ -192,13 +183,7 @@ class FormationEnv(ParallelEnv):
             raise RuntimeError("reset: the environment is closed")
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
-        self.world.restore_snapshot()
-        noise = self.scenario.initial_q_noise
-        starts = []
-        for arm, q0 in zip(self.arms, self.task.initial_q):
-            q = q0 + self.np_random.uniform(-noise, noise, size=q0.shape) if noise > 0 else q0.copy()
-            starts.append(np.clip(q, arm.model.lower, arm.model.upper))
-        self.arm_set.reset(starts)
+        reset_world(self.world, self.arm_set, self.task, self.np_random)
         self.agents = list(self.possible_agents)
         self._step_count = 0
         self._clipped_actions = np.zeros(len(self.agents), dtype=np.int64)
@@ -384,44 +369,12 @@ class FormationEnv(ParallelEnv):
         fault, reason = 0, ""
         # One test for both faults: NaN fails the comparison, and a non-finite q makes its sum non-finite.
         if not (np.abs(dq).max() <= self.scenario.max_joint_velocity and math.isfinite(q.sum())):
-            q, dq, fault, reason = self._physics_fault(q, dq)
-
-        ee_base, margins = self.arm_set.kinematics.positions_and_margins(q, self.task.dim)
-        ee_world = (self.task.base_rotations @ ee_base[:, :, None])[:, :, 0] + self.task.base_positions
-        if self._wrap is None:
-            q_observed = q
-        else:
-            wrapped = (q + math.pi) % (2 * math.pi) - math.pi
-            q_observed = wrapped if self._wrap is True else np.where(self._wrap, wrapped, q)
-        z = self.task.graph.edge_vectors(ee_world[:, :self.task.dim])
-        edge_errors = self.task.formation.edge_errors(z)
-        errors = edge_errors.reshape(self.task.graph.n_edges, -1)
-        slot_z, slot_errors = self._observer.slots_in_own_frames(z, edge_errors)
-        return Measurement(q=q, dq=dq, q_observed=q_observed, ee_world=ee_world, edge_errors=edge_errors,
-                           edge_squares=np.add.reduce(errors * errors, axis=1), slot_z=slot_z,
-                           slot_errors=slot_errors, singularity_margins=margins, fault=fault,
-                           fault_reason=reason)
-
-    def _physics_fault(self, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, str]:
-        """The joint states with non-finite values replaced by finite ones, and the first arm's fault
-        (non-finite state, or a joint speed over ``max_joint_velocity``): its code and reason."""
-        limit = self.scenario.max_joint_velocity
-        for i, joints in enumerate(self.arm_set.joint_slices):
-            if not (np.all(np.isfinite(q[joints])) and np.all(np.isfinite(dq[joints]))):
-                return np.nan_to_num(q), np.nan_to_num(dq), 1, f"arm_{i}: non-finite joint state"
-            if np.max(np.abs(dq[joints])) > limit:
-                speed = float(np.max(np.abs(dq[joints])))
-                # At PyBullet's own clamp the true speed is unknown, only that it is at least that.
-                shown = f"at least {speed:.0f}" if speed >= 0.999 * PYBULLET_MAX_JOINT_VELOCITY else f"{speed:.1f}"
-                return (np.nan_to_num(q), np.nan_to_num(dq), 2,
-                        f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s")
-        raise AssertionError("_physics_fault called without a fault")
+            q, dq, fault, reason = physics_fault(q, dq, self.arm_set.joint_slices, self.scenario.max_joint_velocity)
+        return measure(self.task, self._observer, self.arm_set.kinematics, self._wrap, q, dq, fault, reason)
 
     def _rewards(self, measured: Measurement) -> dict[str, float]:
-        observer = self._observer
-        ratios, within = agent_error_ratios(np.sqrt(measured.edge_squares), self._edge_tolerances,
-                                            observer.slot_edge, observer.slot_starts, observer.slot_degrees)
-        return dict(zip(self.agents, rewards_from_ratios(ratios, within, self.scenario.reward).tolist()))
+        rewards = reward_array(measured.edge_squares, self._edge_tolerances, self._observer, self.scenario.reward)
+        return dict(zip(self.agents, rewards.tolist()))
 
     def _infos(self, measured: Measurement, clipped: np.ndarray, contacts: list[int],
                torques: np.ndarray) -> dict[str, dict[str, Any]]:
@@ -451,6 +404,84 @@ class FormationEnv(ParallelEnv):
                 "sim_time": sim_time,
             }
         return infos
+
+
+# ---------------------------------------------------------------------------------------------- shared arithmetic
+# The single env and the batched env (:mod:`ee_formation_env.vector`) share these: the single env calls them
+# on one formation's arrays ((T,) joints), the batched env on K copies' stacked arrays ((K, T)) in one pass.
+
+def build_world(task: Any, render_mode: str | None = None) -> tuple[PhysicsWorld, ArmSet]:
+    """One PyBullet client holding the task's arms at their initial configurations (start contacts refused
+    while ``arm_collisions`` is on), its state saved for :func:`reset_world`."""
+    scenario = task.scenario
+    world = PhysicsWorld(scenario.physics_hz, scenario.gravity, render_mode)
+    try:  # a refusal after connecting (a URDF PyBullet rejects, arms in contact) leaves no client behind
+        arm_set = ArmSet(world, task)
+        arm_set.reset(list(task.initial_q))
+        if scenario.arm_collisions:
+            check_start_contacts(arm_set)
+    except BaseException:
+        world.close()
+        raise
+    world.save_snapshot()
+    return world, arm_set
+
+
+def reset_world(world: PhysicsWorld, arm_set: ArmSet, task: Any, rng: np.random.Generator) -> None:
+    """Restore the saved world, then place the arms at the scenario's initial joint positions plus uniform
+    noise of half-width ``initial_q_noise`` drawn from ``rng`` (clipped to the joint limits), at rest."""
+    world.restore_snapshot()
+    noise = task.scenario.initial_q_noise
+    starts = []
+    for arm, q0 in zip(arm_set.arms, task.initial_q):
+        q = q0 + rng.uniform(-noise, noise, size=q0.shape) if noise > 0 else q0.copy()
+        starts.append(np.clip(q, arm.model.lower, arm.model.upper))
+    arm_set.reset(starts)
+
+
+def physics_fault(q: np.ndarray, dq: np.ndarray, joint_slices: list[slice], limit: float
+                  ) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """One formation's joint states (T,) with non-finite values replaced by finite ones, and the first arm's
+    fault (non-finite state, or a joint speed over ``limit`` = ``max_joint_velocity``): its code and reason."""
+    for i, joints in enumerate(joint_slices):
+        if not (np.all(np.isfinite(q[joints])) and np.all(np.isfinite(dq[joints]))):
+            return np.nan_to_num(q), np.nan_to_num(dq), 1, f"arm_{i}: non-finite joint state"
+        if np.max(np.abs(dq[joints])) > limit:
+            speed = float(np.max(np.abs(dq[joints])))
+            # At PyBullet's own clamp the true speed is unknown, only that it is at least that.
+            shown = f"at least {speed:.0f}" if speed >= 0.999 * PYBULLET_MAX_JOINT_VELOCITY else f"{speed:.1f}"
+            return (np.nan_to_num(q), np.nan_to_num(dq), 2,
+                    f"arm_{i}: joint speed {shown} rad/s exceeds max_joint_velocity {limit} rad/s")
+    raise AssertionError("physics_fault called without a fault")
+
+
+def measure(task: Any, observer: ObservationBuilder, kinematics: Any, wrap: Any, q: np.ndarray, dq: np.ndarray,
+            fault: Any, reason: Any) -> Measurement:
+    """Everything derived from the joint states ``q``, ``dq`` (finite): one formation's (T,), or K copies'
+    stacked (K, T), whose results get a leading K axis (each row bit for bit the single formation's).
+    ``wrap``: None, True or a mask of the joints observed wrapped to [-pi, pi)."""
+    ee_base, margins = kinematics.positions_and_margins(q, task.dim)
+    ee_world = (task.base_rotations @ ee_base[..., None])[..., 0] + task.base_positions
+    if wrap is None:
+        q_observed = q
+    else:
+        wrapped = (q + math.pi) % (2 * math.pi) - math.pi
+        q_observed = wrapped if wrap is True else np.where(wrap, wrapped, q)
+    z = task.graph.edge_vectors(ee_world[..., :task.dim])
+    edge_errors = task.formation.edge_errors(z)
+    errors = edge_errors.reshape(*q.shape[:-1], task.graph.n_edges, -1)
+    slot_z, slot_errors = observer.slots_in_own_frames(z, edge_errors)
+    return Measurement(q=q, dq=dq, q_observed=q_observed, ee_world=ee_world, edge_errors=edge_errors,
+                       edge_squares=np.add.reduce(errors * errors, axis=-1), slot_z=slot_z,
+                       slot_errors=slot_errors, singularity_margins=margins, fault=fault, fault_reason=reason)
+
+
+def reward_array(edge_squares: np.ndarray, tolerances: np.ndarray, observer: ObservationBuilder,
+                 config: Any) -> np.ndarray:
+    """Every agent's reward (N,) from the edges' squared errors (E,); or (K, N) from K copies' (K, E)."""
+    ratios, within = agent_error_ratios(np.sqrt(edge_squares), tolerances, observer.slot_edge,
+                                        observer.slot_starts, observer.slot_degrees)
+    return rewards_from_ratios(ratios, within, config)
 
 
 FormationEnv.__doc__ = FormationEnv.__doc__.replace(

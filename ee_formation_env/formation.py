@@ -87,8 +87,9 @@ class FormationGraph:
         return len(seen) == self.n_agents
 
     def edge_vectors(self, positions: np.ndarray) -> np.ndarray:
-        """``z_k = x_tail - x_head`` for every edge, shape (n_edges, dim), from (n_agents, dim) positions."""
-        return positions[self._tails] - positions[self._heads]
+        """``z_k = x_tail - x_head`` for every edge, shape (n_edges, dim), from (n_agents, dim) positions (with
+        leading axes on ``positions``, e.g. K copies (K, n_agents, dim), the result gets them too)."""
+        return positions[..., self._tails, :] - positions[..., self._heads, :]
 
 
 def rigidity_matrix(graph: FormationGraph, positions: np.ndarray) -> np.ndarray:
@@ -161,9 +162,10 @@ class Formation:
         self._desired_squared = self.desired**2 if kind == "distance" else None
 
     def edge_errors(self, z: np.ndarray) -> np.ndarray:
-        """Edge errors e_k from edge vectors z (n_edges, dim): (n_edges,) m^2 or (n_edges, dim) m."""
+        """Edge errors e_k from edge vectors z (n_edges, dim): (n_edges,) m^2 or (n_edges, dim) m (leading axes
+        of ``z`` carry over)."""
         if self.kind == "distance":
-            return np.einsum("kd,kd->k", z, z) - self._desired_squared
+            return np.einsum("...kd,...kd->...k", z, z) - self._desired_squared
         return z - self.desired_vectors
 
     def formation_error(self, z: np.ndarray) -> float:
@@ -176,6 +178,12 @@ def formation_error_from_squares(edge_squares: np.ndarray) -> float:
     """The formation error: RMS over all edges of |e_k|, from the squares |e_k|^2 (E,); m^2 for distance
     formations, m for displacement ones. The one definition, used by the env's infos and the metrics."""
     return math.sqrt(float(edge_squares.sum()) / len(edge_squares))
+
+
+def formation_errors_from_squares(edge_squares: np.ndarray) -> np.ndarray:
+    """:func:`formation_error_from_squares` of every row of a stack (..., E): an array (...,), each entry bit
+    for bit the scalar function's value on its row (the batched env's infos)."""
+    return np.sqrt(np.add.reduce(edge_squares, axis=-1) / edge_squares.shape[-1])
 
 
 def agent_gradient(kind: str, relative_positions: np.ndarray, edge_errors: np.ndarray) -> np.ndarray:

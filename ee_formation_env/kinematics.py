@@ -544,14 +544,23 @@ class ChainBatch:
 
     def positions_and_margins(self, q: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
         """Each arm's end-effector position in its base frame (N, 3), m, and singularity margin (N,), m
-        (smallest singular value of its Jacobian's first ``dim`` rows), at flat joint angles ``q`` (rad)."""
+        (smallest singular value of its Jacobian's first ``dim`` rows), at flat joint angles ``q`` (rad).
+
+        With leading axes (a stack of joint vectors, e.g. ``(K, T)`` for K copies of the arms), the results
+        get the same leading axes (``(K, N, 3)``, ``(K, N)``), still in one batched call per model; each
+        copy's values are bit for bit those of its own call."""
+        lead = q.shape[:-1]
+        count = math.prod(lead)
         if len(self._groups) == 1 and self._groups[0][2] is None:  # one model, every arm, in agent order
             model = self._groups[0][0]
-            positions, jacobians = model.forward_and_jacobian_batch(q.reshape(self.n_arms, -1))
-            return positions, singularity_margins(jacobians, dim)
-        positions, margins = np.empty((self.n_arms, 3)), np.empty(self.n_arms)
+            positions, jacobians = model.forward_and_jacobian_batch(q.reshape(count * self.n_arms, -1))
+            return (positions.reshape(*lead, self.n_arms, 3),
+                    singularity_margins(jacobians, dim).reshape(*lead, self.n_arms))
+        flat = q.reshape(count, -1)
+        positions, margins = np.empty((count, self.n_arms, 3)), np.empty((count, self.n_arms))
         for model, members, joints in self._groups:
-            q_group = q if joints is None else q[joints]
-            positions[members], jacobians = model.forward_and_jacobian_batch(q_group.reshape(len(members), -1))
-            margins[members] = singularity_margins(jacobians, dim)
-        return positions, margins
+            q_group = flat if joints is None else flat[:, joints]
+            group_positions, jacobians = model.forward_and_jacobian_batch(q_group.reshape(count * len(members), -1))
+            positions[:, members] = group_positions.reshape(count, len(members), 3)
+            margins[:, members] = singularity_margins(jacobians, dim).reshape(count, len(members))
+        return positions.reshape(*lead, self.n_arms, 3), margins.reshape(*lead, self.n_arms)

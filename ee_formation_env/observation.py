@@ -195,33 +195,59 @@ class ObservationBuilder:
 
     def slots_in_own_frames(self, z: np.ndarray, edge_errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every real slot's z_ij (S, m) and edge error ((S,) or (S, m)), each in its agent's base frame,
-        from the world-frame edge vectors z_k (E, m) and edge errors."""
-        z_slots = self._slot_sign * z[self.slot_edge]  # z_ij = x_i - x_j, world frame
+        from the world-frame edge vectors z_k (E, m) and edge errors. Leading axes (K copies: z (K, E, m))
+        carry over."""
+        z_slots = self._slot_sign * z[..., self.slot_edge, :]  # z_ij = x_i - x_j, world frame
         if self.kind == "distance":
-            return (z_slots[:, None, :] @ self._slot_rotation)[:, 0], edge_errors[self.slot_edge]
-        errors = self._slot_sign * edge_errors[self.slot_edge]
-        rotated = np.stack([z_slots, errors], axis=1) @ self._slot_rotation
-        return rotated[:, 0], rotated[:, 1]
+            return (z_slots[..., None, :] @ self._slot_rotation)[..., 0, :], edge_errors[..., self.slot_edge]
+        errors = self._slot_sign * edge_errors[..., self.slot_edge, :]
+        rotated = np.stack([z_slots, errors], axis=-2) @ self._slot_rotation
+        return rotated[..., 0, :], rotated[..., 1, :]
 
     def padded_slot_errors(self, slot_errors: np.ndarray) -> np.ndarray:
         """The slots' edge errors padded with zeros to the graph's largest degree: (N, D) for distance,
-        (N, D, m) for displacement formations; row i is agent i's (its real slots first)."""
-        padded = np.zeros(self._padded_shape)
-        padded.reshape(-1, *self._padded_shape[2:])[self._padded_rows] = slot_errors
+        (N, D, m) for displacement formations; row i is agent i's (its real slots first). Leading axes of
+        ``slot_errors`` ((K, S) or (K, S, m)) carry over."""
+        w = len(self._padded_shape) - 2  # 0 (distance) or 1 (displacement): trailing axes per slot
+        lead = slot_errors.shape[:slot_errors.ndim - 1 - w]
+        padded = np.zeros((*lead, *self._padded_shape))
+        n_rows = self._padded_shape[0] * self._padded_shape[1]
+        if w:
+            padded.reshape(*lead, n_rows, self._padded_shape[2])[..., self._padded_rows, :] = slot_errors
+        else:
+            padded.reshape(*lead, n_rows)[..., self._padded_rows] = slot_errors
         return padded
+
+    def observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,
+                           dq: np.ndarray) -> np.ndarray:
+        """Every agent's observation (float32, clipped into its space), concatenated in agent order: (O,), or
+        (K, O) from K copies' stacked arrays (slot_z (K, S, m), slot_errors, q_observed and dq (K, T)).
+        Agent i's part is ``observation_slices[i]``."""
+        lead = q_observed.shape[:-1]
+        constants = np.broadcast_to(self._constants, (*lead, len(self._constants)))
+        source = np.concatenate([constants, slot_z.reshape(*lead, -1), slot_errors.reshape(*lead, -1),
+                                 q_observed, dq], axis=-1)
+        observation = source[..., self._gather]
+        np.minimum(np.maximum(observation, self._low, out=observation), self._high, out=observation)  # clip
+        return observation.astype(np.float32)
+
+    @property
+    def observation_slices(self) -> list[slice]:
+        """Each agent's slice of :meth:`observation_matrix`'s last axis."""
+        return self._obs_slices
 
     def observations(self, agents: list[str], slot_z: np.ndarray, slot_errors: np.ndarray,
                      q_observed: np.ndarray, dq: np.ndarray) -> dict[str, np.ndarray]:
-        """Every agent's observation (float32, clipped into its space), keyed by ``agents``."""
-        source = np.concatenate([self._constants, slot_z.ravel(), slot_errors.ravel(), q_observed, dq])
-        observation = source[self._gather]
-        np.minimum(np.maximum(observation, self._low, out=observation), self._high, out=observation)  # clip
-        observation = observation.astype(np.float32)
-        return {agent: observation[part] for agent, part in zip(agents, self._obs_slices)}
+        """Every agent's observation (float32, clipped into its space), keyed by ``agents`` (views of one
+        :meth:`observation_matrix`; with K copies' arrays, each (K, obs_dim))."""
+        observation = self.observation_matrix(slot_z, slot_errors, q_observed, dq)
+        return {agent: observation[..., part] for agent, part in zip(agents, self._obs_slices)}
 
     def state(self, ee_world: np.ndarray, q_observed: np.ndarray, dq: np.ndarray) -> np.ndarray:
-        """The global state: all end-effector positions (world, formation axes, m), all q, all dq."""
-        state = np.concatenate([ee_world[:, :self.layouts[0].dim].ravel(), q_observed, dq])
+        """The global state: all end-effector positions (world, formation axes, m), all q, all dq (leading
+        axes, e.g. K copies, carry over: (K, state_dim))."""
+        lead = q_observed.shape[:-1]
+        state = np.concatenate([ee_world[..., :self.layouts[0].dim].reshape(*lead, -1), q_observed, dq], axis=-1)
         return np.clip(state, self._state_low, self._state_high).astype(np.float32)
 
 

@@ -35,5 +35,8 @@ def register_all() -> None:
         if gymnasium_id(name) not in gymnasium.registry:
             # max_episode_steps: the built-in episode length in env steps (the env truncates there too);
             # gymnasium.make(..., episode_seconds=T) with a longer T also needs max_episode_steps.
+            # vector_entry_point: gymnasium.make_vec(id, num_envs=K, vectorization_mode="vector_entry_point")
+            # gives K copies over the batched env (ee_formation_env.vector) in one VectorEnv.
             gymnasium.register(gymnasium_id(name), entry_point="ee_formation_env.integrations.centralized:CentralizedFormationEnv",
+                               vector_entry_point="ee_formation_env.integrations.centralized:CentralizedFormationVectorEnv",
                                kwargs={"scenario": name}, max_episode_steps=load_scenario(name).max_steps)

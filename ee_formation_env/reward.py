@@ -100,20 +100,22 @@ def agent_error_ratios(edge_abs_errors: np.ndarray, tolerances: np.ndarray, slot
 
     ``edge_abs_errors``, ``tolerances``: (E,) per edge; ``slot_edges`` (S,): the edge of each agent slot,
     agent by agent; ``slot_starts`` (N,): where each agent's slots start; ``degrees`` (N,): slot counts
-    (every agent has at least one edge).
+    (every agent has at least one edge). Leading axes of ``edge_abs_errors`` (K copies: (K, E)) carry over
+    to the results ((K, N)).
     """
     ratios = edge_abs_errors / tolerances
-    slot_ratios = ratios[slot_edges]
-    mean_ratios = np.add.reduceat(slot_ratios, slot_starts) / degrees
-    all_within = np.logical_and.reduceat(slot_ratios <= 1.0, slot_starts)
+    slot_ratios = ratios[..., slot_edges]
+    mean_ratios = np.add.reduceat(slot_ratios, slot_starts, axis=-1) / degrees
+    all_within = np.logical_and.reduceat(slot_ratios <= 1.0, slot_starts, axis=-1)
     return mean_ratios, all_within
 
 
 def rewards_from_ratios(mean_ratios: np.ndarray, all_within: np.ndarray, config: RewardConfig) -> np.ndarray:
-    """Every agent's reward (N,) from :func:`agent_error_ratios`' outputs."""
+    """Every agent's reward (N,) from :func:`agent_error_ratios`' outputs (or (K, N) from stacked ones; the
+    team mean is then taken per copy)."""
     span = np.log10(config.error_ceiling / config.error_floor)
     closeness = np.clip(np.log10(config.error_ceiling / (mean_ratios + config.error_floor)) / span, 0.0, 1.0)
     rewards = config.formation * closeness + config.in_tolerance * all_within
     if config.team:
-        rewards = np.full_like(rewards, rewards.mean())
+        rewards = np.broadcast_to(rewards.mean(axis=-1, keepdims=True), rewards.shape).copy()
     return rewards

@@ -13,6 +13,7 @@ import gymnasium
 import numpy as np
 
 from ee_formation_env.env import FormationEnv
+from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.inputs import check_seed
 
 
@@ -66,3 +67,78 @@ class CentralizedFormationEnv(gymnasium.Env):
     def _info(infos: dict[str, dict[str, Any]]) -> dict[str, Any]:
         first = next(iter(infos.values()))
         return {"formation_error": first["formation_error"], "agents": infos}
+
+
+class CentralizedFormationVectorEnv(gymnasium.vector.VectorEnv):
+    """K copies of :class:`CentralizedFormationEnv` as one Gymnasium ``VectorEnv`` over the batched env
+    (:func:`ee_formation_env.vector_env`): what ``gymnasium.make_vec(id, num_envs=K,
+    vectorization_mode="vector_entry_point")`` builds for every registered id.
+
+    Copy k of ``reset(seed=s)`` is ``CentralizedFormationEnv`` reset with ``s + k``, bit for bit. Observations
+    (K, O) float32 (the agents' observations concatenated), actions (K, A) (their actions concatenated),
+    rewards (K,) (the mean over agents), terminations and truncations (K,). Autoreset: Gymnasium's SAME_STEP
+    mode: an ended copy's row is already its next episode's first observation; ``infos["final_obs"]`` (object
+    array, ``infos["_final_obs"]`` its mask) holds the observation it ended in and ``infos["final_info"]``
+    its last ``formation_error``. ``infos["formation_error"]`` (K,) is the team's, ``infos["agents"]`` the
+    batched env's per-agent infos (agent -> dict of (K, ...) arrays). ``max_episode_steps`` (from the
+    registration or given) truncates as Gymnasium's ``TimeLimit`` does on the single env.
+    """
+
+    metadata = {"render_modes": [], "autoreset_mode": gymnasium.vector.AutoresetMode.SAME_STEP}
+
+    def __init__(self, scenario: Any = "planar_square", num_envs: int = 1, max_episode_steps: int | None = None,
+                 **overrides: Any):
+        from ee_formation_env.scenario import load_scenario
+        from ee_formation_env.vector import VectorFormationEnv
+
+        if max_episode_steps is not None:
+            if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)) \
+                    or max_episode_steps < 1:
+                raise ValueError(f"max_episode_steps: expected an integer >= 1, got {max_episode_steps!r}")
+            loaded = load_scenario(scenario, **overrides)
+            if max_episode_steps < loaded.max_steps:  # TimeLimit's truncation, done by the env itself
+                overrides = {**overrides, "episode_seconds": int(max_episode_steps) * loaded.control_dt}
+        self.batched_env = VectorFormationEnv(scenario, num_envs=num_envs, **overrides)
+        self.num_envs = self.batched_env.num_envs
+        self.render_mode = None
+        agents = self.batched_env.possible_agents
+        observation_spaces = [self.batched_env.observation_space(a) for a in agents]
+        action_spaces = [self.batched_env.action_space(a) for a in agents]
+        self.single_observation_space = gymnasium.spaces.Box(
+            np.concatenate([s.low for s in observation_spaces]), np.concatenate([s.high for s in observation_spaces]),
+            dtype=np.float32)
+        self.single_action_space = gymnasium.spaces.Box(
+            np.concatenate([s.low for s in action_spaces]), np.concatenate([s.high for s in action_spaces]),
+            dtype=np.float32)
+        self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, self.num_envs)
+
+    def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
+        if isinstance(seed, (list, tuple)):
+            raise ValueError("seed: expected one integer (copy k gets seed + k) or None, got a list")
+        result = self.batched_env.reset_arrays(seed=seed, options=options)
+        return result.observations, self._infos(result)
+
+    def step(self, actions: np.ndarray):
+        result = self.batched_env.step_arrays(actions)
+        rewards = result.rewards.mean(axis=1)
+        infos = self._infos(result)
+        ended = np.flatnonzero(result.terminations | result.truncations)
+        if len(ended):  # SAME_STEP: the main infos are the new episodes', the ended ones' under final_*
+            fresh = self.batched_env._measurement.edge_squares
+            new_errors = formation_errors_from_squares(fresh)
+            for k in ended:
+                infos = self._add_info(infos, {"final_obs": result.infos["final_observation"][k],
+                                               "final_info": {"formation_error": float(infos["formation_error"][k])}},
+                                       int(k))
+            infos["formation_error"] = infos["formation_error"].copy()
+            infos["formation_error"][ended] = new_errors[ended]
+        return result.observations, rewards, result.terminations, result.truncations, infos
+
+    def _infos(self, result: Any) -> dict[str, Any]:
+        return {"formation_error": result.infos["formation_error"],
+                "_formation_error": np.ones(self.num_envs, dtype=bool),
+                "agents": self.batched_env._info_dicts(result.infos)}
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self.batched_env.close()

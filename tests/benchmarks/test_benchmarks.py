@@ -61,7 +61,7 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
         assert row["best_seconds"] == pytest.approx(min(row["seconds"]), abs=1e-6), row["case"]
         assert row["physics_steps_per_s"] == pytest.approx(
             row["env_steps"] * row["frame_skip"] / row["best_seconds"], rel=1e-12), row["case"]
-        floor = row["raw_physics_steps_per_s"] if row["section"] == "scaling" else raw_rate[row["scenario"]]
+        floor = row["raw_physics_steps_per_s"] if row["section"] in ("scaling", "vector") else raw_rate[row["scenario"]]
         assert row["ratio_to_raw"] == pytest.approx(row["physics_steps_per_s"] / floor, rel=1e-12), row["case"]
     env_steps = {(row["scenario"], row["frame_skip"]) for row in rows if row["section"] == "env_step"}
     assert env_steps == {("planar_square", 1), ("planar_square", 10), ("spatial_tetrahedron", 1),
@@ -70,6 +70,16 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
     assert sorted((row["dof"], row["n_arms"]) for row in scaling) == sorted(
         (dof, n) for dof in (2, 7) for n in ARM_COUNTS)
     assert set(results["scaling_fits"]) == {row["family"] for row in scaling}
+    # The batched env at K = 1 and 4 (--quick), each against the faster raw floor of the same K formations in
+    # the two layouts measured beside it, with memory per formation in each layout.
+    vector = [row for row in rows if row["section"] == "vector"]
+    assert {(row["scenario"], row["num_envs"], row["layout"]) for row in vector} == {
+        (scenario, k, layout) for scenario in ("planar_square", "spatial_tetrahedron") for k in (1, 4)
+        for layout in ("vector_env", "clients", "clients_free", "one_client")}
+    for row in vector:
+        floors = (row["floor_clients_physics_steps_per_s"], row["floor_one_client_physics_steps_per_s"])
+        assert row["raw_physics_steps_per_s"] == max(floors) and row["rss_mb_per_formation"] > 0, row["case"]
+    assert "| batched env |" in run.stdout
     assert {target["target"] for target in results["targets"]} >= {
         "env.step frame_skip 1 / raw floor, planar_square", "env.step frame_skip 1 / raw floor, spatial_tetrahedron",
         "closed loop planar_square: wall s per 30 s simulated", "reset, 4 arms (planar_square)"}
