@@ -29,7 +29,8 @@ Sections:
 - ``torchrl`` (skipped without the ``torchrl`` extra): frames (env steps) per second collected by TorchRL's
   ``SyncDataCollector`` with a random policy on ``planar_square``: through ``make_torchrl_env`` without
   ``num_envs`` (the ``PettingZooWrapper``, one env) and natively batched at K = 32, 64, against the raw floor
-  of the same K formations (K clients in lockstep, :func:`time_floor_clients`).
+  of the same K formations (K clients in lockstep, :func:`time_floor_clients`) and the batched env alone
+  (``step_arrays``, random actions).
 
 Figures: physics steps/s, env steps/s, the ratio to the raw floor of the same bodies (physics steps/s
 over raw physics steps/s) and the real-time factor (simulated seconds per wall-clock second).
@@ -581,6 +582,16 @@ def time_collector(env: Any, frames_per_batch: int, batches: int) -> float:
         collector.shutdown(close_env=False)
 
 
+def time_step_arrays(venv: Any, steps: int, seed: int = 0) -> float:
+    """Seconds for ``steps`` calls of the batched env's ``step_arrays`` with uniform random actions (autoreset)."""
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, venv.num_envs, venv.n_joints)).astype(np.float32)
+    venv.reset(seed=0)
+    start = time.perf_counter()
+    for row in actions:
+        venv.step_arrays(row)
+    return time.perf_counter() - start
+
+
 def bench_torchrl(budget: Budget, counts: Sequence[int], name: str = "planar_square") -> list[dict[str, Any]]:
     """Section ``torchrl``: ``SyncDataCollector`` frames/s, one env (the ``PettingZooWrapper``) and natively
     batched at K copies, against the raw floor of the same K formations (K clients in lockstep)."""
@@ -602,11 +613,12 @@ def bench_torchrl(budget: Budget, counts: Sequence[int], name: str = "planar_squ
         fs, hz = scenario.frame_skip, scenario.physics_hz
         steps = max(2, budget.vector_physics_steps // (copies * fs) // 4)  # env steps per copy per batch
         batches = 4 if budget.repeats > 1 else 1
+        cases = {"floor": lambda: time_floor_clients(floor_env, steps * batches * fs, lockstep=fs),
+                 "collector": lambda: time_collector(env, copies * steps, batches)}
+        if count:  # the batched env alone (array API, random actions): what the TorchRL layer adds on top
+            cases["vector"] = lambda: time_step_arrays(floor_env, steps * batches)
         try:
-            times = interleaved({
-                "floor": lambda: time_floor_clients(floor_env, steps * batches * fs, lockstep=fs),
-                "collector": lambda: time_collector(env, copies * steps, batches),
-            }, max(1, min(budget.repeats, 3)))
+            times = interleaved(cases, max(1, min(budget.repeats, 3)))
         finally:
             env.close()
             floor_env.close()
@@ -619,6 +631,9 @@ def bench_torchrl(budget: Budget, counts: Sequence[int], name: str = "planar_squ
                          copies * steps * batches * fs, 1, hz, floor, layout="floor", **common))
         rows.append(_row("torchrl", f"{name}, K={copies}: {what}", times["collector"], copies * steps * batches, fs,
                          hz, floor, layout="collector", **common))
+        if count:
+            rows.append(_row("torchrl", f"{name}, K={copies}: vector_env.step_arrays alone, random actions",
+                             times["vector"], copies * steps * batches, fs, hz, floor, layout="vector_env", **common))
     return rows
 
 

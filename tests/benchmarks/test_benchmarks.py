@@ -86,7 +86,8 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
     torchrl_rows = [row for row in rows if row["section"] == "torchrl" and not row.get("skipped")]
     if torchrl_rows:
         assert {(row["num_envs"], row["batched"], row["layout"]) for row in torchrl_rows} == {
-            (1, False, "floor"), (1, False, "collector"), (4, True, "floor"), (4, True, "collector")}
+            (1, False, "floor"), (1, False, "collector"), (4, True, "floor"), (4, True, "collector"),
+            (4, True, "vector_env")}
     assert {target["target"] for target in results["targets"]} >= {
         "env.step frame_skip 1 / raw floor, planar_square", "env.step frame_skip 1 / raw floor, spatial_tetrahedron",
         "closed loop planar_square: wall s per 30 s simulated", "reset, 4 arms (planar_square)"}
