@@ -25,7 +25,12 @@ Sections:
 - ``reset``: ``env.reset`` (state restore, no URDF reload) of the built-in scenarios;
 - ``vector``: the batched env (``ee_formation_env.vector_env``) at K = 1, 4, 16, 64 copies, zero actions at the
   scenario's frame_skip, against the raw floor of the same K formations in both physics layouts (K clients,
-  each stepping its formation; one client holding all K, placed 10 m apart), and resident memory per formation.
+  each stepping its formation; one client holding all K, placed 10 m apart), and resident memory per formation;
+- ``torchrl`` (skipped without the ``torchrl`` extra): frames (env steps) per second collected by TorchRL's
+  ``SyncDataCollector`` with a random policy on ``planar_square``: through ``make_torchrl_env`` without
+  ``num_envs`` (the ``PettingZooWrapper``, one env) and natively batched at K = 32, 64, against the raw floor
+  of the same K formations (K clients in lockstep, :func:`time_floor_clients`) and the batched env alone
+  (``step_arrays``, random actions).
 
 Figures: physics steps/s, env steps/s, the ratio to the raw floor of the same bodies (physics steps/s
 over raw physics steps/s) and the real-time factor (simulated seconds per wall-clock second).
@@ -56,8 +61,10 @@ if __package__ in (None, ""):  # run as a script: python benchmarks/run.py
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from ee_formation_env.generators import planar_ring, spatial_ring  # noqa: E402
 
-SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset", "vector")
+SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training", "scaling", "reset", "vector",
+            "torchrl")
 VECTOR_COUNTS = (1, 4, 16, 64)  # copies K of the batched env (--quick: 1 and 4)
+TORCHRL_COUNTS = (32, 64)  # copies K of the native batched TorchRL env (--quick: 4)
 ARM_COUNTS = (2, 4, 8, 16)
 # train.py runs whose training throughput is measured: the default run first (the target applies to it).
 # The others: every env in worker processes, every env in-process, the first layout (8 envs x 128 steps), torque mode.
@@ -555,6 +562,81 @@ def bench_vector(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
     return rows
 
 
+def time_collector(env: Any, frames_per_batch: int, batches: int) -> float:
+    """Seconds for ``batches`` batches of ``frames_per_batch`` frames from a ``SyncDataCollector`` over ``env``
+    with a random policy (after one warm-up batch, not timed)."""
+    from torchrl.collectors import SyncDataCollector
+
+    with warnings.catch_warnings():  # torchrl 0.11 renames it Collector (SyncDataCollector stays until 0.13)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        # total_frames -1 (endless): a collector that reaches its total closes the env, which is timed again
+        collector = SyncDataCollector(env, None, frames_per_batch=frames_per_batch, total_frames=-1, device="cpu")
+    try:
+        iterator = iter(collector)
+        next(iterator)
+        start = time.perf_counter()
+        for _ in range(batches):
+            next(iterator)
+        return time.perf_counter() - start
+    finally:
+        collector.shutdown(close_env=False)
+
+
+def time_step_arrays(venv: Any, steps: int, seed: int = 0) -> float:
+    """Seconds for ``steps`` calls of the batched env's ``step_arrays`` with uniform random actions (autoreset)."""
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, venv.num_envs, venv.n_joints)).astype(np.float32)
+    venv.reset(seed=0)
+    start = time.perf_counter()
+    for row in actions:
+        venv.step_arrays(row)
+    return time.perf_counter() - start
+
+
+def bench_torchrl(budget: Budget, counts: Sequence[int], name: str = "planar_square") -> list[dict[str, Any]]:
+    """Section ``torchrl``: ``SyncDataCollector`` frames/s, one env (the ``PettingZooWrapper``) and natively
+    batched at K copies, against the raw floor of the same K formations (K clients in lockstep)."""
+    try:
+        import torch
+
+        from ee_formation_env.integrations.torchrl import make_torchrl_env
+    except ImportError as error:  # the optional "torchrl" extra
+        return [{"section": "torchrl", "case": f"{name}: skipped ({error})", "skipped": True}]
+    torch.set_num_threads(1)
+    rows = []
+    for count in (None, *counts):
+        copies = count or 1
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            env = make_torchrl_env(name, num_envs=count, seed=0)
+            floor_env = env.vector_env if count else ee_formation_env.vector_env(name, num_envs=1)
+        scenario = floor_env.scenario
+        fs, hz = scenario.frame_skip, scenario.physics_hz
+        steps = max(2, budget.vector_physics_steps // (copies * fs) // 4)  # env steps per copy per batch
+        batches = 4 if budget.repeats > 1 else 1
+        cases = {"floor": lambda: time_floor_clients(floor_env, steps * batches * fs, lockstep=fs),
+                 "collector": lambda: time_collector(env, copies * steps, batches)}
+        if count:  # the batched env alone (array API, random actions): what the TorchRL layer adds on top
+            cases["vector"] = lambda: time_step_arrays(floor_env, steps * batches)
+        try:
+            times = interleaved(cases, max(1, min(budget.repeats, 3)))
+        finally:
+            env.close()
+            floor_env.close()
+        floor = copies * steps * batches * fs / min(times["floor"])
+        what = (f"SyncDataCollector, random policy, native batched env K={count}" if count else
+                "SyncDataCollector, random policy, PettingZooWrapper (one env)")
+        common = dict(scenario=name, num_envs=copies, batched=bool(count), raw_physics_steps_per_s=floor,
+                      frames_per_batch=copies * steps)
+        rows.append(_row("torchrl", f"{name}, K={copies}: raw floor, {copies} clients in lockstep", times["floor"],
+                         copies * steps * batches * fs, 1, hz, floor, layout="floor", **common))
+        rows.append(_row("torchrl", f"{name}, K={copies}: {what}", times["collector"], copies * steps * batches, fs,
+                         hz, floor, layout="collector", **common))
+        if count:
+            rows.append(_row("torchrl", f"{name}, K={copies}: vector_env.step_arrays alone, random actions",
+                             times["vector"], copies * steps * batches, fs, hz, floor, layout="vector_env", **common))
+    return rows
+
+
 # ---------------------------------------------------------------------------------------------- report
 def linear_fit(counts: Sequence[int], values: Sequence[float]) -> dict[str, float]:
     """Least-squares ``value = intercept + slope * n`` and its largest relative residual."""
@@ -598,6 +680,11 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
         if batched:
             add(f"vector_env / faster raw floor, K >= 16 (lowest), {scenario}",
                 min(r["ratio_to_raw"] for r in batched), 0.8, True, "x")
+    collected = [r for r in results["rows"] if r["section"] == "torchrl" and r.get("layout") == "collector"
+                 and r.get("batched") and r["num_envs"] >= 32]
+    if collected:
+        add("TorchRL SyncDataCollector, native batched env K >= 32 / raw floor (best), planar_square",
+            max(r["ratio_to_raw"] for r in collected), 0.6, True, "x")
     return targets
 
 
@@ -707,6 +794,10 @@ def run(quick: bool = False, sections: Sequence[str] = SECTIONS, progress: Calla
         counts = VECTOR_COUNTS[:2] if quick else VECTOR_COUNTS
         progress(f"vector: vector_env at K = {list(counts)} against the raw floor of both layouts")
         results["rows"] += bench_vector(budget, counts)
+    if "torchrl" in sections:
+        counts = (4,) if quick else TORCHRL_COUNTS
+        progress(f"torchrl: SyncDataCollector, one env and K = {list(counts)} natively batched")
+        results["rows"] += bench_torchrl(budget, counts)
     results["targets"] = evaluate_targets(results)
     results["machine"]["load_average_end"] = list(os.getloadavg())
     results["wall_seconds"] = time.time() - started

@@ -259,7 +259,8 @@ class VectorFormationEnv:
         if seed is not None:
             for k in rows:
                 self.np_randoms[k] = seeding.np_random(seed + int(k))[0]
-        self._reset_copies(rows)
+        if len(rows):  # an all-False mask resets nothing and returns every copy's current observations
+            self._reset_copies(rows)
         self._needs_reset = False
         measured = self._measurement
         observations = self._observer.observation_matrix(measured.slot_z, measured.slot_errors,

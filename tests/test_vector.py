@@ -168,6 +168,17 @@ def test_partial_reset_resets_only_the_masked_copies(make_pair):
                                 batched.possible_agents)
 
 
+def test_an_all_false_reset_mask_resets_nothing(make_pair):
+    """(The batched TorchRL env asks for it when every copy to reset was already autoreset.)"""
+    batched, singles = make_pair("planar_square", 2)
+    actions = random_batched_actions(batched, 3)
+    batched.reset(seed=9)
+    stepped = batched.step_arrays(np.concatenate([actions(0)[a] for a in batched.possible_agents], axis=1))
+    again = batched.reset_arrays(seed=1, options={"reset_mask": np.zeros(2, dtype=bool)})
+    assert np.array_equal(again.observations, stepped.observations)
+    assert again.infos["sim_time"].tolist() == pytest.approx([batched.scenario.control_dt] * 2)
+
+
 def test_unseeded_reset_continues_every_copy_generator(make_pair):
     batched, singles = make_pair("planar_square", 2)
     batched.reset(seed=4)

@@ -10,6 +10,10 @@
     Experiment(task=task, algorithm_config=MappoConfig.get_from_yaml(), model_config=MlpConfig.get_from_yaml(),
                critic_model_config=MlpConfig.get_from_yaml(), seed=0, config=ExperimentConfig.get_from_yaml()).run()
 
+BenchMARL's ``num_envs`` (``on_policy_n_envs_per_worker`` / ``off_policy_n_envs_per_worker``, and
+``evaluation_episodes`` for the test env) becomes the batch size of one natively batched env
+(``make_torchrl_env(..., num_envs=num_envs)``: K PyBullet clients stepped by one call), as for VMAS.
+
 A task's config is a dict of scenario overrides (any top-level scenario key), plus optionally ``scenario``:
 a scenario file or dict to use instead of the member's built-in scenario (e.g. a mixed-robot team). Groups
 are :func:`ee_formation_env.integrations.torchrl.group_map`'s: one per robot kind.
@@ -43,7 +47,9 @@ class EEFormationTaskClass(TaskClass):
         if not continuous_actions:
             raise ValueError("continuous_actions: the formation env has continuous (torque) actions only")
         scenario, overrides = self._scenario_and_overrides()
-        return lambda: make_torchrl_env(scenario, seed=seed, device=device, **overrides)
+        # Natively batched: num_envs copies in one TorchRL env of batch size [num_envs] (BenchMARL then wraps
+        # no SerialEnv/ParallelEnv around it), as BenchMARL's VMAS tasks do.
+        return lambda: make_torchrl_env(scenario, num_envs=num_envs, seed=seed, device=device, **overrides)
 
     def supports_continuous_actions(self) -> bool:
         return True
@@ -62,7 +68,7 @@ class EEFormationTaskClass(TaskClass):
         return env.group_map
 
     def _group_entries(self, env: EnvBase, keep: str) -> Composite:
-        spec = env.observation_spec.clone()
+        spec = env.full_observation_spec_unbatched.clone()  # BenchMARL's specs have no env batch axis
         for group in self.group_map(env):
             for key in list(spec[group].keys()):
                 if key != keep:
@@ -78,12 +84,13 @@ class EEFormationTaskClass(TaskClass):
         return self._group_entries(env, "info")
 
     def state_spec(self, env: EnvBase) -> Optional[Composite]:
-        if "state" in env.observation_spec.keys():
-            return Composite({"state": env.observation_spec["state"].clone()})
+        spec = env.full_observation_spec_unbatched
+        if "state" in spec.keys():
+            return Composite({"state": spec["state"].clone()})
         return None
 
     def action_spec(self, env: EnvBase) -> Composite:
-        return env.full_action_spec
+        return env.full_action_spec_unbatched
 
     def action_mask_spec(self, env: EnvBase) -> Optional[Composite]:
         return None

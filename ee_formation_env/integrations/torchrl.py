@@ -14,6 +14,36 @@ TorchRL's default, grouping by the name before the last ``_`` (every agent is ``
 robots in one group and fails to stack their actions.
 
 Every info entry is numeric and fixed-shape per agent, so TorchRL builds specs from it.
+
+**Batched** (``num_envs=K``): :class:`BatchedTorchRLEnv`, a native TorchRL ``EnvBase`` over
+:func:`ee_formation_env.vector_env` (VMAS's layout: batch size ``[K]``, each group's agents stacked)::
+
+    env = make_torchrl_env("planar_square", num_envs=32, seed=0)   # copy k seeded 0 + k
+    td = env.rollout(100, break_when_any_done=False)   # td["planar_2link", "observation"]: (32, 100, 4, 19)
+
+Keys: per group ``(group, "observation")`` (K, n, obs_dim), ``(group, "action")`` (K, n, n_joints) in
+[-1, 1], ``(group, "reward")`` (K, n, 1), ``(group, "done" | "terminated" | "truncated")`` (K, n, 1) and
+``(group, "info", key)`` (K, n, ...) float32 (the single env's numeric infos; per-copy ones repeated per
+agent); at the root ``"done"``, ``"terminated"``, ``"truncated"`` (K, 1) and ``"state"`` (K, state_dim).
+
+**Done and reset handling.** It drives the vector env through its array API (``step_arrays`` /
+``reset_arrays``). The vector env autoresets an ended copy within the step (SAME_STEP); TorchRL instead
+wants the step's ``"next"`` observation to be the one the episode ended in, and resets done copies itself
+through ``_reset``. So:
+
+- a step returns, for every copy, ``infos["final_observation"]`` (the observation it ended in; equal to
+  the returned observation for copies that did not end), with its rewards and dones;
+- the copies that ended are marked *started*: the vector env has already begun their next episode, drawn
+  from their own generators (what the single env's ``reset()`` without a seed would draw next);
+- ``_reset`` resets the copies of its ``_reset`` mask (root ``"_reset"`` (K, 1) or any agent's
+  ``(group, "_reset")``) that are not marked started through ``reset_arrays(options={"reset_mask": ...})``,
+  and returns the started ones' first observations as they are (no second draw). After ``set_seed(s)``
+  every requested copy is reset, copy k seeded ``s + k``.
+
+So copy k of ``make_torchrl_env(S, num_envs=K, seed=s)`` replays, step for step and episode after
+episode, ``parallel_env(S)`` reset with seed ``s + k`` and then without a seed
+(``tests/integrations/test_torchrl.py``). Stepping again without a reset after a done continues the
+started episode.
 """
 
 from __future__ import annotations
@@ -21,14 +51,18 @@ from __future__ import annotations
 from typing import Any
 from xml.etree import ElementTree
 
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
 from torchrl.envs.libs.pettingzoo import PettingZooWrapper
-from torchrl.envs.utils import MarlGroupMapType
+from torchrl.envs.utils import MarlGroupMapType, check_marl_grouping
 
 import ee_formation_env
-from ee_formation_env.env import FormationEnv
 
 
-def robot_name(env: FormationEnv, index: int) -> str:
+def robot_name(env: Any, index: int) -> str:
     """The robot of arm ``index``: its built-in name, else the ``<robot name=...>`` of its URDF."""
     arm = env.scenario.arms[index]
     if arm.robot:
@@ -36,7 +70,7 @@ def robot_name(env: FormationEnv, index: int) -> str:
     return ElementTree.parse(arm.urdf).getroot().get("name") or f"robot_{index}"
 
 
-def group_map(env: FormationEnv) -> dict[str, list[str]]:
+def group_map(env: Any) -> dict[str, list[str]]:
     """Agents with identical observation and action spaces share a group, named after their robot
     (with a numeric suffix if one robot has arms with different spaces)."""
     groups: dict[str, list[str]] = {}
@@ -55,11 +89,202 @@ def group_map(env: FormationEnv) -> dict[str, list[str]]:
 
 def make_torchrl_env(scenario: Any = "planar_square", group_map_type: MarlGroupMapType | dict | None = None,
                      return_state: bool = True, seed: int | None = None, device: Any = "cpu",
-                     **overrides: Any) -> PettingZooWrapper:
+                     num_envs: int | None = None, **overrides: Any) -> EnvBase:
     """The formation env (built-in name, file or dict ``scenario``, with scenario ``overrides``) as a TorchRL
     env. ``group_map_type``: None for :func:`group_map`, a ``MarlGroupMapType`` or an explicit dict.
-    ``return_state``: include ``env.state()`` as ``"state"`` (for centralized critics, e.g. MAPPO)."""
+    ``return_state``: include ``env.state()`` as ``"state"`` (for centralized critics, e.g. MAPPO).
+    ``num_envs``: None for one env in TorchRL's ``PettingZooWrapper`` (batch size ``[]``); K >= 1 for
+    :class:`BatchedTorchRLEnv` over ``vector_env(scenario, num_envs=K)`` (batch size ``[K]``)."""
+    if num_envs is not None:
+        return BatchedTorchRLEnv(scenario, num_envs=num_envs, group_map_type=group_map_type,
+                                 return_state=return_state, seed=seed, device=device, **overrides)
     env = ee_formation_env.parallel_env(scenario, **overrides)
     groups = group_map(env) if group_map_type is None else group_map_type
     return PettingZooWrapper(env, group_map=groups, return_state=return_state, use_mask=False,
                              categorical_actions=False, seed=seed, device=device)
+
+
+# The vector env's numeric infos in the batched TorchRL env (float32, per agent): (K, N, ...) ones, the
+# per-copy (K,) ones repeated over the agents, and applied_torque (K, T) split by joints.
+_AGENT_INFO = ("edge_errors", "edge_mask", "singularity_margin", "torque_saturation", "clipped_actions",
+               "contacts")
+_COPY_INFO = ("formation_error", "physics_fault", "sim_time")
+_DONE_KEYS = ("done", "terminated", "truncated")
+
+
+def _box_spec(space: Any, count: int, device: Any) -> Bounded | Unbounded:
+    """``count`` stacked copies of a gymnasium Box as a (count, *shape) float32 spec."""
+    low = np.broadcast_to(space.low, (count, *space.shape)).astype(np.float32)
+    high = np.broadcast_to(space.high, (count, *space.shape)).astype(np.float32)
+    if np.isfinite(low).all() and np.isfinite(high).all():
+        return Bounded(low=torch.from_numpy(low), high=torch.from_numpy(high), shape=low.shape,
+                       dtype=torch.float32, device=device)
+    return Unbounded(shape=low.shape, dtype=torch.float32, device=device)
+
+
+def _tensor(array: np.ndarray, device: Any) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32)).to(device)
+
+
+class BatchedTorchRLEnv(EnvBase):
+    """K copies of one formation scenario as one native TorchRL env, batch size ``[K]`` (module docstring:
+    keys, done and reset handling). Build it with ``make_torchrl_env(scenario, num_envs=K)``.
+
+    ``group_map`` (attribute): group -> agents, as :func:`group_map` (or ``group_map_type``) gives it.
+    ``vector_env`` (attribute): the underlying :class:`ee_formation_env.vector.VectorFormationEnv`."""
+
+    def __init__(self, scenario: Any = "planar_square", num_envs: int = 1,
+                 group_map_type: MarlGroupMapType | dict | None = None, return_state: bool = True,
+                 seed: int | None = None, device: Any = "cpu", **overrides: Any):
+        vec = ee_formation_env.vector_env(scenario, num_envs=num_envs, **overrides)
+        super().__init__(device=device, batch_size=torch.Size([vec.num_envs]))
+        self.vector_env = vec
+        self.return_state = return_state
+        agents = list(vec.possible_agents)
+        if group_map_type is None:
+            groups = group_map(vec)
+        elif isinstance(group_map_type, MarlGroupMapType):
+            groups = group_map_type.get_group_map(agents)
+        else:
+            groups = {name: list(members) for name, members in group_map_type.items()}
+        check_marl_grouping(groups, agents)
+        self.group_map = groups
+        index = {agent: i for i, agent in enumerate(agents)}
+        self._agent_rows: dict[str, np.ndarray] = {}
+        self._obs_columns: dict[str, Any] = {}
+        self._joint_columns: dict[str, Any] = {}
+        self._shapes: dict[str, tuple[int, int, int]] = {}
+        for group, members in groups.items():
+            rows = np.array([index[a] for a in members])
+            obs = np.concatenate([np.arange(vec.observation_slices[i].start, vec.observation_slices[i].stop)
+                                  for i in rows])
+            joints = np.concatenate([np.arange(vec.joint_slices[i].start, vec.joint_slices[i].stop) for i in rows])
+            self._agent_rows[group] = rows
+            self._obs_columns[group] = _as_slice(obs)
+            self._joint_columns[group] = _as_slice(joints)
+            self._shapes[group] = (len(rows), len(obs) // len(rows), len(joints) // len(rows))
+        self._make_specs()
+        self._started = np.zeros(vec.num_envs, dtype=bool)  # autoreset by the vector env, not yet handed over
+        self._never_reset = True
+        self._pending_seed: int | None = None
+        if seed is not None:
+            self.set_seed(seed)
+
+    # ------------------------------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        vec, device = self.vector_env, self.device
+        generators = list(vec.np_randoms)
+        probe = vec.reset_arrays(seed=0)  # the info shapes; the copies' own generators are put back
+        vec.np_randoms[:] = generators
+        observations, actions, rewards = Composite(device=device), Composite(device=device), Composite(device=device)
+        done = Composite({key: Categorical(2, shape=(1,), dtype=torch.bool, device=device) for key in _DONE_KEYS},
+                         device=device)
+        for group, members in self.group_map.items():
+            n, _, n_joints = self._shapes[group]
+            first = members[0]
+            info = Composite({key: Unbounded(shape=value.shape[1:], dtype=torch.float32, device=device)
+                              for key, value in self._info(probe.infos, group).items()}, shape=(n,), device=device)
+            observations[group] = Composite({"observation": _box_spec(vec.observation_space(first), n, device),
+                                             "info": info}, shape=(n,), device=device)
+            actions[group] = Composite({"action": _box_spec(vec.action_space(first), n, device)}, shape=(n,),
+                                       device=device)
+            rewards[group] = Composite({"reward": Unbounded(shape=(n, 1), dtype=torch.float32, device=device)},
+                                       shape=(n,), device=device)
+            done[group] = Composite({key: Categorical(2, shape=(n, 1), dtype=torch.bool, device=device)
+                                     for key in _DONE_KEYS}, shape=(n,), device=device)
+        if self.return_state:
+            observations["state"] = _box_spec(vec.state_space, 1, device).squeeze(0)
+        self.full_observation_spec_unbatched = observations
+        self.full_action_spec_unbatched = actions
+        self.full_reward_spec_unbatched = rewards
+        self.full_done_spec_unbatched = done
+
+    # ------------------------------------------------------------------------------------------ conversions
+    def _info(self, infos: dict[str, np.ndarray], group: str) -> dict[str, torch.Tensor]:
+        rows, (n, _, n_joints) = self._agent_rows[group], self._shapes[group]
+        K = self.vector_env.num_envs
+        out = {key: _tensor(infos[key][:, rows], self.device) for key in _AGENT_INFO}
+        for key in _COPY_INFO:
+            out[key] = _tensor(np.broadcast_to(infos[key][:, None], (K, n)), self.device)
+        out["applied_torque"] = _tensor(infos["applied_torque"][:, self._joint_columns[group]].reshape(K, n, n_joints),
+                                        self.device)
+        return out
+
+    def _output(self, observations: np.ndarray, result: Any, rewards: bool) -> TensorDictBase:
+        K, device = self.vector_env.num_envs, self.device
+        terminated = torch.from_numpy(result.terminations).to(device).unsqueeze(-1)
+        truncated = torch.from_numpy(result.truncations).to(device).unsqueeze(-1)
+        finished = terminated | truncated
+        source: dict[str, Any] = {"done": finished, "terminated": terminated, "truncated": truncated}
+        for group in self.group_map:
+            n, obs_dim, _ = self._shapes[group]
+            entry = {"observation": _tensor(observations[:, self._obs_columns[group]].reshape(K, n, obs_dim), device),
+                     "info": TensorDict(self._info(result.infos, group), batch_size=(K, n), device=device),
+                     "done": finished.unsqueeze(1).expand(K, n, 1).clone(),
+                     "terminated": terminated.unsqueeze(1).expand(K, n, 1).clone(),
+                     "truncated": truncated.unsqueeze(1).expand(K, n, 1).clone()}
+            if rewards:
+                entry["reward"] = _tensor(result.rewards[:, self._agent_rows[group], None], device)
+            source[group] = TensorDict(entry, batch_size=(K, n), device=device)
+        if self.return_state:
+            source["state"] = _tensor(self.vector_env.state(), device)
+        return TensorDict(source, batch_size=self.batch_size, device=device)
+
+    # ------------------------------------------------------------------------------------------ EnvBase
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        vec = self.vector_env
+        K = vec.num_envs
+        actions = np.empty((K, vec.n_joints), dtype=np.float32)
+        for group in self.group_map:
+            action = tensordict.get((group, "action"))
+            actions[:, self._joint_columns[group]] = action.detach().reshape(K, -1).cpu().numpy()
+        result = vec.step_arrays(actions)
+        # The observation each copy ended in (SAME_STEP already started the next episode of ended copies).
+        self._started = result.terminations | result.truncations
+        return self._output(result.infos["final_observation"], result, rewards=True)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        vec = self.vector_env
+        requested = self._reset_mask(tensordict)
+        seed, self._pending_seed = self._pending_seed, None
+        if self._never_reset or (seed is not None and requested.all()):
+            result = vec.reset_arrays(seed=seed)
+        else:
+            rows = requested if seed is not None else requested & ~self._started
+            result = vec.reset_arrays(seed=seed, options={"reset_mask": rows})
+        self._never_reset = False
+        self._started[:] = False
+        return self._output(result.observations, result, rewards=False)
+
+    def _reset_mask(self, tensordict: TensorDictBase | None) -> np.ndarray:
+        """The (K,) copies a reset asks for: the root ``_reset``, or any agent's ``(group, "_reset")``."""
+        K = self.vector_env.num_envs
+        if tensordict is None:
+            return np.ones(K, dtype=bool)
+        masks = []
+        if "_reset" in tensordict.keys():
+            masks.append(tensordict.get("_reset").reshape(K, -1).any(-1))
+        for group in self.group_map:
+            if (group, "_reset") in tensordict.keys(True):
+                masks.append(tensordict.get((group, "_reset")).reshape(K, -1).any(-1))
+        if not masks:
+            return np.ones(K, dtype=bool)
+        return torch.stack(masks).any(0).cpu().numpy()
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._pending_seed = seed
+
+    def close(self, *args: Any, **kwargs: Any) -> None:
+        self.vector_env.close()
+        super().close(*args, **kwargs)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(scenario={self.vector_env.scenario.name!r}, num_envs={self.vector_env.num_envs}, "
+                f"groups={ {g: len(a) for g, a in self.group_map.items()} }, device={self.device})")
+
+
+def _as_slice(columns: np.ndarray) -> slice | np.ndarray:
+    """A contiguous run of columns as a slice (a view, no copy), else the index array."""
+    if len(columns) and np.array_equal(columns, np.arange(columns[0], columns[0] + len(columns))):
+        return slice(int(columns[0]), int(columns[0]) + len(columns))
+    return columns

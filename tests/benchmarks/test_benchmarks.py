@@ -61,7 +61,8 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
         assert row["best_seconds"] == pytest.approx(min(row["seconds"]), abs=1e-6), row["case"]
         assert row["physics_steps_per_s"] == pytest.approx(
             row["env_steps"] * row["frame_skip"] / row["best_seconds"], rel=1e-12), row["case"]
-        floor = row["raw_physics_steps_per_s"] if row["section"] in ("scaling", "vector") else raw_rate[row["scenario"]]
+        floor = (row["raw_physics_steps_per_s"] if row["section"] in ("scaling", "vector", "torchrl")
+                 else raw_rate[row["scenario"]])
         assert row["ratio_to_raw"] == pytest.approx(row["physics_steps_per_s"] / floor, rel=1e-12), row["case"]
     env_steps = {(row["scenario"], row["frame_skip"]) for row in rows if row["section"] == "env_step"}
     assert env_steps == {("planar_square", 1), ("planar_square", 10), ("spatial_tetrahedron", 1),
@@ -80,6 +81,13 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
         floors = (row["floor_clients_physics_steps_per_s"], row["floor_one_client_physics_steps_per_s"])
         assert row["raw_physics_steps_per_s"] == max(floors) and row["rss_mb_per_formation"] > 0, row["case"]
     assert "| batched env |" in run.stdout
+    # TorchRL collection (skipped without the torchrl extra): the PettingZooWrapper (K = 1) and the native
+    # batched env at K = 4 (--quick), each beside the raw floor of the same K formations.
+    torchrl_rows = [row for row in rows if row["section"] == "torchrl" and not row.get("skipped")]
+    if torchrl_rows:
+        assert {(row["num_envs"], row["batched"], row["layout"]) for row in torchrl_rows} == {
+            (1, False, "floor"), (1, False, "collector"), (4, True, "floor"), (4, True, "collector"),
+            (4, True, "vector_env")}
     assert {target["target"] for target in results["targets"]} >= {
         "env.step frame_skip 1 / raw floor, planar_square", "env.step frame_skip 1 / raw floor, spatial_tetrahedron",
         "closed loop planar_square: wall s per 30 s simulated", "reset, 4 arms (planar_square)"}
