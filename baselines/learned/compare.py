@@ -18,8 +18,9 @@ from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
-from ee_formation_env.baselines.learned.policy import learned_policies
-from ee_formation_env.baselines.metrics import format_table, run_episode, summarize
+from ee_formation_env.baselines.learned.policy import learned_policy_factory
+from ee_formation_env.baselines.metrics import (DEFAULT_EVALUATION_COPIES, evaluation_env, format_table, run_episodes,
+                                                summarize)
 
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
@@ -36,31 +37,32 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     (``eval_episodes``, ``eval_seconds``, ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md``
     and ``.png`` into ``results_dir`` (default: the run folder).
 
-    Episodes run in ``--eval-workers`` processes (each its own env), or in this one with 0; an episode's
-    result does not depend on where it runs (same seed, same episode, bit for bit).
+    The episodes of one policy run together on the batched env
+    (:func:`~ee_formation_env.baselines.metrics.run_episodes`, one copy per seed); the policies are shared
+    among ``--eval-workers`` processes (each its own batched env), or run in this one with 0. An episode's
+    result does not depend on where or with which others it runs (same seed, same episode, bit for bit).
     """
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
     names = ["learned", *baselines.POLICIES]
-    jobs = [(name, seed) for name in names for seed in seeds]
     episodes: dict[tuple[str, int], Any] = {}
     results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
     results_dir.mkdir(parents=True, exist_ok=True)
     scenario = ee_formation_env.load_scenario(saved_scenario(config))
-    setup = (scenario, overrides, str(run_dir), config)
-    bar = _evaluation_progress(len(jobs), args.no_progress)
+    setup = (scenario, overrides, str(run_dir), config, len(seeds))
+    bar = _evaluation_progress(len(names) * len(seeds), args.no_progress)
 
-    def done(job: tuple[str, int], metrics: Any) -> None:
-        episodes[job] = metrics
+    def done(name: str, runs: list[Any]) -> None:
+        episodes.update(((name, seed), metrics) for seed, metrics in zip(seeds, runs))
         if bar is not None:
-            bar.set_postfix_str(job[0])
-            bar.update(1)
+            bar.set_postfix_str(name)
+            bar.update(len(runs))
 
     if args.eval_workers == 0:
         _evaluation_worker_setup(*setup)
         try:
-            for job in jobs:
-                done(job, _evaluate_episode(*job))
+            for name in names:
+                done(name, _evaluate_policy(name, seeds))
         finally:
             _evaluation_worker_teardown()
     else:
@@ -68,9 +70,9 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         import multiprocessing
 
         with concurrent.futures.ProcessPoolExecutor(
-                args.eval_workers, mp_context=multiprocessing.get_context("spawn"),
+                min(args.eval_workers, len(names)), mp_context=multiprocessing.get_context("spawn"),
                 initializer=_evaluation_worker_setup, initargs=setup) as pool:
-            futures = {pool.submit(_evaluate_episode, *job): job for job in jobs}
+            futures = {pool.submit(_evaluate_policy, name, seeds): name for name in names}
             for future in concurrent.futures.as_completed(futures):
                 done(futures[future], future.result())
     if bar is not None:
@@ -94,13 +96,14 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     return comparison
 
 
-_EVALUATION: dict[str, Any] = {}  # one evaluation worker's env and policies
+_EVALUATION: dict[str, Any] = {}  # one evaluation worker's batched env and settings
 
 
-def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
+def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any],
+                             episodes: int) -> None:
     _EVALUATION.clear()
-    _EVALUATION.update(env=ee_formation_env.parallel_env(scenario, **overrides), run_dir=Path(run_dir), config=config,
-                       policies={})
+    copies = min(episodes, DEFAULT_EVALUATION_COPIES)
+    _EVALUATION.update(env=evaluation_env(scenario, copies, **overrides), run_dir=Path(run_dir), config=config)
 
 
 def _evaluation_worker_teardown() -> None:
@@ -108,13 +111,12 @@ def _evaluation_worker_teardown() -> None:
     _EVALUATION.clear()
 
 
-def _evaluate_episode(name: str, seed: int) -> Any:
-    """One held-out episode of policy ``name`` ("learned" or a reference) in this worker's env."""
-    env, policies = _EVALUATION["env"], _EVALUATION["policies"]
-    if name not in policies:
-        policies[name] = (learned_policies(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
-                          else baselines.make_policies(name, env))
-    return run_episode(env, policies[name], seed=seed)
+def _evaluate_policy(name: str, seeds: list[int]) -> list[Any]:
+    """The held-out episodes of policy ``name`` ("learned" or a reference) in this worker's batched env."""
+    env = _EVALUATION["env"]
+    source = (learned_policy_factory(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
+              else name)
+    return run_episodes(None, source, seeds, env=env)
 
 
 def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
@@ -126,10 +128,9 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
     overrides = TrainConfig.from_dict(config).training_overrides()
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
     returns = {}
-    with ee_formation_env.parallel_env(saved_scenario(config), **overrides) as env:
+    with evaluation_env(saved_scenario(config), len(seeds), **overrides) as env:
         for name in baselines.POLICIES:
-            policies = baselines.make_policies(name, env)
-            returns[name] = float(np.mean([run_episode(env, policies, seed=seed).mean_return for seed in seeds]))
+            returns[name] = float(np.mean([m.mean_return for m in run_episodes(None, name, seeds, env=env)]))
     return returns
 
 
