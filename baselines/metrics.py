@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
+from gymnasium.utils import seeding
 
 from ee_formation_env.baselines.reference.controllers import FormationController, PolicyTeam, RandomPolicy, ZeroPolicy
 from ee_formation_env.env import FormationEnv
@@ -306,16 +307,35 @@ def stack_policies(policies: Sequence[Policy]) -> Callable[[np.ndarray], np.ndar
 
     A policy class may batch its own kind with a ``stacked(policies)`` classmethod (the learned policies do);
     reference controllers are batched by :class:`PolicyTeam` (one :class:`ControllerBatch` per law and
-    chain, across agents and copies); anything else is called row by row.
+    chain, across agents and copies); anything else is called row by row. A mixed stack is split by kind.
     """
     policies = list(policies)
-    kind = type(policies[0])
-    stacked = getattr(kind, "stacked", None)
-    if stacked is not None and all(type(policy) is kind for policy in policies):
-        return stacked(policies)
-    if all(isinstance(policy, (FormationController, ZeroPolicy, RandomPolicy)) for policy in policies):
+    groups: dict[Any, list[int]] = {}
+    for row, policy in enumerate(policies):
+        kind = type(policy)
+        key = kind if getattr(kind, "stacked", None) is not None else (
+            "team" if isinstance(policy, (FormationController, ZeroPolicy, RandomPolicy)) else "rows")
+        groups.setdefault(key, []).append(row)
+    callers = [(np.array(rows), _stack_of_one_kind(key, [policies[r] for r in rows])) for key, rows in groups.items()]
+    if len(callers) == 1:
+        return callers[0][1]
+
+    def act(observations: np.ndarray) -> np.ndarray:
+        parts = [(rows, np.asarray(caller(observations[rows]))) for rows, caller in callers]
+        actions = np.empty((len(observations), parts[0][1].shape[1]), dtype=np.result_type(*(p for _, p in parts)))
+        for rows, part in parts:
+            actions[rows] = part
+        return actions
+
+    return act
+
+
+def _stack_of_one_kind(key: Any, policies: list) -> Callable[[np.ndarray], np.ndarray]:
+    if key == "team":
         return PolicyTeam(dict(enumerate(policies))).act_on_stack  # float32 actions, as each policy's
-    return lambda observations: np.stack([np.asarray(policy(row)) for policy, row in zip(policies, observations)])
+    if key == "rows":
+        return lambda observations: np.stack([np.asarray(policy(row)) for policy, row in zip(policies, observations)])
+    return key.stacked(policies)
 
 
 class _BatchedTeams:
@@ -404,20 +424,56 @@ def run_episodes(scenario: Any, policy: PolicySource, seeds: Sequence[int],
     return [results[seed] for seed in seeds]
 
 
+def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Sequence[int],
+                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
+                 overrides: Mapping[str, Any] | None = None, max_copies: int = 64) -> dict[str, list[EpisodeMetrics]]:
+    """:func:`run_episodes` of several policies on the same ``seeds``, all (policy, seed) episodes as the copies
+    of one batched env (``len(policies) x len(seeds)`` copies, in rounds of at most ``max_copies``; each copy
+    runs one episode from a fresh world): ``{name: [metrics per seed]}``."""
+    seeds = [int(seed) for seed in seeds]
+    unique = sorted(set(seeds))
+    jobs = [(name, seed) for name in policies for seed in unique]
+    results: dict[tuple[str, int], EpisodeMetrics] = {}
+    per_round = max(1, max_copies // len(unique)) * len(unique) if len(unique) <= max_copies else max_copies
+    for start in range(0, len(jobs), per_round):
+        chunk = jobs[start:start + per_round]
+        with evaluation_env(scenario, len(chunk), **dict(overrides or {})) as env:
+            sources = {name: _policy_source(policies[name]) for name in dict.fromkeys(name for name, _ in chunk)}
+            teams = _BatchedTeams(env, [sources[name](env) for name, _ in chunk])
+            copy_seeds = [seed for _, seed in chunk]
+            results.update(zip(chunk, _run_round(env, teams, copy_seeds, position_tolerance, hold_seconds)))
+    return {name: [results[(name, seed)] for seed in seeds] for name in policies}
+
+
+def _policy_source(policy: PolicySource) -> Callable[[Any], Mapping[str, Policy]]:
+    if isinstance(policy, str):
+        from ee_formation_env.baselines import make_policies
+
+        return lambda copy_env: make_policies(policy, copy_env)
+    return policy
+
+
 def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[int], position_tolerance: float,
                hold_seconds: float) -> list[EpisodeMetrics]:
-    """One episode per seed (sorted, distinct, at most K of them) on the copies 0.. of ``env``; the copies
-    beyond them run too (seeded after the last) and are ignored."""
+    """One episode per seed (at most K of them) on the copies 0.. of ``env``, copy k reset with ``seeds[k]``;
+    the copies beyond them run too (seeded after the last) and are ignored."""
     K, N = env.num_envs, env.task.n_agents
     wanted = len(seeds)
-    copy_seeds = list(seeds) + [seeds[-1] + 1 + j for j in range(K - wanted)]  # sorted, distinct: s_k >= s_0 + k
-    result = env.reset_arrays(seed=copy_seeds[0])
+    copy_seeds = list(seeds) + [max(seeds) + 1 + j for j in range(K - wanted)]
+    # Copy k is reset with copy_seeds[k]: one reset of all from the smallest seed less k when every copy's seed is
+    # reachable that way (seed + k, Gymnasium's convention), then partial resets of the copies that need another.
+    base = max(0, min(seed - k for k, seed in enumerate(copy_seeds)))
+    result = env.reset_arrays(seed=base)
     margins = result.infos["singularity_margin"].copy()  # (K, N) at each copy's reset
-    for k in range(1, K):
-        if copy_seeds[k] != copy_seeds[0] + k:
+    for k in range(K):
+        if copy_seeds[k] != base + k:
             mask = np.zeros(K, dtype=bool)
             mask[k] = True
-            result = env.reset_arrays(seed=copy_seeds[k] - k, options={"reset_mask": mask})
+            if copy_seeds[k] >= k:
+                result = env.reset_arrays(seed=copy_seeds[k] - k, options={"reset_mask": mask})
+            else:  # its seed is below its index: seed its generator directly, as reset(seed) would
+                env.np_randoms[k] = seeding.np_random(copy_seeds[k])[0]
+                result = env.reset_arrays(options={"reset_mask": mask})
             margins[k] = result.infos["singularity_margin"][k]
     observations = result.observations
     teams.reset()

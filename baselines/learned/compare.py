@@ -19,8 +19,7 @@ from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 from ee_formation_env.baselines.learned.policy import learned_policy_factory
-from ee_formation_env.baselines.metrics import (DEFAULT_EVALUATION_COPIES, evaluation_env, format_table, run_episodes,
-                                                summarize)
+from ee_formation_env.baselines.metrics import format_table, run_policies, summarize
 
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
@@ -37,10 +36,11 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     (``eval_episodes``, ``eval_seconds``, ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md``
     and ``.png`` into ``results_dir`` (default: the run folder).
 
-    The episodes of one policy run together on the batched env
-    (:func:`~ee_formation_env.baselines.metrics.run_episodes`, one copy per seed); the policies are shared
-    among ``--eval-workers`` processes (each its own batched env), or run in this one with 0. An episode's
-    result does not depend on where or with which others it runs (same seed, same episode, bit for bit).
+    All (policy, seed) episodes run together as the copies of one batched env
+    (:func:`~ee_formation_env.baselines.metrics.run_policies`), the policies shared among ``--eval-workers``
+    processes (each its own batched env), or all in this one with 0. Each copy runs one episode from a fresh
+    world, so an episode's result does not depend on where or with which others it runs (same seed, same
+    episode, bit for bit).
     """
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
@@ -49,20 +49,21 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
     results_dir.mkdir(parents=True, exist_ok=True)
     scenario = ee_formation_env.load_scenario(saved_scenario(config))
-    setup = (scenario, overrides, str(run_dir), config, len(seeds))
+    setup = (scenario, overrides, str(run_dir), config)
     bar = _evaluation_progress(len(names) * len(seeds), args.no_progress)
 
-    def done(name: str, runs: list[Any]) -> None:
-        episodes.update(((name, seed), metrics) for seed, metrics in zip(seeds, runs))
-        if bar is not None:
-            bar.set_postfix_str(name)
-            bar.update(len(runs))
+    def done(runs: dict[str, list[Any]]) -> None:
+        for name, metrics in runs.items():
+            episodes.update(((name, seed), m) for seed, m in zip(seeds, metrics))
+            if bar is not None:
+                bar.set_postfix_str(name)
+                bar.update(len(metrics))
 
-    if args.eval_workers == 0:
+    workers = min(args.eval_workers, len(names))
+    if workers == 0:
         _evaluation_worker_setup(*setup)
         try:
-            for name in names:
-                done(name, _evaluate_policy(name, seeds))
+            done(_evaluate_policies(names, seeds))
         finally:
             _evaluation_worker_teardown()
     else:
@@ -70,11 +71,11 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         import multiprocessing
 
         with concurrent.futures.ProcessPoolExecutor(
-                min(args.eval_workers, len(names)), mp_context=multiprocessing.get_context("spawn"),
+                workers, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_evaluation_worker_setup, initargs=setup) as pool:
-            futures = {pool.submit(_evaluate_policy, name, seeds): name for name in names}
+            futures = [pool.submit(_evaluate_policies, names[i::workers], seeds) for i in range(workers)]
             for future in concurrent.futures.as_completed(futures):
-                done(futures[future], future.result())
+                done(future.result())
     if bar is not None:
         bar.close()
     else:
@@ -96,27 +97,36 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     return comparison
 
 
-_EVALUATION: dict[str, Any] = {}  # one evaluation worker's batched env and settings
+_EVALUATION: dict[str, Any] = {}  # one evaluation worker's settings
 
 
-def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any],
-                             episodes: int) -> None:
+def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
     _EVALUATION.clear()
-    copies = min(episodes, DEFAULT_EVALUATION_COPIES)
-    _EVALUATION.update(env=evaluation_env(scenario, copies, **overrides), run_dir=Path(run_dir), config=config)
+    _EVALUATION.update(scenario=scenario, overrides=overrides, run_dir=Path(run_dir), config=config)
 
 
 def _evaluation_worker_teardown() -> None:
-    _EVALUATION["env"].close()
     _EVALUATION.clear()
 
 
-def _evaluate_policy(name: str, seeds: list[int]) -> list[Any]:
-    """The held-out episodes of policy ``name`` ("learned" or a reference) in this worker's batched env."""
-    env = _EVALUATION["env"]
-    source = (learned_policy_factory(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
-              else name)
-    return run_episodes(None, source, seeds, env=env)
+def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any]]:
+    """The held-out episodes of the policies ``names`` ("learned" or references), all together in one batched
+    env of this worker."""
+    run_dir, config = _EVALUATION["run_dir"], _EVALUATION["config"]
+    sources: dict[str, Any] = {}
+    for name in names:
+        if name == "learned":
+            factory: list[Any] = []  # the model is read once, with the first copy's env
+
+            def learned(env: Any, factory: list[Any] = factory) -> Any:
+                if not factory:
+                    factory.append(learned_policy_factory(run_dir, env, config))
+                return factory[0](env)
+
+            sources[name] = learned
+        else:
+            sources[name] = name
+    return run_policies(_EVALUATION["scenario"], sources, seeds, overrides=_EVALUATION["overrides"])
 
 
 def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
@@ -127,11 +137,9 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
     """
     overrides = TrainConfig.from_dict(config).training_overrides()
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
-    returns = {}
-    with evaluation_env(saved_scenario(config), len(seeds), **overrides) as env:
-        for name in baselines.POLICIES:
-            returns[name] = float(np.mean([m.mean_return for m in run_episodes(None, name, seeds, env=env)]))
-    return returns
+    runs = run_policies(saved_scenario(config), dict(zip(baselines.POLICIES, baselines.POLICIES)), seeds,
+                        overrides=overrides)
+    return {name: float(np.mean([m.mean_return for m in runs[name]])) for name in baselines.POLICIES}
 
 
 def _evaluation_progress(total: int, disabled: bool) -> Any:

@@ -96,3 +96,18 @@ def test_stacked_controllers_give_each_row_its_own_action():
         for policy in policies.values():
             policy.reset()
         assert np.array_equal(stack_policies(list(policies.values()))(stack), alone)
+
+
+def test_several_policies_share_one_batched_env_each_episode_from_a_fresh_world():
+    """run_policies: every (policy, seed) episode a copy of one env, the same metrics as each policy's
+    episodes run one by one, each in a fresh env (a PyBullet world that ran another episode before can
+    differ once arms touch: restoreState does not clear every contact cache)."""
+    from ee_formation_env.baselines.metrics import run_policies
+
+    seeds = [2, 5]
+    names = ["gradient", "zero", "random"]
+    got = run_policies("spatial_tetrahedron", dict(zip(names, names)), seeds, overrides={"episode_seconds": 0.4},
+                       max_copies=4)
+    for name in names:
+        expected = [one_by_one("spatial_tetrahedron", name, [seed], episode_seconds=0.4)[0] for seed in seeds]
+        assert_same(expected, got[name])
