@@ -393,7 +393,9 @@ def run_episodes(scenario: Any, policy: PolicySource, seeds: Sequence[int],
     internal state; stateless parts may be shared). ``scenario`` and ``overrides`` as for
     :func:`ee_formation_env.parallel_env`; ``env``: a batched env from :func:`evaluation_env` to reuse
     (then ``scenario`` and ``overrides`` are ignored); else one of ``num_envs`` copies (default: one per seed,
-    at most :data:`DEFAULT_EVALUATION_COPIES`) is built and closed. More seeds than copies run in rounds.
+    at most :data:`DEFAULT_EVALUATION_COPIES`) is built and closed for each round of at most that many seeds,
+so that every episode starts from a fresh world (a world that ran another contact-rich episode need not
+replay it bit for bit).
 
     Each copy runs its episode to its end (termination or truncation); the SAME_STEP autoreset then starts
     it again, and what it does afterwards is ignored, while the other copies finish theirs. Recording,
@@ -403,24 +405,23 @@ def run_episodes(scenario: Any, policy: PolicySource, seeds: Sequence[int],
     unique = sorted(set(seeds))
     if not unique:
         return []
-    own = env is None
-    if own:
-        count = num_envs or min(len(unique), DEFAULT_EVALUATION_COPIES)
-        env = evaluation_env(scenario, count, **dict(overrides or {}))
-    try:
-        if isinstance(policy, str):
-            from ee_formation_env.baselines import make_policies
+    if isinstance(policy, str):
+        from ee_formation_env.baselines import make_policies
 
-            name, kwargs = policy, dict(policy_kwargs or {})
-            policy = lambda copy_env: make_policies(name, copy_env, **kwargs)  # noqa: E731
-        teams = _BatchedTeams(env, [policy(env) for _ in range(env.num_envs)])
-        results: dict[int, EpisodeMetrics] = {}
-        for start in range(0, len(unique), env.num_envs):
-            chunk = unique[start:start + env.num_envs]
-            results.update(zip(chunk, _run_round(env, teams, chunk, position_tolerance, hold_seconds)))
-    finally:
-        if own:
-            env.close()
+        name, kwargs = policy, dict(policy_kwargs or {})
+        policy = lambda copy_env: make_policies(name, copy_env, **kwargs)  # noqa: E731
+    results: dict[int, EpisodeMetrics] = {}
+    count = env.num_envs if env is not None else num_envs or min(len(unique), DEFAULT_EVALUATION_COPIES)
+    for start in range(0, len(unique), count):
+        chunk = unique[start:start + count]
+        # Without a given env, each round gets a fresh one: every episode then starts from a fresh world.
+        round_env = env if env is not None else evaluation_env(scenario, count, **dict(overrides or {}))
+        try:
+            teams = _BatchedTeams(round_env, [policy(round_env) for _ in range(round_env.num_envs)])
+            results.update(zip(chunk, _run_round(round_env, teams, chunk, position_tolerance, hold_seconds)))
+        finally:
+            if env is None:
+                round_env.close()
     return [results[seed] for seed in seeds]
 
 
