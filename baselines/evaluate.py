@@ -26,7 +26,7 @@ import ee_formation_env
 from ee_formation_env.baselines import POLICIES, make_policies
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.metrics import (DEFAULT_POSITION_TOLERANCE, EpisodeMetrics, format_table, metric_definitions,
-                               run_episode, summarize)
+                               run_episode, run_episodes, summarize)
 from ee_formation_env.env import FormationEnv
 
 
@@ -90,20 +90,28 @@ def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
 
     ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``; the
     names made safe by :func:`file_stem`, so that a scenario's ``name`` cannot put it elsewhere), rendered as
-    ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode.
+    ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode (without videos, the
+    episodes run together on the batched env, :func:`~ee_formation_env.baselines.metrics.run_episodes`, and it
+    is called for each once they have all ended).
     """
-    render_mode = None if video_dir is None else "rgb_array"
+    if video_dir is None:  # every episode at once on the batched env: the same metrics, bit for bit
+        seeds = [seed + k for k in range(episodes)]
+        results = run_episodes(scenario, policy, seeds, position_tolerance=position_tolerance, overrides=overrides,
+                               policy_kwargs=policy_kwargs)
+        if on_episode is not None:
+            for episode_seed, metrics in zip(seeds, results):
+                on_episode(policy, episode_seed, metrics)
+        summary = summarize(results)
+        summary["per_episode"] = [r.as_dict() for r in results]
+        return summary
     results = []
-    with ee_formation_env.parallel_env(scenario, render_mode=render_mode, **(overrides or {})) as env:
+    with ee_formation_env.parallel_env(scenario, render_mode="rgb_array", **(overrides or {})) as env:
         policies = make_policies(policy, env, **(policy_kwargs or {}))
         for k in range(episodes):
-            if video_dir is None:
-                metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance)
-            else:
-                video = EpisodeVideo(env)
-                metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance,
-                                      on_reset=video.capture, on_step=video.capture)
-                video.write(video_path(video_dir, env.scenario.name, policy, seed + k))
+            video = EpisodeVideo(env)
+            metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance,
+                                  on_reset=video.capture, on_step=video.capture)
+            video.write(video_path(video_dir, env.scenario.name, policy, seed + k))
             results.append(metrics)
             if on_episode is not None:
                 on_episode(policy, seed + k, metrics)

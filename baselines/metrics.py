@@ -18,9 +18,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
+from gymnasium.utils import seeding
 
-from ee_formation_env.baselines.reference.controllers import PolicyTeam
+from ee_formation_env.baselines.reference.controllers import FormationController, PolicyTeam, RandomPolicy, ZeroPolicy
 from ee_formation_env.env import FormationEnv
+from ee_formation_env.vector import VectorFormationEnv
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
 
 
@@ -276,3 +278,278 @@ def metric_definitions(markdown: bool = False) -> str:
     width = max(len(c.header) for c in METRIC_COLUMNS)
     return "\n".join(textwrap.fill(c.meaning, 110, initial_indent=f"  {c.header:<{width}}  ",
                                    subsequent_indent=" " * (width + 4)) for c in METRIC_COLUMNS)
+
+
+# ------------------------------------------------------------------------------------------ batched episodes
+class EvaluationVectorEnv(VectorFormationEnv):
+    """The batched env (:class:`ee_formation_env.vector.VectorFormationEnv`) as :func:`run_episodes` steps it:
+    the same copies, plus what policies and metrics need of a single env. ``observation_layout(agent)`` (the
+    policy builders take the env), and ``ended_end_effectors`` (K, N, 3): each copy's end-effector positions
+    just before its last autoreset (SAME_STEP autoreset replaces an ended copy's state at once, and the
+    centroid drift needs its final one)."""
+
+    def __init__(self, scenario: Any, num_envs: int = 1, **overrides: Any):
+        super().__init__(scenario, num_envs=num_envs, **overrides)
+        self.ended_end_effectors = np.zeros((self.num_envs, self.task.n_agents, 3))
+
+    def observation_layout(self, agent: str) -> Any:
+        return self._observer.layouts[self.task.agent_index(agent)]
+
+    def _reset_copies(self, rows: np.ndarray) -> None:
+        if self._measurement is not None:
+            self.ended_end_effectors[rows] = self._measurement.ee_world[rows]
+        super()._reset_copies(rows)
+
+
+def stack_policies(policies: Sequence[Policy]) -> Callable[[np.ndarray], np.ndarray]:
+    """One callable for a stack of agents' policies: ``(k, size)`` observations (row r is policy r's) ->
+    ``(k, n)`` actions, each row exactly (bit for bit) the action policy r returns alone.
+
+    A policy class may batch its own kind with a ``stacked(policies)`` classmethod (the learned policies do);
+    reference controllers are batched by :class:`PolicyTeam` (one :class:`ControllerBatch` per law and
+    chain, across agents and copies); anything else is called row by row. A mixed stack is split by kind.
+    """
+    policies = list(policies)
+    groups: dict[Any, list[int]] = {}
+    for row, policy in enumerate(policies):
+        kind = type(policy)
+        key = kind if getattr(kind, "stacked", None) is not None else (
+            "team" if isinstance(policy, (FormationController, ZeroPolicy, RandomPolicy)) else "rows")
+        groups.setdefault(key, []).append(row)
+    callers = [(np.array(rows), _stack_of_one_kind(key, [policies[r] for r in rows])) for key, rows in groups.items()]
+    if len(callers) == 1:
+        return callers[0][1]
+
+    def act(observations: np.ndarray) -> np.ndarray:
+        parts = [(rows, np.asarray(caller(observations[rows]))) for rows, caller in callers]
+        actions = np.empty((len(observations), parts[0][1].shape[1]), dtype=np.result_type(*(p for _, p in parts)))
+        for rows, part in parts:
+            actions[rows] = part
+        return actions
+
+    return act
+
+
+def _stack_of_one_kind(key: Any, policies: list) -> Callable[[np.ndarray], np.ndarray]:
+    if key == "team":
+        return PolicyTeam(dict(enumerate(policies))).act_on_stack  # float32 actions, as each policy's
+    if key == "rows":
+        return lambda observations: np.stack([np.asarray(policy(row)) for policy, row in zip(policies, observations)])
+    return key.stacked(policies)
+
+
+class _BatchedTeams:
+    """The policies of K copies of one team, called on the batched env's observations (K, O) -> actions (K, T):
+    all K x N agents as one stack when every agent has the same observation size and joints, else one stack
+    per agent."""
+
+    def __init__(self, env: VectorFormationEnv, teams: Sequence[Mapping[str, Policy]]):
+        agents = list(env.possible_agents)
+        self.teams, self.K, self.N = list(teams), len(teams), len(agents)
+        slices = env.observation_slices
+        sizes = {part.stop - part.start for part in slices}
+        contiguous = all(a.stop == b.start for a, b in zip(slices, slices[1:])) and slices[0].start == 0
+        if len(sizes) == 1 and env._uniform_joints is not None and contiguous:
+            self.size, self.n = sizes.pop(), env._uniform_joints
+            self.whole = stack_policies([team[agent] for team in self.teams for agent in agents])
+            self.parts = None
+        else:
+            self.whole = None
+            self.parts = [(part, stack_policies([team[agent] for team in self.teams])) for agent, part in
+                          zip(agents, slices)]
+
+    def reset(self) -> None:
+        for team in self.teams:
+            for policy in team.values():
+                policy.reset()
+
+    def __call__(self, observations: np.ndarray) -> np.ndarray:
+        if self.whole is not None:
+            actions = self.whole(observations[:, :self.size * self.N].reshape(self.K * self.N, self.size))
+            return np.asarray(actions).reshape(self.K, self.N * self.n)
+        return np.concatenate([np.asarray(act(observations[:, part])) for part, act in self.parts], axis=1)
+
+
+PolicySource = Any  # a policy name (baselines.POLICIES) or a callable env -> {agent: policy}, called once per copy
+
+DEFAULT_EVALUATION_COPIES = 16  # copies of the scenario stepped together by run_episodes (~30 MB each)
+
+
+def evaluation_env(scenario: Any, num_envs: int, **overrides: Any) -> EvaluationVectorEnv:
+    """The batched env :func:`run_episodes` steps (``num_envs`` copies, scenario ``overrides``)."""
+    return EvaluationVectorEnv(scenario, num_envs=num_envs, **overrides)
+
+
+def run_episodes(scenario: Any, policy: PolicySource, seeds: Sequence[int],
+                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
+                 overrides: Mapping[str, Any] | None = None, policy_kwargs: Mapping[str, Any] | None = None,
+                 num_envs: int | None = None, env: EvaluationVectorEnv | None = None) -> list[EpisodeMetrics]:
+    """The episodes ``reset(seed=s)`` for every ``s`` of ``seeds``, run together on the batched env: the
+    :class:`EpisodeMetrics` of each, in the order of ``seeds``, equal field for field to what
+    :func:`run_episode` gives for that seed (``tests/baselines/test_metrics_batched.py``).
+
+    ``policy``: a reference policy's name (built by ``baselines.make_policies(name, env, **policy_kwargs)``)
+    or a callable ``env -> {agent: policy}``, called once per copy (each copy's policies keep their own
+    internal state; stateless parts may be shared). ``scenario`` and ``overrides`` as for
+    :func:`ee_formation_env.parallel_env`; ``env``: a batched env from :func:`evaluation_env` to reuse
+    (then ``scenario`` and ``overrides`` are ignored); else one of ``num_envs`` copies (default: one per seed,
+    at most :data:`DEFAULT_EVALUATION_COPIES`) is built and closed for each round of at most that many seeds,
+so that every episode starts from a fresh world (a world that ran another contact-rich episode need not
+replay it bit for bit).
+
+    Each copy runs its episode to its end (termination or truncation); the SAME_STEP autoreset then starts
+    it again, and what it does afterwards is ignored, while the other copies finish theirs. Recording,
+    rendering and the hooks of :func:`run_episode` are not available here (use :func:`run_episode`).
+    """
+    seeds = [int(seed) for seed in seeds]
+    unique = sorted(set(seeds))
+    if not unique:
+        return []
+    if isinstance(policy, str):
+        from ee_formation_env.baselines import make_policies
+
+        name, kwargs = policy, dict(policy_kwargs or {})
+        policy = lambda copy_env: make_policies(name, copy_env, **kwargs)  # noqa: E731
+    results: dict[int, EpisodeMetrics] = {}
+    count = env.num_envs if env is not None else num_envs or min(len(unique), DEFAULT_EVALUATION_COPIES)
+    for start in range(0, len(unique), count):
+        chunk = unique[start:start + count]
+        # Without a given env, each round gets a fresh one: every episode then starts from a fresh world.
+        round_env = env if env is not None else evaluation_env(scenario, count, **dict(overrides or {}))
+        try:
+            teams = _BatchedTeams(round_env, [policy(round_env) for _ in range(round_env.num_envs)])
+            results.update(zip(chunk, _run_round(round_env, teams, chunk, position_tolerance, hold_seconds)))
+        finally:
+            if env is None:
+                round_env.close()
+    return [results[seed] for seed in seeds]
+
+
+def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Sequence[int],
+                 position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
+                 overrides: Mapping[str, Any] | None = None, max_copies: int = 64) -> dict[str, list[EpisodeMetrics]]:
+    """:func:`run_episodes` of several policies on the same ``seeds``, all (policy, seed) episodes as the copies
+    of one batched env (``len(policies) x len(seeds)`` copies, in rounds of at most ``max_copies``; each copy
+    runs one episode from a fresh world): ``{name: [metrics per seed]}``."""
+    seeds = [int(seed) for seed in seeds]
+    unique = sorted(set(seeds))
+    jobs = [(name, seed) for name in policies for seed in unique]
+    results: dict[tuple[str, int], EpisodeMetrics] = {}
+    per_round = max(1, max_copies // len(unique)) * len(unique) if len(unique) <= max_copies else max_copies
+    for start in range(0, len(jobs), per_round):
+        chunk = jobs[start:start + per_round]
+        with evaluation_env(scenario, len(chunk), **dict(overrides or {})) as env:
+            sources = {name: _policy_source(policies[name]) for name in dict.fromkeys(name for name, _ in chunk)}
+            teams = _BatchedTeams(env, [sources[name](env) for name, _ in chunk])
+            copy_seeds = [seed for _, seed in chunk]
+            results.update(zip(chunk, _run_round(env, teams, copy_seeds, position_tolerance, hold_seconds)))
+    return {name: [results[(name, seed)] for seed in seeds] for name in policies}
+
+
+def _policy_source(policy: PolicySource) -> Callable[[Any], Mapping[str, Policy]]:
+    if isinstance(policy, str):
+        from ee_formation_env.baselines import make_policies
+
+        return lambda copy_env: make_policies(policy, copy_env)
+    return policy
+
+
+def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[int], position_tolerance: float,
+               hold_seconds: float) -> list[EpisodeMetrics]:
+    """One episode per seed (at most K of them) on the copies 0.. of ``env``, copy k reset with ``seeds[k]``;
+    the copies beyond them run too (seeded after the last) and are ignored."""
+    K, N = env.num_envs, env.task.n_agents
+    wanted = len(seeds)
+    copy_seeds = list(seeds) + [max(seeds) + 1 + j for j in range(K - wanted)]
+    # Copy k is reset with copy_seeds[k]: one reset of all from the smallest seed less k when every copy's seed is
+    # reachable that way (seed + k, Gymnasium's convention), then partial resets of the copies that need another.
+    base = max(0, min(seed - k for k, seed in enumerate(copy_seeds)))
+    result = env.reset_arrays(seed=base)
+    margins = result.infos["singularity_margin"].copy()  # (K, N) at each copy's reset
+    for k in range(K):
+        if copy_seeds[k] != base + k:
+            mask = np.zeros(K, dtype=bool)
+            mask[k] = True
+            if copy_seeds[k] >= k:
+                result = env.reset_arrays(seed=copy_seeds[k] - k, options={"reset_mask": mask})
+            else:  # its seed is below its index: seed its generator directly, as reset(seed) would
+                env.np_randoms[k] = seeding.np_random(copy_seeds[k])[0]
+                result = env.reset_arrays(options={"reset_mask": mask})
+            margins[k] = result.infos["singularity_margin"][k]
+    observations = result.observations
+    teams.reset()
+    dt = env.scenario.control_dt
+    tolerance = _formation_tolerance(env.task.formation, position_tolerance)
+    start = env.end_effector_positions()
+    start_centroids = [start[k].mean(axis=0) for k in range(wanted)]
+    joint_slices = env.joint_slices
+    uniform = env._uniform_joints
+    T = env.n_joints
+    active = np.zeros(K, dtype=bool)
+    active[:wanted] = True
+    errors: list[list[float]] = [[] for _ in range(wanted)]
+    energy, peak = np.zeros(K), np.zeros(K)
+    clipped, entries, contact_steps = np.zeros(K, dtype=np.int64), np.zeros(K, dtype=np.int64), np.zeros(K, dtype=np.int64)
+    returns = np.zeros((K, N))
+    min_margin = margins.min(axis=1)
+    faults = [""] * wanted
+    end_centroids: list[np.ndarray | None] = [None] * wanted
+    while active.any():
+        actions = teams(observations)
+        result = env.step_arrays(actions)
+        observations, infos = result.observations, result.infos
+        torques = infos["applied_torque"]  # (K, T)
+        # Per agent |tau|^2 as run_episode's float(tau @ tau): a stacked matmul gives each row's dot bit for bit.
+        if uniform is not None:
+            split = torques.reshape(K, N, 1, uniform)
+            squares = (split @ split.reshape(K, N, uniform, 1))[:, :, 0, 0]
+        else:
+            squares = np.stack([(torques[:, part][:, None, :] @ torques[:, part][:, :, None])[:, 0, 0]
+                                for part in joint_slices], axis=1)
+        step_energy = squares[:, 0]
+        for i in range(1, N):
+            step_energy = step_energy + squares[:, i]
+        rows = np.flatnonzero(active)
+        energy[rows] += step_energy[rows] * dt
+        peak[rows] = np.maximum(peak[rows], np.abs(torques[rows]).max(axis=1))
+        clipped[rows] += np.count_nonzero(np.abs(np.asarray(actions, dtype=np.float64).reshape(K, T)[rows]) > 1.0,
+                                          axis=1)
+        entries[rows] += T
+        contact_steps[rows] += (infos["contacts"][rows] > 0).any(axis=1)
+        min_margin[rows] = np.minimum(min_margin[rows], infos["singularity_margin"][rows].min(axis=1))
+        returns[rows] += result.rewards[rows]
+        formation_error = infos["formation_error"]
+        fault_flags, reasons = infos["physics_fault"], infos["physics_fault_reason"]
+        ended = result.terminations | result.truncations
+        for k in rows:
+            errors[k].append(float(formation_error[k]))
+            if fault_flags[k] and not faults[k]:
+                faults[k] = str(reasons[k])
+            if ended[k]:
+                end_centroids[k] = env.ended_end_effectors[k].mean(axis=0)
+                active[k] = False
+    metrics = []
+    for k in range(wanted):
+        series = np.asarray(errors[k])
+        success, settling_time = settle(series, tolerance, dt, hold_seconds, faulted=bool(faults[k]))
+        metrics.append(EpisodeMetrics(
+            success=success,
+            final_formation_error=float(series[-1]),
+            settling_time=settling_time,
+            control_energy=float(energy[k]),
+            peak_torque=float(peak[k]),
+            saturation_fraction=int(clipped[k]) / max(int(entries[k]), 1),
+            min_singularity_margin=float(min_margin[k]),
+            contact_steps=int(contact_steps[k]),
+            centroid_drift=float(np.linalg.norm(end_centroids[k] - start_centroids[k])),
+            mean_return=float(np.mean(list(returns[k]))),
+            sim_time=len(series) * dt,
+            physics_fault=faults[k],
+        ))
+    return metrics
+
+
+def _formation_tolerance(formation: Any, position_tolerance: float) -> float:
+    """:func:`formation_tolerance` from the formation itself."""
+    lengths = np.linalg.norm(formation.desired_vectors, axis=1)
+    return float(np.sqrt(np.mean(edge_tolerances(formation.kind, lengths, position_tolerance) ** 2)))

@@ -18,8 +18,8 @@ from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
-from ee_formation_env.baselines.learned.policy import learned_policies
-from ee_formation_env.baselines.metrics import format_table, run_episode, summarize
+from ee_formation_env.baselines.learned.policy import learned_policy_factory
+from ee_formation_env.baselines.metrics import format_table, run_policies, summarize
 
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
@@ -36,31 +36,34 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     (``eval_episodes``, ``eval_seconds``, ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md``
     and ``.png`` into ``results_dir`` (default: the run folder).
 
-    Episodes run in ``--eval-workers`` processes (each its own env), or in this one with 0; an episode's
-    result does not depend on where it runs (same seed, same episode, bit for bit).
+    All (policy, seed) episodes run together as the copies of one batched env
+    (:func:`~ee_formation_env.baselines.metrics.run_policies`), the policies shared among ``--eval-workers``
+    processes (each its own batched env), or all in this one with 0. Each copy runs one episode from a fresh
+    world, so an episode's result does not depend on where or with which others it runs (same seed, same
+    episode, bit for bit).
     """
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
     names = ["learned", *baselines.POLICIES]
-    jobs = [(name, seed) for name in names for seed in seeds]
     episodes: dict[tuple[str, int], Any] = {}
     results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
     results_dir.mkdir(parents=True, exist_ok=True)
     scenario = ee_formation_env.load_scenario(saved_scenario(config))
     setup = (scenario, overrides, str(run_dir), config)
-    bar = _evaluation_progress(len(jobs), args.no_progress)
+    bar = _evaluation_progress(len(names) * len(seeds), args.no_progress)
 
-    def done(job: tuple[str, int], metrics: Any) -> None:
-        episodes[job] = metrics
-        if bar is not None:
-            bar.set_postfix_str(job[0])
-            bar.update(1)
+    def done(runs: dict[str, list[Any]]) -> None:
+        for name, metrics in runs.items():
+            episodes.update(((name, seed), m) for seed, m in zip(seeds, metrics))
+            if bar is not None:
+                bar.set_postfix_str(name)
+                bar.update(len(metrics))
 
-    if args.eval_workers == 0:
+    workers = min(args.eval_workers, len(names))
+    if workers == 0:
         _evaluation_worker_setup(*setup)
         try:
-            for job in jobs:
-                done(job, _evaluate_episode(*job))
+            done(_evaluate_policies(names, seeds))
         finally:
             _evaluation_worker_teardown()
     else:
@@ -68,11 +71,11 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         import multiprocessing
 
         with concurrent.futures.ProcessPoolExecutor(
-                args.eval_workers, mp_context=multiprocessing.get_context("spawn"),
+                workers, mp_context=multiprocessing.get_context("spawn"),
                 initializer=_evaluation_worker_setup, initargs=setup) as pool:
-            futures = {pool.submit(_evaluate_episode, *job): job for job in jobs}
+            futures = [pool.submit(_evaluate_policies, names[i::workers], seeds) for i in range(workers)]
             for future in concurrent.futures.as_completed(futures):
-                done(futures[future], future.result())
+                done(future.result())
     if bar is not None:
         bar.close()
     else:
@@ -94,27 +97,36 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     return comparison
 
 
-_EVALUATION: dict[str, Any] = {}  # one evaluation worker's env and policies
+_EVALUATION: dict[str, Any] = {}  # one evaluation worker's settings
 
 
 def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
     _EVALUATION.clear()
-    _EVALUATION.update(env=ee_formation_env.parallel_env(scenario, **overrides), run_dir=Path(run_dir), config=config,
-                       policies={})
+    _EVALUATION.update(scenario=scenario, overrides=overrides, run_dir=Path(run_dir), config=config)
 
 
 def _evaluation_worker_teardown() -> None:
-    _EVALUATION["env"].close()
     _EVALUATION.clear()
 
 
-def _evaluate_episode(name: str, seed: int) -> Any:
-    """One held-out episode of policy ``name`` ("learned" or a reference) in this worker's env."""
-    env, policies = _EVALUATION["env"], _EVALUATION["policies"]
-    if name not in policies:
-        policies[name] = (learned_policies(_EVALUATION["run_dir"], env, _EVALUATION["config"]) if name == "learned"
-                          else baselines.make_policies(name, env))
-    return run_episode(env, policies[name], seed=seed)
+def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any]]:
+    """The held-out episodes of the policies ``names`` ("learned" or references), all together in one batched
+    env of this worker."""
+    run_dir, config = _EVALUATION["run_dir"], _EVALUATION["config"]
+    sources: dict[str, Any] = {}
+    for name in names:
+        if name == "learned":
+            factory: list[Any] = []  # the model is read once, with the first copy's env
+
+            def learned(env: Any, factory: list[Any] = factory) -> Any:
+                if not factory:
+                    factory.append(learned_policy_factory(run_dir, env, config))
+                return factory[0](env)
+
+            sources[name] = learned
+        else:
+            sources[name] = name
+    return run_policies(_EVALUATION["scenario"], sources, seeds, overrides=_EVALUATION["overrides"])
 
 
 def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
@@ -125,12 +137,9 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
     """
     overrides = TrainConfig.from_dict(config).training_overrides()
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
-    returns = {}
-    with ee_formation_env.parallel_env(saved_scenario(config), **overrides) as env:
-        for name in baselines.POLICIES:
-            policies = baselines.make_policies(name, env)
-            returns[name] = float(np.mean([run_episode(env, policies, seed=seed).mean_return for seed in seeds]))
-    return returns
+    runs = run_policies(saved_scenario(config), dict(zip(baselines.POLICIES, baselines.POLICIES)), seeds,
+                        overrides=overrides)
+    return {name: float(np.mean([m.mean_return for m in runs[name]])) for name in baselines.POLICIES}
 
 
 def _evaluation_progress(total: int, disabled: bool) -> Any:

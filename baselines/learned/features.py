@@ -20,7 +20,7 @@ The same transform runs in training (:class:`FeatureEnv`, around the env the lea
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import gymnasium
 import numpy as np
@@ -141,6 +141,17 @@ class FeaturePolicy:
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         return self.policy(self.transform(observation))
+
+    @classmethod
+    def stacked(cls, policies: Sequence["FeaturePolicy"]) -> Callable[[np.ndarray], np.ndarray]:
+        """A stack of these policies as one callable ``(k, size) -> (k, n)``: features row by row, the inner
+        policies as one stack (:func:`~ee_formation_env.baselines.metrics.stack_policies`)."""
+        from ee_formation_env.baselines.metrics import stack_policies
+
+        policies = list(policies)
+        inner = stack_policies([policy.policy for policy in policies])
+        return lambda observations: inner(np.stack([policy.transform(row) for policy, row in
+                                                    zip(policies, observations)]))
 
 
 def _check(features: str) -> None:

@@ -9,7 +9,7 @@ reference policy.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -66,6 +66,18 @@ class LearnedPolicy:
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         return np.clip(self.predict(self.normalizer(observation)), -1.0, 1.0)
 
+    @classmethod
+    def stacked(cls, policies: Sequence["LearnedPolicy"]) -> Callable[[np.ndarray], np.ndarray]:
+        """A stack of learned policies as one callable ``(k, size) -> (k, n)``, each row its policy's action
+        bit for bit: one call of the actor when they share it and it takes stacks row by row exactly
+        (``predict.stacks``, the numpy actor), else one call per row."""
+        policies = list(policies)
+        first = policies[0]
+        if getattr(first.predict, "stacks", False) and all(
+                policy.predict is first.predict and policy.normalizer is first.normalizer for policy in policies):
+            return first
+        return lambda observations: np.stack([policy(row) for policy, row in zip(policies, observations)])
+
 
 MODEL_FOLDER = "model"  # a run's final model, in the checkpoint format
 
@@ -73,6 +85,13 @@ MODEL_FOLDER = "model"  # a run's final model, in the checkpoint format
 def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[str, Any]:
     """Per-agent policies of a saved run (its ``model/`` folder), the residual composition included; nothing in
     the files is executed (:mod:`ee_formation_env.baselines.learned.checkpoint`)."""
+    return learned_policy_factory(run_dir, env, config)(env)
+
+
+def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> Callable[[Any], dict[str, Any]]:
+    """``env -> per-agent policies`` of a saved run (as :func:`learned_policies`), the model read once: each
+    call gives fresh reference controllers (their own internal state) around the one shared, stateless learned
+    part, what :func:`ee_formation_env.baselines.metrics.run_episodes` calls once per copy."""
     model_dir = Path(run_dir) / MODEL_FOLDER
     normalizer = ObservationNormalizer.load(model_dir / "obs_normalizer.json")
     if config["backend"] == "sb3":
@@ -86,13 +105,17 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
     features = config.get("obs_features", "none")  # runs saved before the option had none
     per_agent = {agent: learned if features == "none" else
                  FeaturePolicy(learned, env.observation_layout(agent), features) for agent in env.possible_agents}
-    if config["mode"] == "torque":
-        return per_agent
-    references = baselines.make_policies(config["reference"], env)
     gate = config.get("residual_gate", False)
-    return {agent: ResidualPolicy(references[agent], per_agent[agent], config["residual_scale"],
-                                  env.observation_layout(agent) if gate else None)
-            for agent in env.possible_agents}
+
+    def build(copy_env: Any) -> dict[str, Any]:
+        if config["mode"] == "torque":
+            return dict(per_agent)
+        references = baselines.make_policies(config["reference"], copy_env)
+        return {agent: ResidualPolicy(references[agent], per_agent[agent], config["residual_scale"],
+                                      copy_env.observation_layout(agent) if gate else None)
+                for agent in copy_env.possible_agents}
+
+    return build
 
 
 def _numpy_actor(policy: Any) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -110,10 +133,14 @@ def _numpy_actor(policy: Any) -> Callable[[np.ndarray], np.ndarray] | None:
 
     def predict(observation: np.ndarray) -> np.ndarray:
         hidden = np.asarray(observation, dtype=np.float64)
+        stack = hidden.ndim == 2
+        if stack:  # (k, 1, d) @ (d, h): a stacked matmul, row by row the products of one observation, exactly
+            hidden = hidden[:, None, :]
         for step in steps:
             hidden = np.tanh(hidden) if step is None else hidden @ step[0] + step[1]
-        return hidden
+        return hidden[:, 0, :] if stack else hidden
 
+    predict.stacks = True  # a stack (k, d) gives each row's action bit for bit (LearnedPolicy.stacked)
     return predict
 
 

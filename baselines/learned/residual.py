@@ -73,6 +73,31 @@ class ResidualPolicy:
         scale = self.scale if self.gate_layout is None else self.scale * error_gate(self.gate_layout, observation)
         return combine(self.reference(observation), self.learned(observation), scale)
 
+    @classmethod
+    def stacked(cls, policies: Sequence["ResidualPolicy"]):
+        """A stack of residual policies as one callable ``(k, size) -> (k, n)``, each row its policy's action
+        bit for bit: the references batched as a team (:func:`~ee_formation_env.baselines.metrics.stack_policies`),
+        the learned parts as one stack, the gates per layout in one call."""
+        from ee_formation_env.baselines.metrics import stack_policies
+
+        policies = list(policies)
+        references = stack_policies([policy.reference for policy in policies])
+        learned = stack_policies([policy.learned for policy in policies])
+        scales = np.array([policy.scale for policy in policies], dtype=np.float64)
+        groups: dict[Any, list[int]] = {}
+        for row, policy in enumerate(policies):
+            if policy.gate_layout is not None:
+                groups.setdefault(policy.gate_layout, []).append(row)
+        gated = [(layout, np.array(rows)) for layout, rows in groups.items()]
+
+        def act(observations: np.ndarray) -> np.ndarray:
+            scale = scales.copy()
+            for layout, rows in gated:
+                scale[rows] = scales[rows] * error_gates(layout, observations[rows])
+            return combine(np.asarray(references(observations)), np.asarray(learned(observations)), scale[:, None])
+
+        return act
+
 
 class ResidualActionEnv(BaseParallelWrapper):
     """A parallel env whose actions are residuals on top of one reference controller per agent.
