@@ -2,7 +2,7 @@
 ``--eval-episodes`` episodes), two source trees run alternately on the same saved runs, with the numbers
 checked equal.
 
-    flock /work/scratch/bench.lock python -m benchmarks.paired_evaluation --before OLD_TREE RUN_DIR [RUN_DIR ...]
+    python -m benchmarks.paired_evaluation --before OLD_TREE RUN_DIR [RUN_DIR ...]
 
 ``OLD_TREE``: an export of the old code (``git archive <commit> | tar -x -C OLD_TREE``) with the two
 symlinks ``OLD_TREE/ee_formation_env/baselines -> ../baselines`` and ``.../assets -> ../assets``, so that

@@ -13,7 +13,7 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from ee_formation_env.formation import Formation, FormationGraph, formation_error_from_squares
-from ee_formation_env.inputs import check_seed, excerpt
+from ee_formation_env.inputs import check_seed, excerpt, numeric_action
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
@@ -330,20 +330,7 @@ class FormationEnv(ParallelEnv):
         return np.concatenate(checked)
 
     def _action_array(self, agent: str, action: Any) -> np.ndarray:
-        """``agent``'s action as a float64 array of its shape; ``ValueError`` naming the agent if it is not a
-        numeric (bool, int or float; not string, object or complex) array of that shape."""
-        shape = self._action_spaces[agent].shape
-        try:
-            raw = np.asarray(action)
-            if raw.dtype.kind not in "biuf":
-                raise ValueError
-            array = raw.astype(np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}, got "
-                             f"{type(action).__name__} {excerpt(action)}") from None
-        if array.shape != shape:
-            raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {array.shape}")
-        return array
+        return numeric_action(agent, action, self._action_spaces[agent].shape)
 
     def check_action(self, agent: str, action: Any) -> None:
         """Check one agent's action as :meth:`step` does (a numeric array of its action space's shape, finite);

@@ -110,3 +110,19 @@ def _children(node: yaml.Node) -> list[yaml.Node]:
     if isinstance(node, yaml.MappingNode):
         return [item for pair in node.value for item in pair]
     return []
+
+
+def numeric_action(agent: str, action: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """``agent``'s action as a float64 array of ``shape``; ``ValueError`` naming the agent if it is not a numeric
+    (bool, int or float; not string, object or complex) array of that shape."""
+    try:
+        raw = np.asarray(action)
+        if raw.dtype.kind not in "biuf":
+            raise ValueError
+        array = raw.astype(np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}, got "
+                         f"{type(action).__name__} {excerpt(action)}") from None
+    if array.shape != shape:
+        raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {array.shape}")
+    return array

@@ -88,7 +88,6 @@ argument       meaning
 
 from __future__ import annotations
 
-import math
 import os
 from typing import Any, Mapping, NamedTuple
 
@@ -99,7 +98,7 @@ from gymnasium.utils import seeding
 from ee_formation_env.env import (PHYSICS_FAULTS, Measurement, build_world, measure, physics_fault, reward_array,
                                   reset_world)
 from ee_formation_env.formation import formation_errors_from_squares
-from ee_formation_env.inputs import check_seed, excerpt
+from ee_formation_env.inputs import check_seed, excerpt, numeric_action
 from ee_formation_env.observation import ObservationBuilder
 from ee_formation_env.reward import edge_tolerances
 from ee_formation_env.scenario import Scenario, load_scenario
@@ -429,18 +428,7 @@ class VectorFormationEnv:
         return normalized, clipped
 
     def _action_array(self, agent: str, action: Any) -> np.ndarray:
-        shape = (self.num_envs, *self._action_spaces[agent].shape)
-        try:
-            raw = np.asarray(action)
-            if raw.dtype.kind not in "biuf":
-                raise ValueError
-            array = raw.astype(np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"actions[{agent!r}]: expected a numeric array of shape {shape}, got "
-                             f"{type(action).__name__} {excerpt(action)}") from None
-        if array.shape != shape:
-            raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {array.shape}")
-        return array
+        return numeric_action(agent, action, (self.num_envs, *self._action_spaces[agent].shape))
 
     def _check_action_array(self, actions: Any) -> np.ndarray:
         """A fresh float64 (K, T) copy of the array API's actions, or a ``ValueError`` starting ``actions:``."""
