@@ -17,6 +17,15 @@ from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.inputs import check_seed
 
 
+def joint_spaces(env: Any) -> tuple[gymnasium.spaces.Box, gymnasium.spaces.Box]:
+    """The centralized observation and action spaces of ``env``: every agent's single-copy Box, concatenated in
+    agent order."""
+    agents = env.possible_agents
+    spaces = ([env.observation_space(agent) for agent in agents], [env.action_space(agent) for agent in agents])
+    return tuple(gymnasium.spaces.Box(np.concatenate([s.low for s in group]), np.concatenate([s.high for s in group]),
+                                      dtype=np.float32) for group in spaces)
+
+
 class CentralizedFormationEnv(gymnasium.Env):
     """Gymnasium env over :class:`FormationEnv` with one joint observation and action.
 
@@ -28,16 +37,9 @@ class CentralizedFormationEnv(gymnasium.Env):
     def __init__(self, scenario: Any = "planar_square", render_mode: str | None = None, **overrides: Any):
         self.parallel_env = FormationEnv(scenario, render_mode=render_mode, **overrides)
         self.render_mode = render_mode
-        agents = self.parallel_env.possible_agents
-        observation_spaces = [self.parallel_env.observation_space(a) for a in agents]
-        action_spaces = [self.parallel_env.action_space(a) for a in agents]
-        self.observation_space = gymnasium.spaces.Box(
-            np.concatenate([s.low for s in observation_spaces]), np.concatenate([s.high for s in observation_spaces]),
-            dtype=np.float32)
-        self.action_space = gymnasium.spaces.Box(
-            np.concatenate([s.low for s in action_spaces]), np.concatenate([s.high for s in action_spaces]),
-            dtype=np.float32)
-        self._splits = np.cumsum([s.shape[0] for s in action_spaces])[:-1]
+        self.observation_space, self.action_space = joint_spaces(self.parallel_env)
+        self._splits = np.cumsum([self.parallel_env.action_space(agent).shape[0]
+                                  for agent in self.parallel_env.possible_agents])[:-1]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         seed = check_seed(seed)  # numpy integers too; a negative seed is a ValueError naming seed, nothing reset
@@ -101,15 +103,7 @@ class CentralizedFormationVectorEnv(gymnasium.vector.VectorEnv):
         self.batched_env = VectorFormationEnv(scenario, num_envs=num_envs, **overrides)
         self.num_envs = self.batched_env.num_envs
         self.render_mode = None
-        agents = self.batched_env.possible_agents
-        observation_spaces = [self.batched_env.observation_space(a) for a in agents]
-        action_spaces = [self.batched_env.action_space(a) for a in agents]
-        self.single_observation_space = gymnasium.spaces.Box(
-            np.concatenate([s.low for s in observation_spaces]), np.concatenate([s.high for s in observation_spaces]),
-            dtype=np.float32)
-        self.single_action_space = gymnasium.spaces.Box(
-            np.concatenate([s.low for s in action_spaces]), np.concatenate([s.high for s in action_spaces]),
-            dtype=np.float32)
+        self.single_observation_space, self.single_action_space = joint_spaces(self.batched_env)
         self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, self.num_envs)
 
