@@ -18,7 +18,6 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
-from gymnasium.utils import seeding
 
 from ee_formation_env.baselines.reference.controllers import FormationController, PolicyTeam, RandomPolicy, ZeroPolicy
 from ee_formation_env.env import FormationEnv
@@ -283,17 +282,13 @@ def metric_definitions(markdown: bool = False) -> str:
 # ------------------------------------------------------------------------------------------ batched episodes
 class EvaluationVectorEnv(VectorFormationEnv):
     """The batched env (:class:`ee_formation_env.vector.VectorFormationEnv`) as :func:`run_episodes` steps it:
-    the same copies, plus what policies and metrics need of a single env. ``observation_layout(agent)`` (the
-    policy builders take the env), and ``ended_end_effectors`` (K, N, 3): each copy's end-effector positions
+    the same copies, plus ``ended_end_effectors`` (K, N, 3): each copy's end-effector positions
     just before its last autoreset (SAME_STEP autoreset replaces an ended copy's state at once, and the
     centroid drift needs its final one)."""
 
     def __init__(self, scenario: Any, num_envs: int = 1, **overrides: Any):
         super().__init__(scenario, num_envs=num_envs, **overrides)
         self.ended_end_effectors = np.zeros((self.num_envs, self.task.n_agents, 3))
-
-    def observation_layout(self, agent: str) -> Any:
-        return self._observer.layouts[self.task.agent_index(agent)]
 
     def _reset_copies(self, rows: np.ndarray) -> None:
         if self._measurement is not None:
@@ -349,8 +344,8 @@ class _BatchedTeams:
         slices = env.observation_slices
         sizes = {part.stop - part.start for part in slices}
         contiguous = all(a.stop == b.start for a, b in zip(slices, slices[1:])) and slices[0].start == 0
-        if len(sizes) == 1 and env._uniform_joints is not None and contiguous:
-            self.size, self.n = sizes.pop(), env._uniform_joints
+        if len(sizes) == 1 and env.uniform_joints is not None and contiguous:
+            self.size, self.n = sizes.pop(), env.uniform_joints
             self.whole = stack_policies([team[agent] for team in self.teams for agent in agents])
             self.parts = None
         else:
@@ -461,21 +456,8 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
     K, N = env.num_envs, env.task.n_agents
     wanted = len(seeds)
     copy_seeds = list(seeds) + [max(seeds) + 1 + j for j in range(K - wanted)]
-    # Copy k is reset with copy_seeds[k]: one reset of all from the smallest seed less k when every copy's seed is
-    # reachable that way (seed + k, Gymnasium's convention), then partial resets of the copies that need another.
-    base = max(0, min(seed - k for k, seed in enumerate(copy_seeds)))
-    result = env.reset_arrays(seed=base)
+    result = env.reset_arrays(seed=copy_seeds)
     margins = result.infos["singularity_margin"].copy()  # (K, N) at each copy's reset
-    for k in range(K):
-        if copy_seeds[k] != base + k:
-            mask = np.zeros(K, dtype=bool)
-            mask[k] = True
-            if copy_seeds[k] >= k:
-                result = env.reset_arrays(seed=copy_seeds[k] - k, options={"reset_mask": mask})
-            else:  # its seed is below its index: seed its generator directly, as reset(seed) would
-                env.np_randoms[k] = seeding.np_random(copy_seeds[k])[0]
-                result = env.reset_arrays(options={"reset_mask": mask})
-            margins[k] = result.infos["singularity_margin"][k]
     observations = result.observations
     teams.reset()
     dt = env.scenario.control_dt
@@ -483,7 +465,7 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
     start = env.end_effector_positions()
     start_centroids = [start[k].mean(axis=0) for k in range(wanted)]
     joint_slices = env.joint_slices
-    uniform = env._uniform_joints
+    uniform = env.uniform_joints
     T = env.n_joints
     active = np.zeros(K, dtype=bool)
     active[:wanted] = True

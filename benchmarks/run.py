@@ -66,10 +66,12 @@ SECTIONS = ("raw_floor", "env_step", "closed_loop", "sb3_rollout", "sb3_training
 VECTOR_COUNTS = (1, 4, 16, 64)  # copies K of the batched env (--quick: 1 and 4)
 TORCHRL_COUNTS = (32, 64)  # copies K of the native batched TorchRL env (--quick: 4)
 ARM_COUNTS = (2, 4, 8, 16)
-# train.py runs whose training throughput is measured: the default run first (the target applies to it).
-# The others: every env in worker processes, every env in-process, the first layout (8 envs x 128 steps), torque mode.
+# train.py runs whose training throughput is measured: each mode's default run first (its target applies to
+# it). The others: every env in worker processes, every env in-process, the first layout (8 envs x 128 steps),
+# and torque mode with the same samples per update as 32 envs x 32 steps (its update cost is the same).
 TRAINING_CASES = ((), ("--n-workers", "2", "--in-process-envs", "0"), ("--n-workers", "0"),
-                  ("--n-envs", "8", "--n-steps", "128", "--n-workers", "0"), ("--mode", "torque"))
+                  ("--n-envs", "8", "--n-steps", "128", "--n-workers", "0"), ("--mode", "torque"),
+                  ("--mode", "torque", "--n-envs", "32", "--n-steps", "32"))
 DEFAULT_JSON = "results/benchmarks.json"
 
 
@@ -287,8 +289,9 @@ def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> li
     torch.set_num_threads(1)
     rows = []
     for workers in (2, 0):
-        factories = [functools.partial(_make_env, name) for _ in range(n_envs)]
-        venv = SharedPolicyVecEnv(factories, n_workers=workers, info_keys=())  # as train.py: no per-step infos
+        # As train.py: no per-step infos cross the pipes.
+        venv = SharedPolicyVecEnv(functools.partial(ee_formation_env.vector_env, name), n_envs, n_workers=workers,
+                                  info_keys=())
         try:
             model = PPO("MlpPolicy", venv, n_steps=budget.sb3_steps, batch_size=budget.sb3_steps, device="cpu",
                         seed=0, verbose=0)
@@ -315,7 +318,8 @@ def bench_sb3(name: str, budget: Budget, raw_rate: float, n_envs: int = 2) -> li
 
 def bench_training(budget: Budget, extra_args: Sequence[str] = ()) -> list[dict[str, Any]]:
     """Section ``sb3_training``: agent steps/s of ``train.py``'s default run (``extra_args`` change it),
-    PPO updates included; the first update (model warm-up) is not timed."""
+    PPO updates included, and the split of each update's wall time into the rollout (``collect_rollouts``)
+    and the PPO update (``train``); the first update (model warm-up) is not timed."""
     try:
         from stable_baselines3.common.utils import configure_logger  # noqa: F401 (the "train" extra)
 
@@ -325,27 +329,48 @@ def bench_training(budget: Budget, extra_args: Sequence[str] = ()) -> list[dict[
         return [{"section": "sb3_training", "case": f"skipped ({error})", "skipped": True}]
     args = TrainConfig.from_args(["--no-progress", *extra_args])
     model = build_sb3_model(args, None)
+    spent = {"collect_rollouts": 0.0, "train": 0.0}
+
+    def timed(name: str, method: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*call_args: Any, **call_kwargs: Any) -> Any:
+            start = time.perf_counter()
+            try:
+                return method(*call_args, **call_kwargs)
+            finally:
+                spent[name] += time.perf_counter() - start
+        return call
+
     try:
         per_update = model.n_steps * model.get_env().num_envs
         model.learn(total_timesteps=per_update)  # warm-up: first rollout, first update
+        model.collect_rollouts = timed("collect_rollouts", model.collect_rollouts)
+        model.train = timed("train", model.train)
+        splits: list[tuple[float, float]] = []
 
         def learn() -> float:
+            before = dict(spent)
             start = time.perf_counter()
             model.learn(total_timesteps=budget.training_updates * per_update, reset_num_timesteps=False)
-            return time.perf_counter() - start
+            seconds = time.perf_counter() - start
+            splits.append(((spent["collect_rollouts"] - before["collect_rollouts"]) / budget.training_updates,
+                           (spent["train"] - before["train"]) / budget.training_updates))
+            return seconds
 
         times = interleaved({"learn": learn}, max(1, min(budget.repeats, 3)))["learn"]
     finally:
         model.get_env().close()
     agent_steps = budget.training_updates * per_update
+    fastest = int(np.argmin(times))
     description = " ".join(extra_args) or "defaults"
     layout = (f"{args.n_envs} envs in-process" if not args.n_workers else
               f"{args.n_envs} envs: {args.in_process_envs} in-process, the others in {args.n_workers} worker "
               f"process{'es' if args.n_workers > 1 else ''}")
     return [{"section": "sb3_training", "case": f"train.py ({description}): {args.mode} mode, {layout}",
              "scenario": args.scenario, "mode": args.mode, "n_envs": args.n_envs, "n_workers": args.n_workers,
-             "in_process_envs": args.in_process_envs,
-             "agent_steps": agent_steps, "seconds": times, "agent_steps_per_s": agent_steps / min(times)}]
+             "in_process_envs": args.in_process_envs, "extra_args": list(extra_args),
+             "agent_steps": agent_steps, "seconds": times, "agent_steps_per_s": agent_steps / min(times),
+             "rollout_ms_per_update": 1000 * splits[fastest][0], "update_ms_per_update": 1000 * splits[fastest][1],
+             "agent_steps_per_update": per_update}]
 
 
 def bench_scaling(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
@@ -668,9 +693,12 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
     for scenario in ("planar_square", "spatial_tetrahedron"):
         reset = find("reset", scenario)
         add(f"reset, 4 arms ({scenario})", reset and reset["reset_ms"], 5.0, False, "ms")
-    training = find("sb3_training", "planar_square")  # the first row: train.py's defaults
-    add("train.py default run: agent steps/s, updates included", training and training["agent_steps_per_s"],
-        8000.0, True, "")
+    for mode, limit in (("residual", 15000.0), ("torque", 10000.0)):
+        # The first row of each mode: train.py's defaults for it.
+        training = next((r for r in results["rows"] if r["section"] == "sb3_training" and r.get("mode") == mode
+                         and r.get("extra_args") in ([], ["--mode", mode])), None)
+        add(f"train.py {mode} mode (defaults): agent steps/s, updates included",
+            training and training["agent_steps_per_s"], limit, True, "")
     for family, fit in results.get("scaling_fits", {}).items():
         add(f"scaling {family}: per-arm env.step cost, {max(ARM_COUNTS)} arms / 4 arms", fit["per_arm_cost_ratio"],
             1.25, False, "x")
@@ -714,8 +742,10 @@ def format_tables(results: dict[str, Any]) -> str:
                          f"(largest deviation from the line {fit['max_relative_residual']:.0%})")
     training = [r for r in results["rows"] if r["section"] == "sb3_training" and not r.get("skipped")]
     if training:
-        lines += ["", "| training throughput | agent steps/s |", "|---|---:|"]
-        lines += [f"| {r['case']} | {r['agent_steps_per_s']:,.0f} |" for r in training]
+        lines += ["", "| training throughput | agent steps/s | rollout ms per update | PPO update ms per update |",
+                  "|---|---:|---:|---:|"]
+        lines += [f"| {r['case']} | {r['agent_steps_per_s']:,.0f} | {_fmt(r.get('rollout_ms_per_update'), ',.0f')} | "
+                  f"{_fmt(r.get('update_ms_per_update'), ',.0f')} |" for r in training]
     batched = [r for r in results["rows"] if r["section"] == "vector" and r.get("layout") == "vector_env"]
     if batched:
         lines += ["", "| batched env | K | physics steps/s | floor, K clients (lockstep) | floor, one client | "

@@ -14,7 +14,8 @@ Quick use::
 
 **Conventions** (Gymnasium's vector conventions for seeds, VMAS's for per-agent batches):
 
-- ``reset(seed=s)`` seeds copy ``k`` with ``s + k``: copy ``k`` then reproduces
+- ``reset(seed=s)`` seeds copy ``k`` with ``s + k`` (``reset(seed=[s_0, ..., s_K-1])``: copy k with ``s_k``,
+  None for its own generator): copy ``k`` then reproduces
   ``parallel_env(scenario).reset(seed=s + k)`` step for step under the same actions, bit for bit
   (``tests/test_vector.py``). ``reset()`` without a seed continues every copy's own generator, as the single
   env's unseeded reset does.
@@ -89,7 +90,7 @@ argument       meaning
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping, NamedTuple
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import gymnasium
 import numpy as np
@@ -99,7 +100,7 @@ from ee_formation_env.env import (PHYSICS_FAULTS, Measurement, build_world, meas
                                   reset_world)
 from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.inputs import check_seed, excerpt, numeric_action
-from ee_formation_env.observation import ObservationBuilder
+from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.reward import edge_tolerances
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.task import build_task
@@ -176,7 +177,7 @@ class VectorFormationEnv:
                                                                       arm_set.joint_counts)
         self.n_joints = arm_set.n_joints
         sizes = {arm.n_joints for arm in arm_set.arms}
-        self._uniform_joints = sizes.pop() if len(sizes) == 1 else None
+        self.uniform_joints = sizes.pop() if len(sizes) == 1 else None  # n when every arm has n joints
         continuous = arm_set.continuous
         self._wrap = None if not continuous.any() else True if continuous.all() else continuous
         self._torque_limits_flat = np.concatenate(self.task.torque_limits)
@@ -213,6 +214,10 @@ class VectorFormationEnv:
         """``agent``'s actions of all K copies: the single space with a leading K axis."""
         return self._batched_action_spaces[agent]
 
+    def observation_layout(self, agent: str) -> ObservationLayout:
+        """How ``agent``'s observation is laid out (one copy's; the single env's ``observation_layout``)."""
+        return self._observer.layouts[self.task.agent_index(agent)]
+
     @property
     def observation_slices(self) -> list[slice]:
         """Agent i's part of the array API's observations (K, O)."""
@@ -228,9 +233,10 @@ class VectorFormationEnv:
         return self.task.torque_limits
 
     # ------------------------------------------------------------------------------------------ dict API
-    def reset(self, seed: int | None = None, options: dict | None = None):
+    def reset(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
         """Reset every copy (or those of ``options["reset_mask"]``); copy k seeded ``seed + k`` when a seed is
-        given. Returns observations agent -> (K, obs_dim) and infos agent -> dict of (K, ...) arrays."""
+        given, or ``seed[k]`` when it is a sequence of K seeds (each an integer or None: Gymnasium's vector
+        convention). Returns observations agent -> (K, obs_dim) and infos agent -> dict of (K, ...) arrays."""
         result = self.reset_arrays(seed=seed, options=options)
         return self._observation_dict(result.observations), self._info_dicts(result.infos)
 
@@ -249,15 +255,16 @@ class VectorFormationEnv:
                 self._info_dicts(result.infos))
 
     # ------------------------------------------------------------------------------------------ array API
-    def reset_arrays(self, seed: int | None = None, options: dict | None = None) -> BatchedStep:
+    def reset_arrays(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None
+                     ) -> BatchedStep:
         """:meth:`reset` as stacked arrays (rewards zero, no termination)."""
-        seed = check_seed(seed)
+        seeds = self._copy_seeds(seed)
         rows = self._reset_rows(options)
         if not self._worlds or not all(world.connected for world in self._worlds):
             raise RuntimeError("reset: the environment is closed")
-        if seed is not None:
-            for k in rows:
-                self.np_randoms[k] = seeding.np_random(seed + int(k))[0]
+        for k in rows:
+            if seeds[k] is not None:
+                self.np_randoms[k] = seeding.np_random(seeds[k])[0]
         if len(rows):  # an all-False mask resets nothing and returns every copy's current observations
             self._reset_copies(rows)
         self._needs_reset = False
@@ -273,7 +280,7 @@ class VectorFormationEnv:
         """One step of every copy from one array of actions: (K, T) (all joints, agents in order), or, when
         every arm has n joints, (K * N, n) or (K, N, n). Checked (numeric, finite) before any copy moves."""
         self._check_running()
-        normalized = self._check_action_array(actions)
+        normalized = self.checked_action_array(actions)
         clipped = np.add.reduceat(np.abs(normalized) > 1.0, self._joint_starts, axis=1, dtype=np.int64)
         np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)
         return self._step(normalized, clipped)
@@ -332,6 +339,23 @@ class VectorFormationEnv:
         if self._measurement is None:
             self._measurement = self._measure_rows(np.arange(self.num_envs))
         return self._measurement
+
+    def _copy_seeds(self, seed: Any) -> list[int | None]:
+        """Each copy's seed (K,) from ``reset``'s ``seed``: None, an integer s (copy k: s + k) or K seeds."""
+        K = self.num_envs
+        if isinstance(seed, (list, tuple, np.ndarray)):
+            if len(seed) != K:
+                raise ValueError(f"seed: expected None, an integer or a sequence of {K} seeds (one per copy), "
+                                 f"got {len(seed)} seeds")
+            seeds = []
+            for k, value in enumerate(seed):
+                try:
+                    seeds.append(check_seed(value))
+                except (TypeError, ValueError) as error:
+                    raise type(error)(f"seed[{k}]{str(error)[len('seed'):]}") from None
+            return seeds
+        first = check_seed(seed)
+        return [None if first is None else first + k for k in range(K)]
 
     def _reset_rows(self, options: Any) -> np.ndarray:
         """The copies to reset: all, or ``options["reset_mask"]``'s; checked before anything changes."""
@@ -430,9 +454,9 @@ class VectorFormationEnv:
     def _action_array(self, agent: str, action: Any) -> np.ndarray:
         return numeric_action(agent, action, (self.num_envs, *self._action_spaces[agent].shape))
 
-    def _check_action_array(self, actions: Any) -> np.ndarray:
+    def checked_action_array(self, actions: Any) -> np.ndarray:
         """A fresh float64 (K, T) copy of the array API's actions, or a ``ValueError`` starting ``actions:``."""
-        K, T, n = self.num_envs, self.n_joints, self._uniform_joints
+        K, T, n = self.num_envs, self.n_joints, self.uniform_joints
         shapes = [(K, T)] + ([(K * self.task.n_agents, n), (K, self.task.n_agents, n)] if n else [])
         try:
             raw = np.asarray(actions)

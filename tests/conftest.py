@@ -105,3 +105,14 @@ def two_planar_arms(**changes: Any) -> dict[str, Any]:
 
 #: Actions that drive the two arms of :func:`two_planar_arms` into each other.
 CLOSING = {"arm_0": np.array([0.0, 0.3], np.float32), "arm_1": np.array([0.0, -0.3], np.float32)}
+
+
+def mixed_team() -> dict[str, Any]:
+    """A planar_2link arm and a KUKA iiwa in one displacement formation: agents with different spaces."""
+    return {
+        "arms": [{"robot": "planar_2link", "base_position": [0, 0, 0], "initial_q": [0.0, 1.0]},
+                 {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "base_position": [1.0, 0, 0],
+                  "initial_q": [0, 0.5, 0, -1.2, 0, 0.6, 0]}],
+        "edges": [[0, 1]], "shape": [[0, 0, 0], [0.2, 0, 0]], "formation": "displacement", "dim": 3,
+        "arm_collisions": False,  # the planar arm's first link starts through the kuka's base
+    }

@@ -189,6 +189,27 @@ def test_unseeded_reset_continues_every_copy_generator(make_pair):
         assert all(np.array_equal(observations[a][k], s_obs[a]) for a in batched.possible_agents)
 
 
+def test_a_sequence_of_seeds_seeds_each_copy(make_pair):
+    """Gymnasium's vector convention: seed[k] for copy k, None for its own generator."""
+    batched, singles = make_pair("planar_square", 3)
+    batched.reset(seed=0)  # copy 1's generator: seeded 1
+    observations, _ = batched.reset(seed=[7, None, np.int64(2)])
+    singles[1].reset(seed=1)
+    expected = [singles[0].reset(seed=7)[0], singles[1].reset()[0], singles[2].reset(seed=2)[0]]
+    for k, s_obs in enumerate(expected):
+        assert all(np.array_equal(observations[a][k], s_obs[a]) for a in batched.possible_agents), k
+
+
+@pytest.mark.parametrize("seed, message", [([1, 2], "seed: expected None, an integer or a sequence of 3 seeds"),
+                                           ([1, -2, 3], "seed[1]: expected None or an integer >= 0, got -2"),
+                                           ([1, 2, "3"], "seed[2]: expected None or an integer >= 0, got str")])
+def test_bad_seed_sequences_name_the_copy(closer, seed, message):
+    batched = closer(ee_formation_env.vector_env("planar_square", num_envs=3))
+    with pytest.raises((TypeError, ValueError), match=message.replace("[", r"\[").replace("]", r"\]")):
+        batched.reset(seed=seed)
+    assert batched._needs_reset  # nothing was reset
+
+
 # ------------------------------------------------------------------------------------------ spaces and arrays
 def test_spaces_shapes_and_dtypes(closer):
     count = 4

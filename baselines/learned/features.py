@@ -51,22 +51,30 @@ def error_ratios(layout: ObservationLayout, observation: np.ndarray,
 def log_error_features(layout: ObservationLayout, observation: np.ndarray,
                        position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
     """The appended entries of the ``"log-error"`` set (module docstring) for one observation."""
-    parts = layout.split(observation)
-    ratios, _ = error_ratios(layout, observation, position_tolerance)
+    return log_error_feature_stack(layout, np.asarray(observation)[None], position_tolerance)[0]
+
+
+def log_error_feature_stack(layout: ObservationLayout, observations: np.ndarray,
+                            position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> np.ndarray:
+    """:func:`log_error_features` of a stack (k, size) of observations of one layout: (k, extra)."""
+    parts = layout.split(observations)
+    ratios, _ = layout.error_ratios(observations, position_tolerance)  # (k, slots, w)
     if layout.error_width == 1:
-        lengths = np.linalg.norm(parts.relative_positions, axis=1, keepdims=True)
+        lengths = np.linalg.norm(parts.relative_positions, axis=2, keepdims=True)
         units = parts.relative_positions / np.maximum(lengths, 1e-9)
-        gradient = -np.sum(ratios * units, axis=0)
+        gradients = -np.sum(ratios * units, axis=1)  # (k, dim)
     else:
-        gradient = -np.sum(ratios, axis=0)
-    norm = float(np.linalg.norm(gradient))
-    direction = gradient / norm * np.log1p(norm) if norm > 0 else np.zeros_like(gradient)
+        gradients = -np.sum(ratios, axis=1)
+    norms = np.linalg.norm(gradients, axis=1, keepdims=True)
+    moving = norms > 0
+    directions = np.where(moving, gradients / np.where(moving, norms, 1.0) * np.log1p(norms), 0.0)
+    flat = ratios.reshape(len(ratios), -1)
     return np.concatenate([
-        np.sign(ratios.ravel()) * np.log1p(np.abs(ratios.ravel())),
-        direction,
+        np.sign(flat) * np.log1p(np.abs(flat)),
+        directions,
         np.sin(parts.q), np.cos(parts.q),
         np.sign(parts.dq) * np.log1p(np.abs(parts.dq) / VELOCITY_SCALE),
-    ])
+    ], axis=1)
 
 
 def transform(layout: ObservationLayout, features: str) -> Callable[[np.ndarray], np.ndarray]:
@@ -74,10 +82,19 @@ def transform(layout: ObservationLayout, features: str) -> Callable[[np.ndarray]
     _check(features)
     if features == "none":
         return lambda observation: observation
+    stack = transform_stack(layout, features)
+    return lambda observation: stack(np.asarray(observation)[None])[0]
 
-    def apply(observation: np.ndarray) -> np.ndarray:
-        extra = log_error_features(layout, observation)
-        return np.concatenate([np.asarray(observation, dtype=np.float32), extra.astype(np.float32)])
+
+def transform_stack(layout: ObservationLayout, features: str) -> Callable[[np.ndarray], np.ndarray]:
+    """:func:`transform` of a stack (k, size) of observations of one layout: (k, size + extra) float32."""
+    _check(features)
+    if features == "none":
+        return lambda observations: observations
+
+    def apply(observations: np.ndarray) -> np.ndarray:
+        extra = log_error_feature_stack(layout, observations)
+        return np.concatenate([np.asarray(observations, dtype=np.float32), extra.astype(np.float32)], axis=1)
 
     return apply
 
@@ -134,7 +151,8 @@ class FeaturePolicy:
     """A per-agent policy on featured observations, called with the env's raw observation."""
 
     def __init__(self, policy: Any, layout: ObservationLayout, features: str):
-        self.policy, self.transform = policy, transform(layout, features)
+        self.policy, self.layout, self.features = policy, layout, features
+        self.transform = transform(layout, features)
 
     def reset(self) -> None:
         self.policy.reset()
@@ -144,14 +162,28 @@ class FeaturePolicy:
 
     @classmethod
     def stacked(cls, policies: Sequence["FeaturePolicy"]) -> Callable[[np.ndarray], np.ndarray]:
-        """A stack of these policies as one callable ``(k, size) -> (k, n)``: features row by row, the inner
-        policies as one stack (:func:`~ee_formation_env.baselines.metrics.stack_policies`)."""
+        """A stack of these policies as one callable ``(k, size) -> (k, n)``: features of the rows of one
+        layout in one call, the inner policies as one stack
+        (:func:`~ee_formation_env.baselines.metrics.stack_policies`)."""
         from ee_formation_env.baselines.metrics import stack_policies
 
         policies = list(policies)
         inner = stack_policies([policy.policy for policy in policies])
-        return lambda observations: inner(np.stack([policy.transform(row) for policy, row in
-                                                    zip(policies, observations)]))
+        groups: dict[tuple[ObservationLayout, str], list[int]] = {}
+        for row, policy in enumerate(policies):
+            groups.setdefault((policy.layout, policy.features), []).append(row)
+        stacks = [(np.array(rows), transform_stack(layout, features)) for (layout, features), rows in groups.items()]
+
+        def act(observations: np.ndarray) -> np.ndarray:
+            if len(stacks) == 1:
+                return inner(stacks[0][1](observations))
+            parts = [(rows, apply(observations[rows])) for rows, apply in stacks]
+            featured = np.empty((len(observations), parts[0][1].shape[1]), dtype=np.float32)
+            for rows, part in parts:
+                featured[rows] = part
+            return inner(featured)
+
+        return act
 
 
 def _check(features: str) -> None:

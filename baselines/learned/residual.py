@@ -99,23 +99,69 @@ class ResidualPolicy:
         return act
 
 
+def check_residual_settings(reference: str, scale: float, correction_penalty: float) -> None:
+    """``ValueError`` naming the field for a reference that is not model-based, a scale outside (0, 1] or a
+    correction penalty outside [0, 1]."""
+    if reference not in baselines.MODEL_BASED_POLICIES:
+        raise ValueError(f"reference: expected a model-based controller, got {reference!r}")
+    if not 0 < scale <= 1:
+        raise ValueError(f"residual_scale: expected a value in (0, 1], got {scale!r}")
+    if not 0 <= correction_penalty <= 1:
+        raise ValueError(f"correction_penalty: expected a value in [0, 1], got {correction_penalty!r}")
+
+
+class ResidualRows:
+    """The residual rule over a stack of agent rows, in one set of batched calls: every row's reference action
+    (the controllers of all rows as one :class:`~ee_formation_env.baselines.reference.controllers.PolicyTeam`),
+    its error gate (rows of one observation layout in one call) and its combined action.
+
+    ``teams``: one dict agent -> reference controller per copy; the rows are copy-major (row ``k * N + i`` is
+    agent i of copy k). ``gate_layouts``: agent -> observation layout when the correction is gated, else None.
+    The single :class:`ResidualActionEnv` (one copy) and the batched training env (K copies) both use it, so a
+    copy gets the same actions in either, bit for bit.
+    """
+
+    def __init__(self, teams: Sequence[Mapping[str, Any]], agents: Sequence[str], scale: float,
+                 gate_layouts: Mapping[str, ObservationLayout] | None = None):
+        self.teams, self.agents = list(teams), list(agents)
+        self.team = PolicyTeam({(k, agent): team[agent] for k, team in enumerate(self.teams) for agent in self.agents})
+        self.scales = np.full(len(self.teams) * len(self.agents), float(scale))
+        groups: dict[ObservationLayout, list[int]] = {}
+        if gate_layouts is not None:
+            for k in range(len(self.teams)):
+                for i, agent in enumerate(self.agents):
+                    groups.setdefault(gate_layouts[agent], []).append(k * len(self.agents) + i)
+        self.gate_groups = [(layout, np.array(rows)) for layout, rows in groups.items()]
+
+    def reset(self, copies: Sequence[int] | np.ndarray | None = None) -> None:
+        """Reset the reference controllers of ``copies`` (default: all), at the start of their episodes."""
+        for k in range(len(self.teams)) if copies is None else copies:
+            for policy in self.teams[int(k)].values():
+                policy.reset()
+
+    def __call__(self, observations: np.ndarray, residuals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The applied actions (rows, n) (:func:`combine` of each row's reference action and its clipped
+        residual ``residuals``, float64) and each row's mean squared correction (rows,), for the rows'
+        observations (rows, size)."""
+        references = self.team.act_on_stack(observations)
+        scales = self.scales.copy()
+        for layout, rows in self.gate_groups:
+            scales[rows] *= error_gates(layout, observations[rows])
+        return references + scales[:, None] * residuals, np.mean(residuals * residuals, axis=1)
+
+
 class ResidualActionEnv(BaseParallelWrapper):
     """A parallel env whose actions are residuals on top of one reference controller per agent.
 
     Observations and spaces are the wrapped env's; each agent's reward is the env's times
-    :func:`correction_factor` of its residual. Several such envs step together through
-    :class:`ResidualGroup`, their ``group_stepper`` (as :class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv` does).
+    :func:`correction_factor` of its residual. The batched training env applies the same rule to K copies
+    (:class:`ResidualRows`).
     """
 
     def __init__(self, env: Any, reference: str = "adaptive_jacobian", scale: float = 0.1,
                  reference_kwargs: Mapping[str, Any] | None = None, correction_penalty: float = 0.5,
                  gate: bool = False):
-        if reference not in baselines.MODEL_BASED_POLICIES:
-            raise ValueError(f"reference: expected a model-based controller, got {reference!r}")
-        if not 0 < scale <= 1:
-            raise ValueError(f"residual_scale: expected a value in (0, 1], got {scale!r}")
-        if not 0 <= correction_penalty <= 1:
-            raise ValueError(f"correction_penalty: expected a value in [0, 1], got {correction_penalty!r}")
+        check_residual_settings(reference, scale, correction_penalty)
         super().__init__(env)
         self.scale, self.correction_penalty = float(scale), float(correction_penalty)
         self.agents_in_order = list(env.possible_agents)
@@ -125,9 +171,10 @@ class ResidualActionEnv(BaseParallelWrapper):
         self.gate_layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents} if gate else None
         self.references = PolicyTeam(baselines.make_policies(reference, env, **dict(reference_kwargs or {})))
         self._observations: dict[str, np.ndarray] = {}
-        # Agents of one robot type are stepped as a group of one env (ResidualGroup: the team in one array);
-        # mixed robots agent by agent.
-        self._group = ResidualGroup([self]) if self._uniform else None
+        # Agents of one robot type: the team in one array (a few calls for the whole team); mixed robots agent
+        # by agent.
+        self._rows = (ResidualRows([self.references.policies], self.agents_in_order, self.scale, self.gate_layouts)
+                      if self._uniform else None)
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._observations, infos = self.env.reset(seed=seed, options=options)
@@ -135,8 +182,13 @@ class ResidualActionEnv(BaseParallelWrapper):
         return self._observations, infos
 
     def step(self, actions: Mapping[str, np.ndarray]):
-        if self._group is not None:  # every agent's residual in one (N, n) array: a few calls for the whole team
-            return self._group.step([actions])[0]
+        if self._rows is not None:
+            residuals = self._checked_residuals(actions)
+            if residuals is None:
+                return self.env.step(actions)  # the env raises its error, naming the agent, before anything moves
+            observations = np.stack([self._observations[agent] for agent in self.agents_in_order])
+            combined, penalties = self._rows(observations, residuals)
+            return self._apply(dict(zip(self.agents_in_order, combined)), penalties)
         if not isinstance(actions, Mapping) or actions.keys() != set(self.agents_in_order):
             return self.env.step(actions)  # the env raises its error, naming the agents
         agents = self.agents_in_order
@@ -182,62 +234,3 @@ class ResidualActionEnv(BaseParallelWrapper):
             factors = (1.0 - self.correction_penalty * penalties).tolist()
             rewards = {agent: rewards[agent] * factor for agent, factor in zip(self.agents_in_order, factors)}
         return observations, rewards, terminations, truncations, infos
-
-
-class ResidualGroup:
-    """Residual envs stepped together: every agent's reference action and error gate, over all the envs, in
-    one set of batched calls (:class:`ee_formation_env.baselines.reference.controllers.PolicyTeam`), then each env's physics step.
-
-    ``group.step(actions)`` (one action dict per env) gives each env exactly what its own
-    :meth:`ResidualActionEnv.step` gives (which is a group of one); every env's actions are checked before any
-    env moves. :class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv` steps a process's envs through it (the
-    ``group_stepper`` of :class:`ResidualActionEnv`): at a few agents per env, a numpy call costs about the
-    same for 4 rows as for 64.
-    """
-
-    def __init__(self, envs: Sequence[ResidualActionEnv]):
-        envs = list(envs)
-        if not envs or not all(isinstance(env, ResidualActionEnv) for env in envs):
-            raise TypeError("envs: expected one or more ResidualActionEnv")
-        agents = envs[0].agents_in_order
-        if any(env.agents_in_order != agents or not env._uniform or env._action_shape != envs[0]._action_shape
-               for env in envs):
-            raise ValueError("envs: expected the same agents, each with the same action shape, in every env")
-        self.envs, self.agents = envs, agents
-        n = len(agents)
-        self.team = PolicyTeam({(e, agent): env.references.policies[agent]
-                                for e, env in enumerate(envs) for agent in agents})
-        self.scales = np.repeat([env.scale for env in envs], n)  # (envs * agents,) in env-major row order
-        # Gated agents sharing an observation layout get their gates in one call: (layout, their rows).
-        groups: dict[ObservationLayout, list[int]] = {}
-        for e, env in enumerate(envs):
-            for k, agent in enumerate(agents):
-                if env.gate_layouts is not None:
-                    groups.setdefault(env.gate_layouts[agent], []).append(e * n + k)
-        self.gate_groups = [(layout, np.array(rows)) for layout, rows in groups.items()]
-
-    def step(self, actions: Sequence[Mapping[str, np.ndarray]]) -> list[tuple]:
-        """Step every env with its residuals; each env's ``(observations, rewards, terminations, truncations,
-        infos)``, env order."""
-        if len(actions) != len(self.envs):
-            raise ValueError(f"actions: expected one action dict per env ({len(self.envs)}), got {len(actions)}")
-        n = len(self.agents)
-        checked = [env._checked_residuals(env_actions) for env, env_actions in zip(self.envs, actions)]
-        for env, env_actions, residuals in zip(self.envs, actions, checked):
-            if residuals is None:
-                # The env raises its error, naming the agent, before anything (any env, any reference) moves.
-                env.env.step(env_actions)
-                raise AssertionError("ResidualGroup: the env accepted actions the residual check rejected")
-        residuals = np.concatenate(checked)  # (envs * agents, n)
-        observations = np.stack([env._observations[agent] for env in self.envs for agent in self.agents])
-        references = self.team.act_on_stack(observations)
-        scales = self.scales.copy()
-        for layout, rows in self.gate_groups:
-            scales[rows] *= error_gates(layout, observations[rows])
-        combined = references + scales[:, None] * residuals
-        penalties = np.mean(residuals * residuals, axis=1)
-        return [env._apply(dict(zip(self.agents, combined[e * n:(e + 1) * n])), penalties[e * n:(e + 1) * n])
-                for e, env in enumerate(self.envs)]
-
-
-ResidualActionEnv.group_stepper = ResidualGroup

@@ -1,7 +1,9 @@
 """The Stable-Baselines3 backend of ``train.py``: the model, its VecEnv, callbacks and the saved artefacts.
 
 One policy is shared by every agent: :class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv` gives each
-agent of each env a slot, normalized by ``VecNormalize`` and monitored by ``VecMonitor``. The PPO settings
+agent of each copy of the batched training env
+(:class:`~ee_formation_env.baselines.learned.training_env.BatchedTrainingEnv`) a slot, normalized by
+``VecNormalize`` and monitored by ``VecMonitor``. The PPO settings
 come from the run's configuration (:class:`ee_formation_env.baselines.learned.config.TrainConfig` and its mode's
 preset); docs/training.md explains them.
 """
@@ -21,7 +23,7 @@ from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
-from ee_formation_env.baselines.learned.training_env import env_factory
+from ee_formation_env.baselines.learned.training_env import batched_env_factory
 
 
 def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
@@ -46,9 +48,8 @@ def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str =
     import torch
 
     torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
-    factory = env_factory(args)
     # No per-step infos cross the worker pipes: the learner reads none (the VecEnv adds what SB3 needs).
-    venv = SharedPolicyVecEnv([factory] * args.n_envs, n_workers=args.n_workers, info_keys=(),
+    venv = SharedPolicyVecEnv(batched_env_factory(args), args.n_envs, n_workers=args.n_workers, info_keys=(),
                               in_process_envs=args.in_process_envs)
     venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / monitor_name))
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)

@@ -29,20 +29,31 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 SPEED_SCALE = 0.05  # rad/s: joint speed (2-norm over the arm's joints) at which the penalty is full
 
 
+def check_hold_penalty(hold_penalty: float) -> None:
+    """``ValueError`` naming the field for a hold penalty outside [0, 1]."""
+    if not 0 <= hold_penalty <= 1:
+        raise ValueError(f"hold_penalty: expected a value in [0, 1], got {hold_penalty!r}")
+
+
+def hold_penalty_factors(layout: Any, observations: np.ndarray) -> np.ndarray:
+    """``[every real slot within tolerance] * min(1, |dq| / SPEED_SCALE)`` for a stack (k, size) of
+    observations of one layout: (k,)."""
+    ratios, real = layout.error_ratios(observations)  # (k, slots, w), (k, slots)
+    inside = np.all((np.abs(ratios) <= 1.0) | ~real[..., None], axis=(1, 2))
+    speeds = np.linalg.norm(layout.split(observations).dq, axis=1)
+    return np.where(inside, np.minimum(1.0, speeds / SPEED_SCALE), 0.0)
+
+
 def hold_penalty_factor(layout: Any, observation: np.ndarray) -> float:
-    """``[every real slot within tolerance] * min(1, |dq| / SPEED_SCALE)`` for one observation."""
-    ratios, real = layout.error_ratios(observation)
-    if not np.all(np.abs(ratios[real]) <= 1.0):
-        return 0.0
-    return min(1.0, float(np.linalg.norm(layout.split(observation).dq)) / SPEED_SCALE)
+    """:func:`hold_penalty_factors` of one observation."""
+    return float(hold_penalty_factors(layout, np.asarray(observation)[None])[0])
 
 
 class HoldShapingEnv(BaseParallelWrapper):
     """A parallel env whose rewards carry the hold penalty (module docstring); all else is the wrapped env's."""
 
     def __init__(self, env: Any, hold_penalty: float):
-        if not 0 <= hold_penalty <= 1:
-            raise ValueError(f"hold_penalty: expected a value in [0, 1], got {hold_penalty!r}")
+        check_hold_penalty(hold_penalty)
         super().__init__(env)
         self.hold_penalty = float(hold_penalty)
         self._layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents}

@@ -6,16 +6,28 @@ actions are corrections on a reference controller), :class:`~ee_formation_env.ba
 (``hold_penalty > 0``) and :class:`~ee_formation_env.baselines.learned.features.FeatureEnv` (``obs_features``).
 It is a module-level function so that ``functools.partial(make_training_env, ...)`` pickles into worker
 processes; :func:`env_factory` builds that partial from a run's configuration.
+
+:class:`BatchedTrainingEnv` is the same env for K copies at once, on the batched env
+(:func:`ee_formation_env.vector_env`): the residual rule, the shaping and the features applied to the K x N
+agents in one numpy pass. Copy k reproduces one :func:`make_training_env` env reset with its seed, bit for bit
+(``tests/baselines/learned/test_training_env.py``). The SB3 trainer steps it
+(:class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv`); :func:`batched_env_factory` builds its
+factory from a run's configuration. RLlib steps the single env.
 """
 
 from __future__ import annotations
 
 import functools
-from typing import TYPE_CHECKING, Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
-from ee_formation_env.baselines.learned.features import FEATURE_SETS, FeatureEnv
-from ee_formation_env.baselines.learned.residual import ResidualActionEnv
-from ee_formation_env.baselines.learned.shaping import HoldShapingEnv
+import gymnasium
+import numpy as np
+
+from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.features import FEATURE_SETS, FeatureEnv, feature_space, transform_stack
+from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
+from ee_formation_env.baselines.learned.shaping import HoldShapingEnv, check_hold_penalty, hold_penalty_factors
+from ee_formation_env.vector import BatchedStep
 
 if TYPE_CHECKING:
     from ee_formation_env.baselines.learned.config import TrainConfig
@@ -55,3 +67,157 @@ def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = Non
                              config.training_overrides() if overrides is None else dict(overrides), config.mode,
                              config.reference, config.residual_scale, config.correction_penalty,
                              config.residual_gate, config.hold_penalty, config.obs_features)
+
+
+def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None
+                        ) -> Callable[..., "BatchedTrainingEnv"]:
+    """A picklable factory ``(num_envs=K) -> BatchedTrainingEnv`` of the env the SB3 learner of ``config``
+    (resolved) steps; ``overrides`` as for :func:`env_factory`."""
+    return functools.partial(BatchedTrainingEnv, config.scenario,
+                             config.training_overrides() if overrides is None else dict(overrides), config.mode,
+                             config.reference, config.residual_scale, config.correction_penalty,
+                             config.residual_gate, config.hold_penalty, config.obs_features)
+
+
+class BatchedTrainingEnv:
+    """K copies of :func:`make_training_env`'s env in one, with the batched env's array API.
+
+    ``reset_arrays(seed, options)`` and ``step_arrays(actions)`` behave as those of
+    :class:`ee_formation_env.vector.VectorFormationEnv` (per-copy seeds, SAME_STEP autoreset, ``reset_mask``;
+    actions (K * N, n) or (K, N, n)): in residual mode the actions are corrections, rewards carry the
+    correction factor and the hold penalty, observations (K, N * size) carry the features
+    (``infos["final_observation"]`` too: the observation each copy ended in, featured). Every agent must have
+    the same observation size and joints (one policy is shared by all). The other infos are the batched env's.
+
+    Arguments: those of :func:`make_training_env`, and ``num_envs`` (K).
+    """
+
+    def __init__(self, scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
+                 reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
+                 correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
+                 obs_features: str = "none", num_envs: int = 1):
+        from ee_formation_env import vector_env
+
+        if mode not in TRAINING_MODES:
+            raise ValueError(f"mode: expected 'torque' or 'residual', got {mode!r}")
+        if obs_features not in FEATURE_SETS:
+            raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {obs_features!r}")
+        if mode == "residual":
+            check_residual_settings(reference, residual_scale, correction_penalty)
+        check_hold_penalty(hold_penalty)
+        self.env = env = vector_env(scenario, num_envs=num_envs, **dict(overrides or {}))
+        try:
+            self._build(mode, reference, residual_scale, correction_penalty, gate, hold_penalty, obs_features)
+        except Exception:
+            env.close()
+            raise
+
+    def _build(self, mode: str, reference: str, residual_scale: float, correction_penalty: float, gate: bool,
+               hold_penalty: float, obs_features: str) -> None:
+        env = self.env
+        self.num_envs, self.scenario, self.task = env.num_envs, env.scenario, env.task
+        self.possible_agents = self.agents = list(env.possible_agents)
+        self.render_mode = None
+        spaces = [(env.observation_space(a), env.action_space(a)) for a in self.possible_agents]
+        if any(space != spaces[0] for space in spaces) or env.uniform_joints is None:
+            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
+        self.mode, self.hold_penalty, self.obs_features = mode, float(hold_penalty), obs_features
+        self.correction_penalty = float(correction_penalty)
+        layouts = [env.observation_layout(agent) for agent in self.possible_agents]
+        self._size = spaces[0][0].shape[0]
+        # Rows of one layout are transformed together: (layout, rows of the (K * N) stack).
+        groups: dict[Any, list[int]] = {}
+        for k in range(self.num_envs):
+            for i, layout in enumerate(layouts):
+                groups.setdefault(layout, []).append(k * len(layouts) + i)
+        self._layout_rows = [(layout, np.array(rows)) for layout, rows in groups.items()]
+        self._features = [transform_stack(layout, obs_features) for layout, _ in self._layout_rows]
+        self._observation_spaces = {agent: feature_space(space, layout, obs_features)
+                                    for agent, (space, _), layout in zip(self.possible_agents, spaces, layouts)}
+        self._featured_size = self._observation_spaces[self.possible_agents[0]].shape[0]
+        self.residuals = None
+        if mode == "residual":
+            teams = [baselines.make_policies(reference, env) for _ in range(self.num_envs)]
+            gate_layouts = dict(zip(self.possible_agents, layouts)) if gate else None
+            self.residuals = ResidualRows(teams, self.possible_agents, residual_scale, gate_layouts)
+        self._raw: np.ndarray | None = None  # the batched env's last observations (K * N, size)
+
+    # -- spaces ---------------------------------------------------------------------------------------
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self._observation_spaces[agent]
+
+    def action_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self.env.action_space(agent)
+
+    @property
+    def joint_slices(self) -> list[slice]:
+        """Agent i's joints in the flat actions (K, T) and ``applied_torque``."""
+        return self.env.joint_slices
+
+    # -- array API ------------------------------------------------------------------------------------
+    def reset_arrays(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None
+                     ) -> BatchedStep:
+        result = self.env.reset_arrays(seed=seed, options=options)
+        if self.residuals is not None:
+            mask = None if options is None else options.get("reset_mask")
+            self.residuals.reset(None if mask is None else np.flatnonzero(mask))
+        self._raw = self._rows(result.observations)
+        observations = self._featured(self._raw)
+        return result._replace(observations=observations, infos={**result.infos, "final_observation": observations})
+
+    def step_arrays(self, actions: np.ndarray) -> BatchedStep:
+        K, N = self.num_envs, len(self.possible_agents)
+        if self.residuals is None:
+            result = self.env.step_arrays(actions)
+            rewards = result.rewards
+        else:
+            residuals = self._checked_residuals(actions)
+            combined, penalties = self.residuals(self._raw, residuals)
+            result = self.env.step_arrays(combined)
+            rewards = result.rewards
+            if self.correction_penalty > 0:
+                rewards = rewards * (1.0 - self.correction_penalty * penalties).reshape(K, N)
+            ended = np.flatnonzero(result.terminations | result.truncations)
+            if len(ended):  # SAME_STEP autoreset: those copies start a new episode, their references too
+                self.residuals.reset(ended)
+        final = self._rows(result.infos["final_observation"])
+        if self.hold_penalty > 0:  # charged on the observation each step ended in
+            factors = np.empty(K * N)
+            for layout, rows in self._layout_rows:
+                factors[rows] = hold_penalty_factors(layout, final[rows])
+            rewards = rewards - self.hold_penalty * factors.reshape(K, N)
+        self._raw = self._rows(result.observations)
+        return result._replace(observations=self._featured(self._raw), rewards=rewards,
+                               infos={**result.infos, "final_observation": self._featured(final)})
+
+    def close(self) -> None:
+        self.env.close()
+
+    def __enter__(self) -> "BatchedTrainingEnv":
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.close()
+
+    # -- internals ------------------------------------------------------------------------------------
+    def _rows(self, observations: np.ndarray) -> np.ndarray:
+        """(K, N * size) -> (K * N, size): one row per agent, copy-major."""
+        return observations.reshape(-1, self._size)
+
+    def _featured(self, rows: np.ndarray) -> np.ndarray:
+        """(K * N, size) raw rows -> (K, N * featured size) observations with the features appended."""
+        if self.obs_features == "none":
+            return rows.reshape(self.num_envs, -1)
+        out = np.empty((len(rows), self._featured_size), dtype=np.float32)
+        for (_, part), apply in zip(self._layout_rows, self._features):
+            out[part] = apply(rows[part])
+        return out.reshape(self.num_envs, -1)
+
+    def _checked_residuals(self, actions: Any) -> np.ndarray:
+        """Residuals (K * N, n) float64 clipped to [-1, 1], or the batched env's error for bad ones (naming
+        the field) before any copy or controller moves."""
+        K, N, n = self.num_envs, len(self.possible_agents), self.env.uniform_joints
+        if self._raw is None:
+            raise RuntimeError("step: call reset() first (the batched env has never been reset)")
+        residuals = self.env.checked_action_array(actions)  # (K, T) float64, a copy; raises the env's errors
+        return np.clip(residuals.reshape(K * N, n), -1.0, 1.0)

@@ -1,22 +1,23 @@
-"""A stable-baselines3 VecEnv over formation envs, for one policy shared by every agent.
+"""A stable-baselines3 VecEnv over batched formation envs, for one policy shared by every agent.
 
-Each agent of each env is one slot of the VecEnv (``num_envs = n_envs * n_agents``), acting on its own
-local observation: decentralized execution with parameter sharing. Written for this project rather than
-taken from SuperSuit 3.11, which gets these wrong (``docs/physics.md``, "SuperSuit and SB3: why the project
-has its own VecEnv"), and each is tested:
+Each agent of each copy is one slot of the VecEnv (``num_envs = n_envs * n_agents``), acting on its own
+local observation: decentralized execution with parameter sharing. The copies are those of batched envs
+(:func:`ee_formation_env.vector_env`, or the training env of ``ee_formation_env.baselines.learned``), each
+stepped by one call: one in this process and/or one per worker process. Written for this project rather
+than taken from SuperSuit 3.11, which gets these wrong (``docs/physics.md``, "SuperSuit and SB3: why the
+project has its own VecEnv"), and each is tested:
 
 - timeouts bootstrap: a truncated episode sets ``info["TimeLimit.truncated"]`` and
   ``info["terminal_observation"]``, a terminated one does not claim truncation;
-- ``seed()`` works (``PPO(seed=...)`` calls it) and every env gets its own seed;
-- every env builds its own PyBullet client, in its own worker process when ``n_workers > 0``, so rollouts
-  use several cores.
+- ``seed()`` works (``PPO(seed=...)`` calls it) and every copy gets its own seed;
+- every copy has its own PyBullet client, and with ``n_workers > 0`` the copies are spread over worker
+  processes, so rollouts use several cores.
 
 Requires stable-baselines3 (the ``train`` extra). Agents must be homogeneous (same spaces).
 """
 
 from __future__ import annotations
 
-import functools
 import multiprocessing
 import signal
 import time
@@ -27,66 +28,72 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
-EnvFactory = Callable[[], Any]  # () -> a PettingZoo ParallelEnv (picklable for worker processes)
+from ee_formation_env.vector import PER_AGENT_INFO
 
-DEFAULT_WORKER_TIMEOUT = 60.0  # s: a slow reset of 14 residual envs on a loaded 2-core machine fits well within it
+#: ``factory(num_envs=K)`` -> a batched env of K copies (picklable for worker processes): ``possible_agents``,
+#: ``scenario``, ``observation_space(agent)`` / ``action_space(agent)`` (one copy's), ``reset_arrays(seed,
+#: options)`` / ``step_arrays(actions)`` returning a :class:`ee_formation_env.vector.BatchedStep` (SAME_STEP
+#: autoreset, per-copy seeds) and ``close()``, as :class:`ee_formation_env.vector.VectorFormationEnv` has.
+BatchedEnvFactory = Callable[..., Any]
+
+DEFAULT_WORKER_TIMEOUT = 60.0  # s: a slow reset of 14 residual copies on a loaded 2-core machine fits well within it
 _CLOSE_TIMEOUT = 10.0  # s: at most this long for the workers to answer "close" before they are terminated
+_SLOT_INFO_SKIPPED = ("final_observation",)  # SB3 gets it as each slot's "terminal_observation"
 
 
-class _EnvGroup:
-    """Envs stepped in one process: flattens agents into slots and auto-resets finished episodes."""
+class _CopyGroup:
+    """The copies stepped in one process, one batched env: its agents flattened into slots (copy-major)."""
 
-    def __init__(self, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None = None):
-        self.envs = [factory() for factory in factories]
-        self.agents = list(self.envs[0].possible_agents)
+    def __init__(self, factory: BatchedEnvFactory, count: int, info_keys: Sequence[str] | None = None):
+        self.env = factory(num_envs=count)
+        self.count = count
+        self.agents = list(self.env.possible_agents)
         self.info_keys = None if info_keys is None else tuple(info_keys)
-        # Envs of a class with a group_stepper are stepped together through it (SharedPolicyVecEnv's docstring).
-        group_stepper = getattr(type(self.envs[0]), "group_stepper", None)
-        same_class = all(type(env) is type(self.envs[0]) for env in self.envs)
-        self.group = group_stepper(self.envs) if group_stepper is not None and same_class else None
+        self._joint_slices = self.env.joint_slices if hasattr(self.env, "joint_slices") else None
 
-    def _slot_info(self, info: dict) -> dict:
-        if self.info_keys is None:
-            return dict(info)
-        return {key: info[key] for key in self.info_keys}
+    def _slot_infos(self, infos: dict[str, np.ndarray]) -> list[dict]:
+        """One info dict per slot with the kept keys, as the batched env's dict API gives them: per-agent
+        arrays (K, N, ...) row [k, i], ``applied_torque`` (K, T) agent i's joints, per-copy arrays row [k]."""
+        N = len(self.agents)
+        keys = [key for key in infos if key not in _SLOT_INFO_SKIPPED] if self.info_keys is None else self.info_keys
+        slots: list[dict] = [{} for _ in range(self.count * N)]
+        for key in keys:
+            value = infos[key]
+            for k in range(self.count):
+                for i in range(N):
+                    if key in PER_AGENT_INFO:
+                        entry = value[k, i]
+                    elif key == "applied_torque":
+                        entry = value[k, self._joint_slices[i]]
+                    else:
+                        entry = value[k]
+                    slots[k * N + i][key] = entry
+        return slots
 
     def reset(self, seeds: Sequence[int | None]) -> tuple[np.ndarray, list[dict]]:
-        observations, infos = [], []
-        for env, seed in zip(self.envs, seeds):
-            obs, info = env.reset(seed=seed)
-            observations.extend(obs[a] for a in self.agents)
-            infos.extend(self._slot_info(info[a]) for a in self.agents)
-        return np.stack(observations), infos
+        result = self.env.reset_arrays(seed=list(seeds))
+        return result.observations.reshape(self.count * len(self.agents), -1), self._slot_infos(result.infos)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
-        n = len(self.agents)
-        env_actions = [{agent: actions[e * n + k] for k, agent in enumerate(self.agents)} for e in range(len(self.envs))]
-        if self.group is not None:
-            results = self.group.step(env_actions)
-        else:
-            results = [env.step(action) for env, action in zip(self.envs, env_actions)]
-        observations, rewards, dones, infos = [], [], [], []
-        for env, (obs, reward, terminated, truncated, info) in zip(self.envs, results):
-            ended = not env.agents
-            slot_infos = [self._slot_info(info[a]) for a in self.agents]
-            if ended:
-                for k, agent in enumerate(self.agents):
-                    slot_infos[k]["terminal_observation"] = obs[agent]
-                    # Truncation is not termination: SB3 bootstraps only when this is True.
-                    slot_infos[k]["TimeLimit.truncated"] = bool(truncated[agent]) and not bool(terminated[agent])
-                obs, _ = env.reset()
-            observations.extend(obs[a] for a in self.agents)
-            rewards.extend(reward[a] for a in self.agents)
-            dones.extend([ended] * n)
-            infos.extend(slot_infos)
-        return np.stack(observations), np.asarray(rewards, dtype=np.float32), np.asarray(dones), infos
+        N = len(self.agents)
+        result = self.env.step_arrays(actions)
+        ended = result.terminations | result.truncations
+        infos = self._slot_infos(result.infos)
+        for k in np.flatnonzero(ended):
+            final = result.infos["final_observation"][k].reshape(N, -1)
+            # Truncation is not termination: SB3 bootstraps only when this is True.
+            truncated = bool(result.truncations[k]) and not bool(result.terminations[k])
+            for i in range(N):
+                infos[k * N + i]["terminal_observation"] = final[i]
+                infos[k * N + i]["TimeLimit.truncated"] = truncated
+        return (result.observations.reshape(self.count * N, -1), result.rewards.reshape(-1).astype(np.float32),
+                np.repeat(ended, N), infos)
 
     def close(self) -> None:
-        for env in self.envs:
-            env.close()
+        self.env.close()
 
 
-def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: Sequence[str] | None) -> None:
+def _worker(connection: Connection, factory: BatchedEnvFactory, count: int, info_keys: Sequence[str] | None) -> None:
     # Ctrl-C goes to the whole process group: the learner decides how to stop (and can save its model first).
     # SIGINT is blocked from the spawn until here (SharedPolicyVecEnv._start_worker), so none is missed.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -96,7 +103,7 @@ def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: 
     watched = [connection] if parent is None else [connection, parent.sentinel]
     group = None
     try:
-        group = _EnvGroup(factories, info_keys)
+        group = _CopyGroup(factory, count, info_keys)
         connection.send(("ok", None))
         while True:
             # Wait for a command or for the learner's end: a killed learner leaves no orphan worker behind.
@@ -111,7 +118,7 @@ def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: 
             elif command == "step":
                 connection.send(("ok", group.step(payload)))
             elif command == "get_attr":
-                connection.send(("ok", [getattr(env, payload) for env in group.envs]))
+                connection.send(("ok", [getattr(group.env, payload)] * group.count))
             elif command == "pid":
                 connection.send(("ok", multiprocessing.current_process().pid))
             elif command == "close":
@@ -126,17 +133,6 @@ def _worker(connection: Connection, factories: Sequence[EnvFactory], info_keys: 
         if group is not None:
             group.close()
         connection.close()
-
-
-def _scenario_name(factory: EnvFactory) -> str | None:
-    """The scenario a factory builds, where that is cheap to read: a ``functools.partial`` whose first argument
-    (or ``scenario`` keyword) is a scenario name or a scenario dict with a ``name``."""
-    if not isinstance(factory, functools.partial):
-        return None
-    scenario = factory.args[0] if factory.args else factory.keywords.get("scenario")
-    if isinstance(scenario, dict):
-        scenario = scenario.get("name")
-    return scenario if isinstance(scenario, str) else None
 
 
 def _signal_name(number: int) -> str:
@@ -156,23 +152,23 @@ def _process_state(pid: int | None) -> str | None:
 
 
 class SharedPolicyVecEnv(VecEnv):
-    """``n_envs`` formation envs as a VecEnv of ``n_envs * n_agents`` agent slots.
+    """``n_envs`` copies of a batched env as a VecEnv of ``n_envs * n_agents`` agent slots.
 
-    ``n_workers = 0`` steps every env in this process; ``n_workers = k`` spreads them over ``k`` worker
-    processes (``spawn`` start method, so each builds a fresh PyBullet client), except the first
-    ``in_process_envs`` envs, stepped in this process while the workers step theirs: the learner's own work
-    per step (the policy's forward pass, normalization, the rollout buffer) then overlaps the workers' instead
-    of leaving a core idle.
-    ``info_keys``: the env info entries each slot's info keeps (None, the default: all of them). Training
-    needs none of them (SB3 reads only the ``terminal_observation`` and ``TimeLimit.truncated`` this VecEnv
-    adds), and with worker processes every entry kept is pickled through a pipe on every step.
+    ``factory(num_envs=K)`` builds a batched env of K copies (:data:`BatchedEnvFactory`; for instance
+    ``functools.partial(ee_formation_env.vector_env, "planar_square")``). ``n_workers = 0`` steps all
+    ``n_envs`` copies as one batched env in this process; ``n_workers = k`` spreads them over ``k`` worker
+    processes (``spawn`` start method, so each builds fresh PyBullet clients), one batched env each, except
+    the first ``in_process_envs`` copies, stepped in this process while the workers step theirs: the
+    learner's own work per step (the policy's forward pass, normalization, the rollout buffer) then overlaps
+    the workers' instead of leaving a core idle. Slot ``e * n_agents + i`` is agent i of copy e; copy e is
+    seeded with the seed of its first slot (``seed(s)`` gives slot j the seed ``s + j``), and an ended copy
+    restarts from its own generator (the batched env's SAME_STEP autoreset).
 
-    An env class may provide ``group_stepper``: a class built from the envs of one process whose
-    ``step(actions)`` (one action dict per env) steps them all and returns each env's step result, exactly as
-    its own ``step`` would. The envs of such a class are stepped through it (the residual envs of
-    :mod:`ee_formation_env.baselines.learned.residual` evaluate every env's reference controllers in one batch).
+    ``info_keys``: the batched env's info entries each slot's info keeps (None, the default: all of them).
+    Training needs none of them (SB3 reads only the ``terminal_observation`` and ``TimeLimit.truncated`` this
+    VecEnv adds), and with worker processes every entry kept is pickled through a pipe on every step.
 
-    Worker faults name the worker: its index, pid, the envs it steps (indices and scenario) and what it was
+    Worker faults name the worker: its index, pid, the copies it steps (indices and scenario) and what it was
     doing; after one the VecEnv refuses further use.
 
     - A worker that dies (killed, crashed, out of memory) raises ``RuntimeError("env worker 0 (pid 1234, envs
@@ -192,15 +188,20 @@ class SharedPolicyVecEnv(VecEnv):
     parent process ends) exits by itself.
     """
 
-    def __init__(self, factories: Sequence[EnvFactory], n_workers: int = 0, info_keys: Sequence[str] | None = None,
-                 in_process_envs: int = 0, worker_timeout: float | None = DEFAULT_WORKER_TIMEOUT):
-        if not factories:
-            raise ValueError("factories: expected at least one env factory")
+    def __init__(self, factory: BatchedEnvFactory, n_envs: int, n_workers: int = 0,
+                 info_keys: Sequence[str] | None = None, in_process_envs: int = 0,
+                 worker_timeout: float | None = DEFAULT_WORKER_TIMEOUT):
+        if not callable(factory):
+            raise TypeError(f"factory: expected a callable factory(num_envs=K) of a batched env, got "
+                            f"{type(factory).__name__}")
+        if isinstance(n_envs, bool) or not isinstance(n_envs, (int, np.integer)) or n_envs < 1:
+            raise ValueError(f"n_envs: expected an integer >= 1 (copies), got {n_envs!r}")
+        n_envs = int(n_envs)
         if not isinstance(n_workers, int) or n_workers < 0:
             raise ValueError(f"n_workers: expected an integer >= 0, got {n_workers!r}")
-        if not isinstance(in_process_envs, int) or not 0 <= in_process_envs < len(factories) or \
+        if not isinstance(in_process_envs, int) or not 0 <= in_process_envs < n_envs or \
                 (in_process_envs and not n_workers):
-            raise ValueError(f"in_process_envs: expected an integer in [0, {len(factories) - 1}], and 0 without "
+            raise ValueError(f"in_process_envs: expected an integer in [0, {n_envs - 1}], and 0 without "
                              f"worker processes, got {in_process_envs!r}")
         if info_keys is not None and (isinstance(info_keys, str) or not all(isinstance(k, str) for k in info_keys)):
             raise TypeError(f"info_keys: expected None or a sequence of info key names, got {info_keys!r}")
@@ -209,7 +210,7 @@ class SharedPolicyVecEnv(VecEnv):
             raise ValueError(f"worker_timeout: expected None or a number of seconds > 0, got {worker_timeout!r}")
         self.worker_timeout = None if worker_timeout is None else float(worker_timeout)
         # Set before anything can fail, so that close() (and __del__) always find them.
-        self._local: _EnvGroup | None = None
+        self._local: _CopyGroup | None = None
         self._connections: list[Connection] = []
         self._processes: list[multiprocessing.Process] = []
         self._envs_per_worker: list[int] = []
@@ -217,46 +218,47 @@ class SharedPolicyVecEnv(VecEnv):
         self._unanswered: list[int] = []  # per worker: commands sent whose answer is not read yet
         self._faulty: set[int] = set()  # workers that died, failed or timed out
         self._fault: str | None = None  # the first fault's message: the VecEnv is unusable after it
-        probe = factories[0]()
-        self.agents = list(probe.possible_agents)
-        spaces = [(probe.observation_space(a), probe.action_space(a)) for a in self.agents]
-        self.scenario = probe.scenario
-        probe_render_mode = probe.render_mode
-        if info_keys is not None:
-            _, probe_infos = probe.reset(seed=0)
-            unknown = sorted(set(info_keys) - set(probe_infos[self.agents[0]]))
-            if unknown:
-                probe.close()
-                raise ValueError(f"info_keys: unknown info key(s) {unknown}; the env's: {sorted(probe_infos[self.agents[0]])}")
-        probe.close()
+        # One copy, built here, checks the scenario and gives the spaces before any worker starts.
+        probe = factory(num_envs=1)
+        try:
+            self.agents = list(probe.possible_agents)
+            spaces = [(probe.observation_space(a), probe.action_space(a)) for a in self.agents]
+            self.scenario = probe.scenario
+            if info_keys is not None:
+                known = sorted(set(probe.reset_arrays(seed=0).infos) - set(_SLOT_INFO_SKIPPED))
+                unknown = sorted(set(info_keys) - set(known))
+                if unknown:
+                    raise ValueError(f"info_keys: unknown info key(s) {unknown}; the env's: {known}")
+        finally:
+            probe.close()
         if any(s != spaces[0] for s in spaces):
             raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
-        self.n_envs = len(factories)
+        self.n_envs = n_envs
         self.n_workers = min(n_workers, self.n_envs - in_process_envs)
-        self.n_local = self.n_envs if self.n_workers == 0 else in_process_envs  # envs stepped in this process
+        self.n_local = self.n_envs if self.n_workers == 0 else in_process_envs  # copies stepped in this process
         try:
             if self.n_workers:
                 context = multiprocessing.get_context("spawn")
                 chunks = np.array_split(np.arange(self.n_local, self.n_envs), self.n_workers)
                 for index, chunk in enumerate(chunks):
-                    chunk_factories = [factories[i] for i in chunk]
                     parent, child = context.Pipe()
-                    process = context.Process(target=_worker, args=(child, chunk_factories, info_keys), daemon=True)
+                    process = context.Process(target=_worker, args=(child, factory, len(chunk), info_keys),
+                                              daemon=True)
                     self._start_worker(process)
                     child.close()
                     self._connections.append(parent)
                     self._processes.append(process)
                     self._envs_per_worker.append(len(chunk))
                     self._unanswered.append(1)  # its start-up report
-                    self._worker_labels.append(self._label(index, process.pid, chunk, chunk_factories,
-                                                           factories[0], probe.scenario.name))
+                    copies = f"env {chunk[0]}" if len(chunk) == 1 else f"envs {chunk[0]}-{chunk[-1]}"
+                    self._worker_labels.append(f"env worker {index} (pid {process.pid}, {copies} of "
+                                               f"{self.scenario.name})")
             if self.n_local:  # built while the workers build theirs
-                self._local = _EnvGroup(factories[:self.n_local], info_keys)
+                self._local = _CopyGroup(factory, self.n_local, info_keys)
             self._receive_workers("start-up (building its envs)")
         except BaseException:
             self.close()
             raise
-        self._render_mode = probe_render_mode
         self._pending: np.ndarray | None = None
         super().__init__(self.n_envs * len(self.agents), spaces[0][0], spaces[0][1])
 
@@ -327,8 +329,8 @@ class SharedPolicyVecEnv(VecEnv):
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         if attr_name == "render_mode":
-            return [self._render_mode] * self.num_envs
-        per_env = [] if self._local is None else [getattr(env, attr_name) for env in self._local.envs]
+            return [None] * self.num_envs  # batched envs do not render
+        per_env = [] if self._local is None else [getattr(self._local.env, attr_name)] * self._local.count
         per_env += [value for values in self._call_workers("get_attr", [attr_name] * self.n_workers,
                                                            f"get_attr({attr_name!r})")
                     for value in values]
@@ -363,14 +365,6 @@ class SharedPolicyVecEnv(VecEnv):
             process.start()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
-
-    @staticmethod
-    def _label(index: int, pid: int | None, chunk: np.ndarray, chunk_factories: Sequence[EnvFactory],
-               first_factory: EnvFactory, first_scenario: str) -> str:
-        envs = f"env {chunk[0]}" if len(chunk) == 1 else f"envs {chunk[0]}-{chunk[-1]}"
-        names = sorted({first_scenario if factory is first_factory else _scenario_name(factory) or "?"
-                        for factory in chunk_factories})
-        return f"env worker {index} (pid {pid}, {envs} of {', '.join(names)})"
 
     def _split_per_worker(self, items: Sequence[Any]) -> list[list[Any]]:
         out, start = [], 0

@@ -1,4 +1,4 @@
-"""The SB3 adapter: truncation bootstrapping, seeding, one physics client per env, worker processes."""
+"""The SB3 adapter: truncation bootstrapping, seeding, one physics client per copy, worker processes."""
 
 from __future__ import annotations
 
@@ -8,21 +8,53 @@ import os
 import numpy as np
 import pytest
 
+import ee_formation_env
+from conftest import mixed_team
+
 pytest.importorskip("stable_baselines3")
 
 from stable_baselines3 import PPO  # noqa: E402
 
-from ee_formation_env.baselines.learned.training_env import make_training_env  # noqa: E402
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv  # noqa: E402
 from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv  # noqa: E402
 
 
 def _factory(**overrides):
     overrides.setdefault("episode_seconds", 0.05)  # 5 env steps at 100 Hz
-    return functools.partial(make_training_env, "planar_square", overrides)
+    return functools.partial(BatchedTrainingEnv, "planar_square", overrides)
+
+
+def test_a_plain_batched_env_works_as_well():
+    """Any batched env factory: here the env itself, without the training modes."""
+    venv = SharedPolicyVecEnv(functools.partial(ee_formation_env.vector_env, "planar_square", episode_seconds=0.05),
+                              2, info_keys=("formation_error", "applied_torque", "edge_errors"))
+    try:
+        venv.seed(0)
+        observations = venv.reset()
+        single = ee_formation_env.parallel_env("planar_square", episode_seconds=0.05)
+        single_observations, _ = single.reset(seed=4)  # copy 1's seed: that of slot 4
+        np.testing.assert_array_equal(observations[4:], np.stack([single_observations[a] for a in single.agents]))
+        actions = np.random.default_rng(1).uniform(-1, 1, (8, 2)).astype(np.float32)
+        _, rewards, _, infos = venv.step(actions)
+        _, single_rewards, _, _, single_infos = single.step({a: actions[4 + i] for i, a in enumerate(single.agents)})
+        for i, agent in enumerate(single.agents):
+            assert rewards[4 + i] == np.float32(single_rewards[agent])
+            for key in ("formation_error", "applied_torque", "edge_errors"):
+                np.testing.assert_array_equal(infos[4 + i][key], single_infos[agent][key])
+        single.close()
+    finally:
+        venv.close()
+
+
+def test_bad_arguments_are_refused_before_any_env_is_built():
+    with pytest.raises(TypeError, match="factory: expected a callable"):
+        SharedPolicyVecEnv("planar_square", 2)
+    with pytest.raises(ValueError, match="n_envs: expected an integer >= 1"):
+        SharedPolicyVecEnv(_factory(), 0)
 
 
 def test_slots_flatten_agents_of_every_env():
-    venv = SharedPolicyVecEnv([_factory(), _factory()], n_workers=0)
+    venv = SharedPolicyVecEnv(_factory(), 2, n_workers=0)
     try:
         assert venv.num_envs == 8
         observations = venv.reset()
@@ -33,7 +65,7 @@ def test_slots_flatten_agents_of_every_env():
 
 
 def test_truncation_is_reported_for_bootstrapping():
-    venv = SharedPolicyVecEnv([_factory()], n_workers=0)
+    venv = SharedPolicyVecEnv(_factory(), 1, n_workers=0)
     try:
         venv.reset()
         zeros = np.zeros((venv.num_envs, 2), dtype=np.float32)
@@ -53,7 +85,7 @@ def test_truncation_is_reported_for_bootstrapping():
 
 
 def test_physics_fault_is_termination_not_truncation():
-    venv = SharedPolicyVecEnv([_factory(torque_limits=1e5, episode_seconds=5.0)], n_workers=0)
+    venv = SharedPolicyVecEnv(_factory(torque_limits=1e5, episode_seconds=5.0), 1, n_workers=0)
     try:
         venv.reset()
         for _ in range(100):
@@ -69,7 +101,7 @@ def test_physics_fault_is_termination_not_truncation():
 
 def test_seed_gives_reproducible_and_distinct_env_resets():
     def first_observations(seed):
-        venv = SharedPolicyVecEnv([_factory(), _factory()], n_workers=0)
+        venv = SharedPolicyVecEnv(_factory(), 2, n_workers=0)
         try:
             venv.seed(seed)
             return venv.reset()
@@ -86,7 +118,7 @@ def test_ppo_accepts_a_seed_and_reproduces_its_first_rollout():
     """SuperSuit's ConcatVecEnv crashes on PPO(seed=...); ours seeds every env."""
 
     def first_rollout(seed):
-        venv = SharedPolicyVecEnv([_factory(episode_seconds=0.2)], n_workers=0)
+        venv = SharedPolicyVecEnv(_factory(episode_seconds=0.2), 1, n_workers=0)
         model = PPO("MlpPolicy", venv, n_steps=16, batch_size=32, n_epochs=1, seed=seed, device="cpu")
         model.learn(total_timesteps=64)
         buffer = model.rollout_buffer
@@ -98,22 +130,22 @@ def test_ppo_accepts_a_seed_and_reproduces_its_first_rollout():
         np.testing.assert_array_equal(left, right)
 
 
-def test_each_env_has_its_own_physics_client_in_process():
-    venv = SharedPolicyVecEnv([_factory(), _factory(), _factory()], n_workers=0)
+def test_each_copy_has_its_own_physics_client_in_process():
+    venv = SharedPolicyVecEnv(_factory(), 3, n_workers=0)
     try:
-        clients = [env.world.client for env in venv._local.envs]
+        clients = [world.client for world in venv._local.env.env._worlds]
         assert len(set(clients)) == 3
     finally:
         venv.close()
 
 
 def test_worker_processes_build_their_own_worlds():
-    venv = SharedPolicyVecEnv([_factory(), _factory()], n_workers=2)
+    venv = SharedPolicyVecEnv(_factory(), 2, n_workers=2)
     try:
         pids = venv.worker_pids()
         assert len(set(pids)) == 2 and os.getpid() not in pids
         observations = venv.reset()
-        in_process = SharedPolicyVecEnv([_factory(), _factory()], n_workers=0)
+        in_process = SharedPolicyVecEnv(_factory(), 2, n_workers=0)
         try:
             in_process.seed(0)
             venv.seed(0)
@@ -132,15 +164,14 @@ def test_worker_processes_build_their_own_worlds():
 
 
 def test_envs_in_process_beside_workers_step_as_all_in_process():
-    """One env stepped by this process while a worker steps two: the same rollout as all three in-process
-    (residual envs: each process steps its envs as one group)."""
+    """One copy stepped by this process while a worker steps two: the same rollout as all three in-process."""
     factory = _factory(episode_seconds=0.05)
-    residual = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05}, "residual")
-    for factories in ([factory] * 3, [residual] * 3):
-        split = SharedPolicyVecEnv(factories, n_workers=1, in_process_envs=1)
-        in_process = SharedPolicyVecEnv(factories, n_workers=0)
+    residual = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, "residual")
+    for chosen in (factory, residual):
+        split = SharedPolicyVecEnv(chosen, 3, n_workers=1, in_process_envs=1)
+        in_process = SharedPolicyVecEnv(chosen, 3, n_workers=0)
         try:
-            assert split.n_local == 1 and len(split._local.envs) == 1 and len(split.worker_pids()) == 1
+            assert split.n_local == 1 and split._local.count == 1 and len(split.worker_pids()) == 1
             split.seed(0)
             in_process.seed(0)
             np.testing.assert_array_equal(split.reset(), in_process.reset())
@@ -158,12 +189,12 @@ def test_envs_in_process_beside_workers_step_as_all_in_process():
 @pytest.mark.parametrize("n_workers,in_process_envs", [(1, -1), (1, 2), (1, 1.5), (0, 1)])
 def test_bad_in_process_envs_are_rejected_before_any_worker_starts(n_workers, in_process_envs):
     with pytest.raises(ValueError, match=r"in_process_envs: expected an integer in \[0, 1\], and 0 without worker"):
-        SharedPolicyVecEnv([_factory(), _factory()], n_workers=n_workers, in_process_envs=in_process_envs)
+        SharedPolicyVecEnv(_factory(), 2, n_workers=n_workers, in_process_envs=in_process_envs)
 
 
 def test_worker_errors_surface_in_the_parent():
-    bad = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05}, "torque")
-    venv = SharedPolicyVecEnv([bad], n_workers=1)
+    bad = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, "torque")
+    venv = SharedPolicyVecEnv(bad, 1, n_workers=1)
     try:
         venv.reset()
         with pytest.raises(RuntimeError, match="worker failed"):
@@ -173,21 +204,15 @@ def test_worker_errors_surface_in_the_parent():
 
 
 def test_heterogeneous_agents_are_rejected():
-    scenario = {
-        "arms": [{"robot": "planar_2link", "base_position": [0, 0, 0], "initial_q": [0.0, 1.0]},
-                 {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7", "base_position": [1.0, 0, 0],
-                  "initial_q": [0, 0.5, 0, -1.2, 0, 0.6, 0]}],
-        "edges": [[0, 1]], "shape": [[0, 0, 0], [0.2, 0, 0]], "formation": "displacement", "dim": 3,
-        "arm_collisions": False,  # the planar arm's first link starts through the kuka's base
-    }
+    scenario = mixed_team()
     with pytest.raises(ValueError, match="parameter sharing"):
-        SharedPolicyVecEnv([functools.partial(make_training_env, scenario)], n_workers=0)
+        SharedPolicyVecEnv(functools.partial(ee_formation_env.vector_env, scenario), 1, n_workers=0)
 
 
 @pytest.mark.parametrize("n_workers", [0, 1])
 def test_info_keys_choose_what_each_slot_info_keeps(n_workers):
-    venv = SharedPolicyVecEnv([_factory()], n_workers=n_workers, info_keys=("formation_error",))
-    lean = SharedPolicyVecEnv([_factory()], n_workers=n_workers, info_keys=())
+    venv = SharedPolicyVecEnv(_factory(), 1, n_workers=n_workers, info_keys=("formation_error",))
+    lean = SharedPolicyVecEnv(_factory(), 1, n_workers=n_workers, info_keys=())
     try:
         venv.reset()
         lean.reset()
@@ -204,6 +229,25 @@ def test_info_keys_choose_what_each_slot_info_keeps(n_workers):
 
 def test_bad_info_keys_are_rejected_before_any_worker_starts():
     with pytest.raises(ValueError, match=r"info_keys: unknown info key\(s\) \['formation_eror'\]"):
-        SharedPolicyVecEnv([_factory()], n_workers=1, info_keys=("formation_eror",))
+        SharedPolicyVecEnv(_factory(), 1, n_workers=1, info_keys=("formation_eror",))
     with pytest.raises(TypeError, match="info_keys"):
-        SharedPolicyVecEnv([_factory()], n_workers=0, info_keys="formation_error")
+        SharedPolicyVecEnv(_factory(), 1, n_workers=0, info_keys="formation_error")
+
+
+def test_the_docs_sb3_snippet_runs_as_written():
+    """docs/training.md's SharedPolicyVecEnv snippet, exactly as on the page, then one short learn."""
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "training.md").read_text(encoding="utf-8")
+    blocks = [b for b in re.findall(r"```python\n(.*?)```", page, flags=re.S) if "SharedPolicyVecEnv(" in b]
+    assert len(blocks) == 1, "docs/training.md: expected one SharedPolicyVecEnv snippet"
+    namespace: dict = {}
+    exec(compile(blocks[0], "docs/training.md (SB3 snippet)", "exec"), namespace)
+    venv, model = namespace["venv"], namespace["model"]
+    try:
+        assert venv.num_envs == 64
+        model.learn(total_timesteps=64 * 64)
+        assert model.num_timesteps == 64 * 64
+    finally:
+        venv.close()

@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-from ee_formation_env.baselines.learned.training_env import make_training_env  # noqa: E402
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv  # noqa: E402
 from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals and /proc (Linux)")
@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _factory():
-    return functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05})
+    return functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05})
 
 
 def _gone(pid: int) -> bool:
@@ -58,7 +58,7 @@ def _actions(venv):
 
 
 def test_a_killed_worker_is_named_with_its_exit_signal():
-    venv = SharedPolicyVecEnv([_factory()] * 3, n_workers=1, in_process_envs=1)
+    venv = SharedPolicyVecEnv(_factory(), 3, n_workers=1, in_process_envs=1)
     pids = venv.worker_pids()
     try:
         venv.reset()
@@ -79,7 +79,7 @@ def test_a_killed_worker_is_named_with_its_exit_signal():
 
 
 def test_a_stopped_worker_times_out_and_close_kills_it():
-    venv = SharedPolicyVecEnv([_factory(), _factory()], n_workers=2, worker_timeout=30)
+    venv = SharedPolicyVecEnv(_factory(), 2, n_workers=2, worker_timeout=30)
     venv.worker_timeout = 2.0  # after the start-up, which can take longer on a loaded machine
     pids = venv.worker_pids()
     try:
@@ -99,8 +99,8 @@ def test_a_stopped_worker_times_out_and_close_kills_it():
 
 
 def test_worker_errors_name_the_worker_and_carry_its_traceback():
-    bad = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05}, "torque")
-    venv = SharedPolicyVecEnv([bad], n_workers=1)
+    bad = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, "torque")
+    venv = SharedPolicyVecEnv(bad, 1, n_workers=1)
     pids = venv.worker_pids()
     try:
         venv.reset()
@@ -108,15 +108,16 @@ def test_worker_errors_name_the_worker_and_carry_its_traceback():
             venv.step(np.zeros((venv.num_envs, 3), dtype=np.float32))  # wrong action shape
         message = str(fault.value)
         assert message.startswith(f"SharedPolicyVecEnv worker failed: env worker 0 (pid {pids[0]}, env 0 of "
-                                  f"planar_square) raised ValueError(\"actions['arm_0']: expected shape (2,), got "
-                                  f"(3,)\") during step\nWorker traceback:\nTraceback (most recent call last):")
+                                  f"planar_square) raised ValueError('actions: expected shape (1, 8) or (4, 2) or "
+                                  f"(1, 4, 2), got (4, 3)') during step\nWorker traceback:\nTraceback (most recent "
+                                  f"call last):")
     finally:
         venv.close()
     _assert_no_worker_left(pids)
 
 
 def test_workers_ignore_sigint_but_not_sigterm():
-    venv = SharedPolicyVecEnv([_factory(), _factory()], n_workers=1, in_process_envs=1)
+    venv = SharedPolicyVecEnv(_factory(), 2, n_workers=1, in_process_envs=1)
     pids = venv.worker_pids()
     try:
         venv.reset()
@@ -135,7 +136,7 @@ def test_workers_ignore_sigint_but_not_sigterm():
 
 
 def test_a_worker_exits_when_its_learner_closes_the_pipe():
-    venv = SharedPolicyVecEnv([_factory()], n_workers=1)
+    venv = SharedPolicyVecEnv(_factory(), 1, n_workers=1)
     process = venv._processes[0]
     try:
         venv._connections[0].close()  # as the learner's death would
@@ -149,11 +150,11 @@ def test_a_worker_exits_when_its_learner_closes_the_pipe():
 def test_workers_exit_when_their_learner_is_killed():
     learner = textwrap.dedent("""
         import functools, sys, time
-        from ee_formation_env.baselines.learned.training_env import make_training_env
+        from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
         from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
         if __name__ == "__main__":
-            factory = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05})
-            venv = SharedPolicyVecEnv([factory] * 2, n_workers=2)
+            factory = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05})
+            venv = SharedPolicyVecEnv(factory, 2, n_workers=2)
             venv.reset()
             print(*venv.worker_pids(), flush=True)
             time.sleep(120)
@@ -176,11 +177,11 @@ def test_ctrl_c_reaches_the_learner_alone():
     learner = textwrap.dedent("""
         import functools, time
         import numpy as np
-        from ee_formation_env.baselines.learned.training_env import make_training_env
+        from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
         from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
         if __name__ == "__main__":
-            factory = functools.partial(make_training_env, "planar_square", {"episode_seconds": 0.05})
-            venv = SharedPolicyVecEnv([factory] * 2, n_workers=1, in_process_envs=1)
+            factory = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05})
+            venv = SharedPolicyVecEnv(factory, 2, n_workers=1, in_process_envs=1)
             venv.reset()
             print("ready", flush=True)
             try:

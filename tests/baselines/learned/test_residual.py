@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ee_formation_env import baselines
-from ee_formation_env.baselines.learned.residual import (ResidualActionEnv, ResidualGroup, ResidualPolicy, combine, correction_factor,
+from ee_formation_env.baselines.learned.residual import (ResidualActionEnv, ResidualPolicy, combine, correction_factor,
                                error_gate, error_gates)
 
 
@@ -118,46 +118,3 @@ def test_bad_residuals_get_the_envs_error_before_anything_moves(make_env, bad, m
     assert all(np.all(policy.eta == 0) for policy in residual.references.policies.values())  # nothing adapted
     after, *_ = residual.step(actions)  # the wrapper is still usable
     assert set(after) == set(observations)
-
-
-def _residual_envs(make_env, count, **overrides):
-    return [ResidualActionEnv(make_env("planar_square", **overrides), scale=0.3, gate=True) for _ in range(count)]
-
-
-def test_a_group_steps_each_env_as_its_own_step_would(make_env):
-    """Three envs stepped as a group and three twins stepped alone: bit-identical, across episode ends."""
-    grouped, alone = _residual_envs(make_env, 3, episode_seconds=0.05), _residual_envs(make_env, 3, episode_seconds=0.05)
-    group = ResidualGroup(grouped)
-    for seed, (env, twin) in enumerate(zip(grouped, alone)):
-        env.reset(seed=seed)
-        twin.reset(seed=seed)
-    rng = np.random.default_rng(0)
-    for _ in range(12):  # 5-step episodes: two resets each
-        actions = [{agent: rng.uniform(-1.5, 1.5, 2).astype(np.float32) for agent in env.possible_agents}
-                   for env in grouped]
-        for env, twin, env_actions, result in zip(grouped, alone, actions, group.step(actions)):
-            expected = twin.step(env_actions)
-            for agent in env.possible_agents:
-                assert result[0][agent].tobytes() == expected[0][agent].tobytes()
-                assert result[1][agent] == expected[1][agent]
-            assert result[2:4] == expected[2:4]
-            if not env.agents:
-                env.reset()
-                twin.reset()
-
-
-def test_a_group_checks_every_envs_actions_before_any_env_moves(make_env):
-    envs = _residual_envs(make_env, 2)
-    group = ResidualGroup(envs)
-    for env in envs:
-        env.reset(seed=0)
-    good = {agent: np.zeros(2, dtype=np.float32) for agent in envs[0].possible_agents}
-    with pytest.raises(ValueError, match=r"actions\['arm_2'\]: expected finite values"):
-        group.step([good, {**good, "arm_2": np.array([np.nan, 0.0])}])
-    assert all(env.env._step_count == 0 for env in envs)  # the first env did not move either
-    assert all(np.all(policy.eta == 0) for env in envs for policy in env.references.policies.values())
-    with pytest.raises(ValueError, match="one action dict per env"):
-        group.step([good])
-    with pytest.raises(TypeError, match="ResidualActionEnv"):
-        ResidualGroup([envs[0].env])
-    assert len(group.step([good, good])) == 2  # still usable

@@ -1,0 +1,118 @@
+"""The batched training env: copy k is one single training env reset with its seed, bit for bit."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from conftest import mixed_team
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, make_training_env
+
+# (mode, settings) of the training envs compared: both modes, gated and plain residuals, features and shaping.
+CASES = {
+    "residual": dict(mode="residual"),
+    "residual-gated": dict(mode="residual", gate=True, residual_scale=0.3, correction_penalty=0.8),
+    "torque-shaped": dict(mode="torque", hold_penalty=0.5, obs_features="log-error"),
+    "residual-shaped": dict(mode="residual", hold_penalty=1.0, obs_features="log-error"),
+}
+
+
+def _single(scenario: str, overrides: dict, settings: dict) -> Any:
+    settings = dict(settings)
+    mode = settings.pop("mode")
+    return make_training_env(scenario, overrides, mode, residual_scale=settings.pop("residual_scale", 0.1),
+                             correction_penalty=settings.pop("correction_penalty", 0.5),
+                             gate=settings.pop("gate", False), **settings)
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("scenario, steps", [("planar_square", 40), ("spatial_tetrahedron", 12)])
+def test_copies_are_single_training_envs_through_autoresets(closer, case, scenario, steps):
+    # Short episodes: every copy ends and restarts (its references reset) within the steps compared.
+    overrides = {"episode_seconds": 0.15 if scenario == "planar_square" else 0.05}
+    count, seeds = 3, [5, 11, 2]
+    batched = closer(BatchedTrainingEnv(scenario, overrides, num_envs=count, **CASES[case]))
+    singles = [closer(_single(scenario, overrides, CASES[case])) for _ in range(count)]
+    agents = batched.possible_agents
+    N, n = len(agents), batched.action_space(agents[0]).shape[0]
+    result = batched.reset_arrays(seed=seeds)
+    size = batched.observation_space(agents[0]).shape[0]
+    for k, single in enumerate(singles):
+        observations, _ = single.reset(seed=seeds[k])
+        assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
+    rng = np.random.default_rng(0)
+    ends = 0
+    for _ in range(steps):
+        actions = rng.uniform(-1.3, 1.3, (count * N, n)).astype(np.float32)
+        result = batched.step_arrays(actions)
+        for k, single in enumerate(singles):
+            observations, rewards, terminations, truncations, _ = single.step(
+                {agent: actions[k * N + i] for i, agent in enumerate(agents)})
+            final = result.infos["final_observation"][k].reshape(N, size)
+            for i, agent in enumerate(agents):
+                assert final[i].tobytes() == observations[agent].tobytes(), (k, agent)
+                assert result.rewards[k, i] == rewards[agent], (k, agent)
+            assert result.terminations[k] == terminations[agents[0]]
+            assert result.truncations[k] == truncations[agents[0]]
+            if not single.agents:  # SAME_STEP autoreset: the batched copy already started its next episode
+                ends += 1
+                observations, _ = single.reset()
+            assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
+    assert ends >= count
+
+
+def test_spaces_are_the_single_training_envs(closer):
+    batched = closer(BatchedTrainingEnv("planar_square", num_envs=2, **CASES["torque-shaped"]))
+    single = closer(_single("planar_square", {}, CASES["torque-shaped"]))
+    for agent in single.possible_agents:
+        assert batched.observation_space(agent) == single.observation_space(agent)
+        assert batched.action_space(agent) == single.action_space(agent)
+    result = batched.reset_arrays(seed=0)
+    assert result.observations.shape == (2, 4 * single.observation_space("arm_0").shape[0])
+    assert result.observations.dtype == np.float32
+
+
+@pytest.mark.parametrize("settings, message", [
+    (dict(mode="imitation"), "mode: expected 'torque' or 'residual'"),
+    (dict(obs_features="squared"), "obs_features: expected one of"),
+    (dict(mode="residual", residual_scale=2.0), r"residual_scale: expected a value in \(0, 1\]"),
+    (dict(mode="residual", reference="zero"), "reference: expected a model-based controller"),
+    (dict(hold_penalty=-0.1), r"hold_penalty: expected a value in \[0, 1\]"),
+])
+def test_bad_settings_name_the_field_before_any_client_starts(settings, message, monkeypatch):
+    import ee_formation_env
+
+    monkeypatch.setattr(ee_formation_env, "vector_env", lambda *a, **k: pytest.fail("a client was built"))
+    with pytest.raises(ValueError, match=message):
+        BatchedTrainingEnv("planar_square", num_envs=2, **settings)
+
+
+def test_mixed_robot_teams_are_refused_for_parameter_sharing():
+    with pytest.raises(ValueError, match="agents: parameter sharing needs identical"):
+        BatchedTrainingEnv(mixed_team(), num_envs=2)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.full((8, 2), np.nan), r"actions: expected finite values"),
+    (np.zeros((8, 3)), r"actions: expected shape"),
+    (np.array([["a", "b"]] * 8), r"actions: expected a numeric array"),
+])
+def test_bad_residuals_raise_before_any_copy_or_controller_moves(closer, bad, match):
+    batched = closer(BatchedTrainingEnv("planar_square", num_envs=2, mode="residual", gate=True))
+    before = batched.reset_arrays(seed=0)
+    with pytest.raises(ValueError, match=match):
+        batched.step_arrays(bad)
+    policies = [policy for team in batched.residuals.teams for policy in team.values()]
+    assert all(np.all(policy.eta == 0) for policy in policies)  # nothing adapted
+    assert np.array_equal(batched.env.joint_positions(), batched.env.joint_positions())
+    after = batched.step_arrays(np.zeros((8, 2), np.float32))  # still usable, from the same start
+    assert after.infos["sim_time"].tolist() == pytest.approx([batched.scenario.control_dt] * 2)
+    assert before.observations.shape == after.observations.shape
+
+
+def test_step_before_reset_is_refused(closer):
+    batched = closer(BatchedTrainingEnv("planar_square", num_envs=2, mode="residual"))
+    with pytest.raises(RuntimeError, match="call reset"):
+        batched.step_arrays(np.zeros((8, 2)))
