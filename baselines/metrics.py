@@ -204,9 +204,14 @@ SUMMARY_FIELDS = ("final_formation_error", "settling_time", "control_energy", "p
 
 def summarize(episodes: Sequence[EpisodeMetrics]) -> dict[str, Any]:
     """Success rate and the mean / std of every metric over episodes (settling time over successes only)."""
+    reasons: dict[str, int] = {}
+    for episode in episodes:
+        if episode.physics_fault:
+            reasons[episode.physics_fault] = reasons.get(episode.physics_fault, 0) + 1
     summary: dict[str, Any] = {"episodes": len(episodes),
                                "success_rate": float(np.mean([e.success for e in episodes])),
-                               "physics_faults": int(sum(bool(e.physics_fault) for e in episodes))}
+                               "physics_faults": int(sum(reasons.values())),
+                               "physics_fault_reasons": reasons}
     for name in SUMMARY_FIELDS:
         values = np.array([getattr(e, name) for e in episodes], dtype=np.float64)
         if name == "settling_time":
@@ -238,6 +243,9 @@ METRIC_COLUMNS: tuple[MetricColumn, ...] = (
     MetricColumn("success_rate", "success", "%", "share of episodes whose formation error fell below the tolerance "
                  "(the error of edges --tolerance m off their lengths) and stayed below to the end, for at least 1 s",
                  "{:.0%}"),
+    MetricColumn("physics_faults", "faults", "episodes", "episodes the env ended with a physics fault (a "
+                 "non-finite joint state, or a joint faster than max_joint_velocity); never a success; their "
+                 "reasons are listed under the table", "{:d}"),
     MetricColumn("final_formation_error", "final err", "m² or m", "formation error at the last step: RMS over edges "
                  "of |e_k|, e_k = |z_k|² − d_k² (m², distance formations) or z_k − z*_k (m, displacement)", "{:.2e}"),
     MetricColumn("settling_time", "settle", "s", "time after which the formation error stays within the tolerance; "
@@ -265,7 +273,24 @@ def format_table(rows: Mapping[str, Mapping[str, Any]]) -> str:
             value = summary.get(column.key, math.nan)
             cells.append("n/a" if isinstance(value, float) and math.isnan(value) else column.format.format(value))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    notes = fault_notes(rows)
+    return "\n".join(lines + ([""] + notes if notes else []))
+
+
+def fault_notes(rows: Mapping[str, Mapping[str, Any]], shown: int = 3) -> list[str]:
+    """One line per policy with faulted episodes: how many, and the ``shown`` most frequent reasons with
+    their counts (a summary never hides a fault)."""
+    notes = []
+    for name, summary in rows.items():
+        reasons = summary.get("physics_fault_reasons") or {}
+        if not reasons:
+            continue
+        ranked = sorted(reasons.items(), key=lambda item: (-item[1], item[0]))
+        listed = "; ".join(f"{reason} ({count}x)" for reason, count in ranked[:shown])
+        more = f"; {len(ranked) - shown} other reasons" if len(ranked) > shown else ""
+        notes.append(f"- {name}: {summary['physics_faults']} of {summary['episodes']} episodes ended in a physics "
+                     f"fault: {listed}{more}")
+    return notes
 
 
 def metric_definitions(markdown: bool = False) -> str:

@@ -69,6 +69,7 @@ PRESETS: dict[str, ModePreset] = {
         ppo=PPOSettings(net_arch=(128, 128), n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
         n_envs=8, n_steps=128, n_workers=0, in_process_envs=0),
 }
+FAULT_WINDOW = 100  # training episodes over which --max-fault-fraction is judged (all copies together)
 IMITATION_NET_ARCH = (256, 256)  # a copy of a reference controller (--imitate) needs a wider actor
 
 
@@ -133,6 +134,9 @@ class TrainConfig:
                                        f"{_preset_text('hold_penalty')}", type=float)
     max_train_seconds: float | None = _flag("sb3: stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
+    max_fault_fraction: float = _flag("sb3: stop training with an error naming the fault when more than this share "
+                                      f"of the last {FAULT_WINDOW} training episodes ended in a physics fault "
+                                      "(1: never stop)", 0.5, type=float)
     seed: int = _flag("training seed", 0, type=int)
     out: str | None = _flag("run directory (default runs/<name>); a folder that already holds files is refused "
                             "unless --overwrite or --resume")
@@ -221,6 +225,8 @@ class TrainConfig:
             raise ValueError("--gamma: expected a value in (0, 1]")
         if not 0 <= self.hold_penalty <= 1:
             raise ValueError("--hold-penalty: expected a value in [0, 1]")
+        if not 0 < self.max_fault_fraction <= 1:
+            raise ValueError("--max-fault-fraction: expected a value in (0, 1]")
         if self.max_train_seconds is not None and not self.max_train_seconds > 0:
             raise ValueError("--max-train-seconds: expected a value > 0")
         if not math.isfinite(self.log_std_init):

@@ -126,6 +126,11 @@ def _train_and_compare(config: TrainConfig, saved: dict[str, Any], run_dir: Path
             timing = train_rllib(config, run_dir, stop)
     if stop.requested:
         raise TrainingInterrupted(run_dir, stop.signal_name, int(timing.get("agent_steps", 0)))
+    segment = (timing.get("segments") or [{}])[-1]
+    if segment.get("faulted_training_episodes"):  # below the stop threshold, but never hidden
+        reasons = "; ".join(f"{reason} ({count}x)" for reason, count in segment["fault_reasons"].items())
+        print(f"{segment['faulted_training_episodes']} of {segment['training_episodes']} training episodes ended in "
+              f"a physics fault: {reasons}", flush=True)
     write_json(run_dir / "reference_returns.json", reference_returns(saved))
     compare(config, saved, run_dir)
     timing["total_seconds"] = time.time() - started  # training, reference lines and evaluation

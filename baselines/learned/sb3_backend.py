@@ -10,20 +10,30 @@ preset); docs/training.md explains them.
 
 from __future__ import annotations
 
+import collections
 import functools
 import json
 import math
+import re
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ee_formation_env.baselines.learned.checkpoint import (checkpoint_name, restore_checkpoint, save_checkpoint,
                                                            write_json)
-from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.config import FAULT_WINDOW, TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
 from ee_formation_env.baselines.learned.training_env import batched_env_factory
+
+
+class TrainingFaults(ValueError):
+    """Most training episodes end in physics faults: the run cannot learn from them (the scenario's arms are not
+    drivable at these torques). Raised by the fault monitor of :func:`train_sb3`, message starting
+    ``training:``."""
 
 
 def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
@@ -99,6 +109,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         if not args.no_progress:
             callbacks.append(_progress_callback(collected_steps(args.total_timesteps - start_steps, model,
                                                                 venv.num_envs)))
+        faults = FaultTally()
+        callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents)))
         started = time.time()
         remaining = args.total_timesteps - start_steps
         if remaining > 0:
@@ -107,6 +119,10 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
                     model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
                 else:  # SB3 counts the budget from the restored step count: the schedules continue where they were
                     model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
+            except TrainingFaults as fault:
+                save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
+                                {"interrupted": "physics faults"})
+                raise TrainingFaults(f"{fault} (the model so far is saved in {out_dir / MODEL_FOLDER})") from None
             except (RuntimeError, TimeoutError) as fault:  # an env worker died or stopped: the model itself is fine
                 save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
                                 {"interrupted": f"{type(fault).__name__}: {fault}"})
@@ -126,7 +142,7 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         venv.close()
     timing["segments"].append({"monitor": monitor_name, "start_agent_steps": start_steps,
                                "agent_steps": int(model.num_timesteps), "train_seconds": seconds,
-                               "interrupted": interrupted})
+                               "interrupted": interrupted, **faults.as_dict()})
     timing.update(train_seconds=sum(s["train_seconds"] for s in timing["segments"]),
                   agent_steps=int(model.num_timesteps), interrupted=interrupted)
     timing["agent_steps_per_s"] = (model.num_timesteps - start_steps) / max(seconds, 1e-9)  # this segment's
@@ -153,6 +169,59 @@ def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int) -> Any:
             return True
 
     return CheckpointSaver()
+
+
+class FaultTally:
+    """Training episodes seen by the fault monitor, how many ended in a physics fault, and why (reasons with
+    their numbers masked, so that one kind of fault counts once: "arm_1: joint speed # rad/s exceeds ...")."""
+
+    def __init__(self) -> None:
+        self.episodes = 0
+        self.faulted = 0
+        self.kinds: collections.Counter[str] = collections.Counter()
+        self.examples: dict[str, str] = {}  # kind -> its latest reason, numbers included
+        self.recent: collections.deque[bool] = collections.deque(maxlen=FAULT_WINDOW)
+
+    def add(self, reason: str) -> None:
+        self.episodes += 1
+        self.recent.append(bool(reason))
+        if reason:
+            self.faulted += 1
+            kind = re.sub(r"\d+(\.\d+)?", "#", reason)
+            self.kinds[kind] += 1
+            self.examples[kind] = reason
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"training_episodes": self.episodes, "faulted_training_episodes": self.faulted,
+                "fault_reasons": {self.examples[kind]: count for kind, count in self.kinds.most_common(5)}}
+
+
+def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int) -> Any:
+    """Counts every training episode's end (its ``physics_fault_reason``, on the first slot of its copy) into
+    ``tally``; raises :class:`TrainingFaults` when more than ``max_fraction`` of the last
+    :data:`~ee_formation_env.baselines.learned.config.FAULT_WINDOW` episodes faulted."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class FaultMonitor(BaseCallback):
+        def _on_step(self) -> bool:
+            ended = np.asarray(self.locals["dones"]).reshape(-1, n_agents)[:, 0]
+            if not ended.any():
+                return True
+            infos = self.locals["infos"]
+            for copy in np.flatnonzero(ended):
+                tally.add(str(infos[copy * n_agents].get("physics_fault_reason", "")))
+            faulted = sum(tally.recent)
+            if len(tally.recent) == FAULT_WINDOW and faulted > max_fraction * FAULT_WINDOW:
+                kind, count = tally.kinds.most_common(1)[0]
+                raise TrainingFaults(
+                    f"training: {faulted} of the last {FAULT_WINDOW} training episodes ended in a physics fault "
+                    f"(most often {tally.examples[kind]!r}: {count} of the {tally.faulted} faulted episodes so far), "
+                    f"after {self.model.num_timesteps:,} agent steps; the policy cannot learn from episodes the "
+                    "physics ends. Make the arms drivable: lower the scenario's torque_limits (N m) or "
+                    "--residual-scale, or raise its max_joint_velocity (--max-fault-fraction 1 trains anyway)")
+            return True
+
+    return FaultMonitor()
 
 
 def _stop_callback(stop: StopRequest) -> Any:

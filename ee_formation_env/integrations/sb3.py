@@ -83,9 +83,12 @@ class _CopyGroup:
             final = result.infos["final_observation"][k].reshape(N, -1)
             # Truncation is not termination: SB3 bootstraps only when this is True.
             truncated = bool(result.truncations[k]) and not bool(result.terminations[k])
+            # Why the env ended it ("" for none), whatever info_keys keeps: a fault is never hidden.
+            reason = str(result.infos["physics_fault_reason"][k]) if "physics_fault_reason" in result.infos else ""
             for i in range(N):
                 infos[k * N + i]["terminal_observation"] = final[i]
                 infos[k * N + i]["TimeLimit.truncated"] = truncated
+                infos[k * N + i]["physics_fault_reason"] = reason
         return (result.observations.reshape(self.count * N, -1), result.rewards.reshape(-1).astype(np.float32),
                 np.repeat(ended, N), infos)
 
@@ -166,7 +169,8 @@ class SharedPolicyVecEnv(VecEnv):
 
     ``info_keys``: the batched env's info entries each slot's info keeps (None, the default: all of them).
     Training needs none of them (SB3 reads only the ``terminal_observation`` and ``TimeLimit.truncated`` this
-    VecEnv adds), and with worker processes every entry kept is pickled through a pipe on every step.
+    VecEnv adds), and with worker processes every entry kept is pickled through a pipe on every step. The
+    slots of a copy whose episode ended always get its ``physics_fault_reason`` ("" for none).
 
     Worker faults name the worker: its index, pid, the copies it steps (indices and scenario) and what it was
     doing; after one the VecEnv refuses further use.

@@ -82,3 +82,14 @@ def test_video_writes_one_file_per_episode_at_simulated_speed(tmp_path):
     assert len(frames) == 17
     assert frames[0].shape[0] >= 360 and frames[0].shape[1] >= 480 and frames[0].shape[2] == 3
     assert frames[0].std() > 0  # not blank
+
+
+def test_faulted_episodes_are_counted_and_explained_under_the_table(capsys):
+    """Torque limits far beyond what the arms take: every random episode ends in a joint-speed fault."""
+    assert main(["--policy", "random", "--episodes", "2", "--set", "episode_seconds=0.3", "torque_limits=100000"]) == 0
+    output = capsys.readouterr().out
+    faults_column = [c.key for c in METRIC_COLUMNS].index("physics_faults")
+    assert _table_rows(output)["random"][faults_column] == "2"
+    note = next(line for line in output.splitlines() if line.startswith("- random:"))
+    assert note.startswith("- random: 2 of 2 episodes ended in a physics fault: arm_")
+    assert "joint speed" in note and "exceeds max_joint_velocity" in note

@@ -219,7 +219,7 @@ def test_info_keys_choose_what_each_slot_info_keeps(n_workers):
         actions = np.zeros((venv.num_envs, 2), dtype=np.float32)
         for step in range(5):  # the fifth step ends the 5-step episode
             infos, lean_infos = venv.step(actions)[3], lean.step(actions)[3]
-            ending = {"terminal_observation", "TimeLimit.truncated"} if step == 4 else set()
+            ending = {"terminal_observation", "TimeLimit.truncated", "physics_fault_reason"} if step == 4 else set()
             assert all(set(info) == {"formation_error"} | ending for info in infos)
             assert all(set(info) == ending for info in lean_infos)
     finally:

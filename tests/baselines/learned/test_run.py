@@ -188,3 +188,58 @@ def test_three_ppo_updates_give_the_pinned_parameters(mode):
         assert digest.hexdigest()[:16] == PINNED_TRAINING_DIGESTS[mode]
     finally:
         model.get_env().close()
+
+
+def _undrivable_scenario(tmp_path):
+    """planar_square with 1e5 N m torque limits: any sizeable action ends the episode in a joint-speed fault."""
+    import yaml
+
+    from ee_formation_env.builtin import builtin_scenario
+
+    scenario = builtin_scenario("planar_square")
+    scenario["torque_limits"] = 1e5
+    path = tmp_path / "undrivable.yaml"
+    path.write_text(yaml.safe_dump(scenario), encoding="utf-8")
+    return path
+
+
+UNDRIVABLE = ["--mode", "torque", "--n-envs", "4", "--n-workers", "0", "--train-episode-seconds", "0.05",
+              "--log-std-init", "0", *EVAL_FAST]
+
+
+def test_training_stops_naming_the_fault_when_most_episodes_fault(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    assert train_command(["--scenario", str(_undrivable_scenario(tmp_path)), "--total-timesteps", "1000000",
+                          "--out", str(run_dir), *UNDRIVABLE]) == 2
+    message = capsys.readouterr().err
+    assert message.startswith("error: training: ")
+    assert "of the last 100 training episodes ended in a physics fault" in message
+    assert "joint speed" in message and "torque_limits" in message
+    assert (run_dir / "model" / "state.json").is_file()  # the model so far is kept
+    assert not (run_dir / "comparison.json").exists()  # no comparison table from faulted training
+
+
+def test_faults_below_the_threshold_are_reported_not_hidden(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    assert train_command(["--scenario", str(_undrivable_scenario(tmp_path)), "--total-timesteps", "600",
+                          "--max-fault-fraction", "1", "--out", str(run_dir), *UNDRIVABLE]) == 0
+    segment = json.loads((run_dir / "timing.json").read_text())["segments"][-1]
+    assert segment["faulted_training_episodes"] > 0
+    assert segment["faulted_training_episodes"] <= segment["training_episodes"]
+    assert any("joint speed" in reason for reason in segment["fault_reasons"])
+    assert "training episodes ended in a physics fault" in capsys.readouterr().out
+    table = (run_dir / "comparison.md").read_text()
+    assert "| faults (episodes) |" in table.splitlines()[2]  # the comparison counts faulted episodes too
+
+
+def test_fault_tally_counts_one_kind_of_fault_once():
+    from ee_formation_env.baselines.learned.sb3_backend import FaultTally
+
+    tally = FaultTally()
+    for reason in ("", "arm_1: joint speed 120.5 rad/s exceeds max_joint_velocity 100 rad/s",
+                   "arm_1: joint speed 131.0 rad/s exceeds max_joint_velocity 100 rad/s", "arm_0: non-finite joint state"):
+        tally.add(reason)
+    summary = tally.as_dict()
+    assert summary["training_episodes"] == 4 and summary["faulted_training_episodes"] == 3
+    assert summary["fault_reasons"] == {"arm_1: joint speed 131.0 rad/s exceeds max_joint_velocity 100 rad/s": 2,
+                                        "arm_0: non-finite joint state": 1}
