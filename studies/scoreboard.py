@@ -1,0 +1,340 @@
+"""The scoreboard: every built-in scenario x method, over training seeds, on held-out evaluation episodes.
+
+``python -m studies.scoreboard`` runs each cell (scenario x method x training seed) that is not cached yet,
+then aggregates every cached cell into ``results/scoreboard/scoreboard.json`` and a markdown table;
+``--docs`` also writes the committed copy (``docs/results/scoreboard.json``) and the generated tables of
+``docs/scoreboard.md``. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the
+command resumes where it stopped, and the board can be filled over several sessions (a learned cell's
+training run under ``<out>/runs/`` resumes from its newest checkpoint). ``--quick``: tiny budgets and a few
+short episodes, into a temporary folder by default; never writes into ``docs/``.
+
+Protocol (``docs/scoreboard.md`` has the rationale): reference controllers are evaluated on the held-out
+seeds (no training, so one "run"); learned methods are trained with ``train.py``'s presets at the stated
+budget, once per training seed, and each trained policy is evaluated on the same held-out seeds
+(``EVAL_SEED_OFFSET`` + k). Per metric the board reports the mean, the interquartile mean (IQM) and 95 %
+percentile intervals of a stratified bootstrap over training seeds within each evaluation episode (the
+resampling of rliable's ``StratifiedBootstrap``, each evaluation episode a stratum; for a reference, over
+episodes), plus each seed's mean.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ee_formation_env.baselines import REFERENCE_CONTROLLERS
+from ee_formation_env.baselines.metrics import run_episodes
+from ee_formation_env.builtin import BUILTIN_SCENARIOS
+from ee_formation_env.scenario import load_scenario
+
+
+@dataclass(frozen=True)
+class Method:
+    """One row kind of the board: a reference controller, or a ``train.py`` configuration (its flags)."""
+
+    name: str
+    reference: str | None = None  # the reference controller's name, for a reference method
+    train_flags: tuple[str, ...] = ()  # train.py flags of a learned method (its preset sets the rest)
+
+    @property
+    def learned(self) -> bool:
+        return self.reference is None
+
+
+#: The board's methods: the paper's three laws, and PPO in residual and torque mode at train.py's presets.
+METHODS: dict[str, Method] = {
+    **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
+    "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
+    "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque")),
+}
+DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
+DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
+BOOTSTRAP_REPS = 2000
+QUICK_FLAGS = ("--total-timesteps", "64", "--n-envs", "1", "--n-steps", "16", "--n-workers", "0")
+
+#: The board's metrics, one value per evaluation episode: (key, title, unit, meaning, format).
+METRICS: tuple[tuple[str, str, str, str, str], ...] = (
+    ("success", "success", "%", "the episode settled and held the formation (metrics' definition)", "{:.0%}"),
+    ("settling_time_or_limit", "settle", "s", "settling time, or the episode length when it did not settle", "{:.2f}"),
+    ("final_formation_error", "final err", "m² or m", "formation error at the last step", "{:.2e}"),
+    ("physics_fault", "faulted", "%", "episodes the env ended with a physics fault", "{:.0%}"),
+    ("contact_steps", "contacts", "steps", "env steps with a contact between arms", "{:.1f}"),
+    ("mean_return", "return", "", "episode return, mean over agents", "{:,.0f}"),
+)
+
+
+# ------------------------------------------------------------------------------------------ statistics
+def interquartile_mean(values: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """The mean of the middle 50 % (``int(n / 4)`` values trimmed at each end, as ``scipy.stats.trim_mean(x,
+    0.25)`` and rliable's IQM), over the flattened array or along ``axis``."""
+    values = np.sort(np.asarray(values, dtype=np.float64), axis=axis)
+    if axis is None:
+        values = values.ravel()
+        axis = 0
+    n = values.shape[axis]
+    cut = int(0.25 * n)
+    return np.take(values, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
+
+
+def stratified_bootstrap(scores: np.ndarray, reps: int = BOOTSTRAP_REPS, seed: int = 0, confidence: float = 0.95
+                         ) -> dict[str, tuple[float, float]]:
+    """95 % percentile intervals of the mean and the IQM of ``scores`` (runs, strata): each replicate resamples
+    the runs with replacement within every stratum independently (rliable's ``StratifiedBootstrap``).
+    ``{"mean": (low, high), "iqm": (low, high)}``."""
+    scores = np.asarray(scores, dtype=np.float64)
+    if scores.ndim != 2 or not scores.size:
+        raise ValueError(f"scores: expected a non-empty (runs, strata) array, got shape {scores.shape}")
+    runs, strata = scores.shape
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, runs, size=(reps, runs, strata))
+    samples = scores[picks, np.arange(strata)]  # (reps, runs, strata)
+    flat = samples.reshape(reps, -1)
+    tail = 100 * (1 - confidence) / 2
+    out = {}
+    for name, values in (("mean", flat.mean(axis=1)), ("iqm", interquartile_mean(flat, axis=1))):
+        low, high = np.percentile(values, [tail, 100 - tail])
+        out[name] = (float(low), float(high))
+    return out
+
+
+def aggregate(per_run: Sequence[Sequence[float]]) -> dict[str, Any]:
+    """One metric of one (scenario, method): ``per_run`` holds each training run's per-episode values (all of
+    the same evaluation episodes). Mean, IQM, their 95 % intervals and each run's mean."""
+    scores = np.array(per_run, dtype=np.float64)
+    # One run (a reference controller): the episodes are what varies, so they are resampled.
+    strata = scores.T if len(scores) == 1 else scores
+    intervals = stratified_bootstrap(strata)
+    return {"mean": float(scores.mean()), "iqm": float(interquartile_mean(scores)),
+            "ci_low": intervals["mean"][0], "ci_high": intervals["mean"][1],
+            "iqm_ci_low": intervals["iqm"][0], "iqm_ci_high": intervals["iqm"][1],
+            "per_seed": [float(np.mean(run)) for run in scores]}
+
+
+# ------------------------------------------------------------------------------------------ cells
+def episode_values(episode: dict[str, Any], episode_seconds: float) -> dict[str, float]:
+    """The board's metrics of one episode (an ``EpisodeMetrics.as_dict()``)."""
+    settling = episode["settling_time"]
+    return {
+        "success": float(bool(episode["success"])),
+        "settling_time_or_limit": float(settling) if episode["success"] and math.isfinite(settling) else episode_seconds,
+        "final_formation_error": float(episode["final_formation_error"]),
+        "physics_fault": float(bool(episode["physics_fault"])),
+        "contact_steps": float(episode["contact_steps"]),
+        "mean_return": float(episode["mean_return"]),
+    }
+
+
+@dataclass(frozen=True)
+class Board:
+    """What one invocation evaluates: where, which cells, with which evaluation and training settings."""
+
+    out: Path
+    scenarios: tuple[str, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    episodes: int
+    episode_seconds: float | None  # None: each scenario's own episode length
+    extra_train_flags: tuple[str, ...] = ()  # train.py flags added to every learned method's (--quick's budget)
+    eval_workers: int | None = None  # train.py's --eval-workers (None: its default)
+
+    def cell_path(self, scenario: str, method: Method, seed: int | None) -> Path:
+        name = "reference.json" if seed is None else f"seed-{seed}.json"
+        return self.out / "cells" / scenario / method.name / name
+
+    def eval_seeds(self) -> list[int]:
+        from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
+
+        return [EVAL_SEED_OFFSET + k for k in range(self.episodes)]
+
+
+def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> dict[str, Any]:
+    """Train (a learned method) and evaluate one cell; its record (per-episode metrics, budget, wall time)."""
+    started = time.time()
+    seconds = board.episode_seconds or load_scenario(scenario).episode_seconds
+    overrides = {"episode_seconds": seconds}
+    if method.learned:
+        episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
+    else:
+        metrics = run_episodes(scenario, method.reference, board.eval_seeds(), overrides=overrides)
+        episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
+    return {"scenario": scenario, "method": method.name, "seed": seed, "eval_seeds": board.eval_seeds(),
+            "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
+            "episodes": [{k: v for k, v in e.items() if k != "trajectory"} for e in episodes]}
+
+
+def _learned_cell(board: Board, scenario: str, method: Method, seed: int, seconds: float
+                  ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Train ``method`` on ``scenario`` with ``seed`` (resuming its run folder if a run stopped) and return the
+    learned policy's held-out episodes (the run's own comparison) and the budget."""
+    from ee_formation_env.baselines.learned.config import TrainConfig
+    from ee_formation_env.baselines.learned.run import train
+
+    run_dir = board.out / "runs" / scenario / method.name / f"seed-{seed}"
+    if not (run_dir / "comparison.json").is_file():
+        evaluation = ["--eval-episodes", str(board.episodes), "--eval-seconds", str(seconds), "--no-progress",
+                      *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
+        if (run_dir / "config.json").is_file():
+            argv = ["--resume", str(run_dir), *evaluation]
+        else:
+            argv = ["--scenario", scenario, *method.train_flags, *board.extra_train_flags, "--seed", str(seed),
+                    "--out", str(run_dir), "--overwrite", *evaluation]
+        train(TrainConfig.from_args(argv))
+    comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))
+    timing = json.loads((run_dir / "timing.json").read_text(encoding="utf-8"))
+    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    budget = {"agent_steps": int(timing["agent_steps"]), "train_seconds": float(timing["train_seconds"]),
+              "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
+              "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
+    return comparison["results"]["learned"]["per_episode"], budget
+
+
+def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Run every cell of ``board`` that is not cached (written atomically when complete); every cell record."""
+    records = []
+    for scenario in board.scenarios:
+        for name in board.methods:
+            method = METHODS[name]
+            for seed in (board.seeds if method.learned else (None,)):
+                path = board.cell_path(scenario, method, seed)
+                label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
+                if path.is_file():
+                    progress(f"cached  {label}")
+                else:
+                    progress(f"running {label}")
+                    record = run_cell(board, scenario, method, seed)
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    partial = path.with_suffix(".partial")
+                    partial.write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
+                    partial.replace(path)
+                records.append(json.loads(path.read_text(encoding="utf-8")))
+    return records
+
+
+def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (scenario, method): its seeds, budget, wall time and every metric aggregated."""
+    grouped: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for record in records:
+        grouped.setdefault((record["scenario"], record["method"]), []).append(record)
+    out = []
+    for (scenario, method), cells in grouped.items():
+        cells = sorted(cells, key=lambda c: -1 if c["seed"] is None else c["seed"])
+        eval_seeds = cells[0]["eval_seeds"]
+        if any(c["eval_seeds"] != eval_seeds for c in cells):
+            raise ValueError(f"cells: {scenario} / {method} mixes evaluation seeds; delete its cells and rerun")
+        values = [[episode_values(e, c["episode_seconds"]) for e in c["episodes"]] for c in cells]
+        out.append({
+            "scenario": scenario, "method": method, "split": "train",  # the built-in scenario it trains on
+            "seeds": [c["seed"] for c in cells if c["seed"] is not None],
+            "eval_seeds": eval_seeds, "episode_seconds": cells[0]["episode_seconds"],
+            "budget": {"agent_steps_per_seed": [c["budget"].get("agent_steps", 0) for c in cells],
+                       **({"total_timesteps": cells[0]["budget"]["total_timesteps"]}
+                          if "total_timesteps" in cells[0]["budget"] else {})},
+            "wall_seconds": float(sum(c["wall_seconds"] for c in cells)),
+            "faults": sorted({e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]}),
+            "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS},
+        })
+    return out
+
+
+def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
+    lines: list[str] = []
+    for scenario in dict.fromkeys(row["scenario"] for row in board_rows):
+        lines += [f"### {scenario}", "",
+                  "| method | seeds | agent steps per seed | " + " | ".join(
+                      f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
+                  "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
+        for row in (r for r in board_rows if r["scenario"] == scenario):
+            cells = []
+            for key, _, _, _, spec in METRICS:
+                metric = row["metrics"][key]
+                cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
+                             f"{spec.format(metric['ci_high'])}]")
+            seeds = ", ".join(map(str, row["seeds"])) or "-"
+            steps = row["budget"]["agent_steps_per_seed"]
+            lines.append(f"| {row['method']} | {seeds} | {max(steps):,} | " + " | ".join(cells) +
+                         f" | {row['wall_seconds']:,.0f} |")
+        faulted = [row for row in board_rows if row["scenario"] == scenario and row["faults"]]
+        for row in faulted:
+            lines.append(f"\n- {row['method']}: physics faults: {'; '.join(row['faults'][:3])}")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdown_path: Path | None = None,
+                  generated_page: Path | None = None) -> None:
+    """``scoreboard.json`` (``{"rows": [...]}``), the markdown tables, and the generated block of a docs page."""
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps({"rows": list(board_rows), "metrics": {k: {"title": t, "unit": u, "meaning": m}
+                                                                          for k, t, u, m, _ in METRICS}},
+                                    indent=1, default=float) + "\n", encoding="utf-8")
+    table = format_board(board_rows)
+    if markdown_path is not None:
+        markdown_path.write_text(table, encoding="utf-8")
+    if generated_page is not None:
+        import re
+
+        text = generated_page.read_text(encoding="utf-8")
+        pattern = r"(<!-- generated: scoreboard -->\n)(.*?)(\n<!-- end generated -->)"
+        if not re.search(pattern, text, re.S):
+            raise ValueError(f"--docs: {generated_page} has no generated scoreboard block")
+        generated_page.write_text(re.sub(pattern, lambda m: m.group(1) + table.strip() + m.group(3), text,
+                                         flags=re.S), encoding="utf-8")
+
+
+DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "scoreboard.md"
+DOCS_JSON = DOCS_PAGE.parent / "results" / "scoreboard.json"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.scoreboard", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenarios", nargs="+", default=sorted(BUILTIN_SCENARIOS), metavar="NAME",
+                        help="built-in scenarios (default: all)")
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), metavar="METHOD",
+                        help=f"methods, of {list(METHODS)} (default: all)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(DEFAULT_SEEDS),
+                        help="training seeds of the learned methods (default 0 1 2)")
+    parser.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="held-out episodes per cell")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="cells, runs and results (default results/scoreboard; --quick: a temporary folder)")
+    parser.add_argument("--quick", action="store_true",
+                        help="tiny budgets and short episodes: a smoke test of the machinery, not a result")
+    parser.add_argument("--docs", action="store_true",
+                        help="also write docs/results/scoreboard.json and the tables of docs/scoreboard.md")
+    args = parser.parse_args(argv)
+    unknown = sorted(set(args.scenarios) - set(BUILTIN_SCENARIOS))
+    if unknown:
+        parser.error(f"--scenarios: unknown {unknown}; available: {sorted(BUILTIN_SCENARIOS)}")
+    unknown = sorted(set(args.methods) - set(METHODS))
+    if unknown:
+        parser.error(f"--methods: unknown {unknown}; available: {list(METHODS)}")
+    if args.episodes < 1:
+        parser.error("--episodes: expected an integer >= 1")
+    if any(seed < 0 for seed in args.seeds) or len(set(args.seeds)) != len(args.seeds):
+        parser.error("--seeds: expected distinct integers >= 0")
+    if args.quick and args.docs:
+        parser.error("--docs: not with --quick (a smoke test is not a result)")
+    out = args.out or (Path(tempfile.mkdtemp(prefix="scoreboard-")) if args.quick else Path("results/scoreboard"))
+    board = Board(out=out, scenarios=tuple(args.scenarios), methods=tuple(args.methods), seeds=tuple(args.seeds),
+                  episodes=args.episodes, episode_seconds=0.3 if args.quick else None,
+                  extra_train_flags=QUICK_FLAGS if args.quick else (), eval_workers=0 if args.quick else None)
+    board_rows = rows(fill(board))
+    write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
+    if args.docs:
+        write_outputs(board_rows, DOCS_JSON, generated_page=DOCS_PAGE)
+    print(format_board(board_rows))
+    print(f"wrote {out / 'scoreboard.json'} and {out / 'scoreboard.md'}" +
+          (f", {DOCS_JSON} and {DOCS_PAGE}" if args.docs else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,88 @@
+"""studies.scoreboard: cells cached and resumed, rows with bootstrap intervals, the quick mode end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from studies import scoreboard
+
+
+def test_interquartile_mean_trims_a_quarter_at_each_end():
+    assert scoreboard.interquartile_mean(np.arange(8.0)) == pytest.approx(np.mean([2, 3, 4, 5]))
+    assert scoreboard.interquartile_mean(np.array([[0, 1, 2, 100.0]]), axis=1)[0] == pytest.approx(1.5)
+
+
+def test_stratified_bootstrap_resamples_runs_within_each_stratum():
+    # Every stratum holds the same two values across runs: any resample's mean lies between them.
+    scores = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    intervals = scoreboard.stratified_bootstrap(scores, reps=500)
+    low, high = intervals["mean"]
+    assert 0.0 <= low < 0.5 < high <= 1.0
+    constant = scoreboard.stratified_bootstrap(np.full((3, 4), 2.5), reps=50)
+    assert constant["mean"] == (2.5, 2.5) and constant["iqm"] == (2.5, 2.5)
+    # Strata are never mixed: with one run per stratum nothing varies.
+    assert scoreboard.stratified_bootstrap(np.array([[0.0, 10.0]]), reps=50)["mean"] == (5.0, 5.0)
+    with pytest.raises(ValueError, match="scores: expected a non-empty"):
+        scoreboard.stratified_bootstrap(np.zeros(3))
+
+
+def test_aggregate_resamples_episodes_of_a_single_run():
+    metric = scoreboard.aggregate([[0.0, 1.0, 1.0, 1.0]])
+    assert metric["mean"] == 0.75 and metric["per_seed"] == [0.75]
+    assert metric["ci_low"] < 0.75 < metric["ci_high"] or metric["ci_high"] == 1.0
+
+
+def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "gradient",
+            "residual-ppo", "--seeds", "0", "1", "--episodes", "2"]
+    assert scoreboard.main(argv) == 0
+    first = capsys.readouterr().out
+    assert first.count("running ") == 3 and "cached" not in first
+    board = json.loads((tmp_path / "scoreboard.json").read_text())
+    rows = {row["method"]: row for row in board["rows"]}
+    assert set(rows) == {"gradient", "residual-ppo"}
+    learned, reference = rows["residual-ppo"], rows["gradient"]
+    assert learned["seeds"] == [0, 1] and reference["seeds"] == []
+    assert learned["eval_seeds"] == reference["eval_seeds"] == [10_000, 10_001]
+    assert learned["split"] == "train" and learned["scenario"] == "planar_square"
+    for row in (learned, reference):
+        for key, *_ in scoreboard.METRICS:
+            metric = row["metrics"][key]
+            assert metric["ci_low"] <= metric["mean"] <= metric["ci_high"]
+            assert {"iqm", "iqm_ci_low", "iqm_ci_high", "per_seed"} <= set(metric)
+    assert len(learned["metrics"]["success"]["per_seed"]) == 2
+    assert learned["budget"]["agent_steps_per_seed"][0] > 0
+    table = (tmp_path / "scoreboard.md").read_text()
+    assert "### planar_square" in table and "| residual-ppo | 0, 1 |" in table
+    # Run again: every cell is read from its file, nothing is trained or evaluated again.
+    stamps = {path: path.stat().st_mtime_ns for path in (tmp_path / "cells").rglob("*.json")}
+    assert scoreboard.main(argv) == 0
+    again = capsys.readouterr().out
+    assert again.count("cached  ") == 3 and "running" not in again
+    assert {path: path.stat().st_mtime_ns for path in (tmp_path / "cells").rglob("*.json")} == stamps
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--scenarios", "no_such"], "--scenarios: unknown"),
+    (["--methods", "dqn"], "--methods: unknown"),
+    (["--episodes", "0"], "--episodes: expected an integer >= 1"),
+    (["--seeds", "1", "1"], "--seeds: expected distinct integers"),
+    (["--quick", "--docs"], "--docs: not with --quick"),
+])
+def test_bad_arguments_are_refused_before_any_cell_runs(argv, message, capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        scoreboard.main([*argv, "--out", str(tmp_path)])
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "cells").exists()
+
+
+def test_committed_board_matches_its_page():
+    """docs/results/scoreboard.json and the generated tables of docs/scoreboard.md come from the same rows."""
+    if not scoreboard.DOCS_JSON.is_file():
+        pytest.skip("no committed scoreboard yet")
+    rows = json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"]
+    page = scoreboard.DOCS_PAGE.read_text(encoding="utf-8")
+    assert scoreboard.format_board(rows).strip() in page
