@@ -13,6 +13,7 @@ below :func:`formation_tolerance` from the settling time to the end of the episo
 from __future__ import annotations
 
 import math
+import re
 import textwrap
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
@@ -277,17 +278,35 @@ def format_table(rows: Mapping[str, Mapping[str, Any]]) -> str:
     return "\n".join(lines + ([""] + notes if notes else []))
 
 
+def fault_kind(reason: str) -> str:
+    """A fault reason with its numbers masked ("arm_1: joint speed # rad/s exceeds max_joint_velocity # rad/s"):
+    faults of one kind on one arm count together."""
+    return re.sub(r"(?<![\w.])\d+(\.\d+)?(e[+-]?\d+)?", "#", reason)
+
+
+def fault_kinds(reasons: Mapping[str, int]) -> list[tuple[str, int]]:
+    """``{reason: count}`` grouped by :func:`fault_kind`: (an example reason of the kind, its count), most
+    frequent first."""
+    counts: dict[str, int] = {}
+    examples: dict[str, str] = {}
+    for reason, count in reasons.items():
+        kind = fault_kind(reason)
+        counts[kind] = counts.get(kind, 0) + count
+        examples[kind] = reason
+    return sorted(((examples[kind], count) for kind, count in counts.items()), key=lambda item: (-item[1], item[0]))
+
+
 def fault_notes(rows: Mapping[str, Mapping[str, Any]], shown: int = 3) -> list[str]:
-    """One line per policy with faulted episodes: how many, and the ``shown`` most frequent reasons with
-    their counts (a summary never hides a fault)."""
+    """One line per policy with faulted episodes: how many, and the ``shown`` most frequent kinds of fault
+    (:func:`fault_kinds`: an example reason each) with their counts (a summary never hides a fault)."""
     notes = []
     for name, summary in rows.items():
         reasons = summary.get("physics_fault_reasons") or {}
         if not reasons:
             continue
-        ranked = sorted(reasons.items(), key=lambda item: (-item[1], item[0]))
+        ranked = fault_kinds(reasons)
         listed = "; ".join(f"{reason} ({count}x)" for reason, count in ranked[:shown])
-        more = f"; {len(ranked) - shown} other reasons" if len(ranked) > shown else ""
+        more = f"; {len(ranked) - shown} other kinds" if len(ranked) > shown else ""
         notes.append(f"- {name}: {summary['physics_faults']} of {summary['episodes']} episodes ended in a physics "
                      f"fault: {listed}{more}")
     return notes

@@ -14,7 +14,6 @@ import collections
 import functools
 import json
 import math
-import re
 import time
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
 from ee_formation_env.baselines.learned.training_env import batched_env_factory
+from ee_formation_env.baselines.metrics import fault_kind
 
 
 class TrainingFaults(ValueError):
@@ -187,7 +187,7 @@ class FaultTally:
         self.recent.append(bool(reason))
         if reason:
             self.faulted += 1
-            kind = re.sub(r"\d+(\.\d+)?", "#", reason)
+            kind = fault_kind(reason)
             self.kinds[kind] += 1
             self.examples[kind] = reason
 
