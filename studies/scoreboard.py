@@ -1,7 +1,7 @@
 """The scoreboard: every built-in scenario x method, over training seeds, on held-out evaluation episodes.
 
 ``python -m studies.scoreboard`` runs each cell (scenario x method x training seed) that is not cached yet,
-then aggregates every cached cell into ``results/scoreboard/scoreboard.json`` and a markdown table;
+then aggregates every cached cell (of this and earlier invocations) into ``results/scoreboard/scoreboard.json`` and a markdown table;
 ``--docs`` also writes the committed copy (``docs/results/scoreboard.json``) and the generated tables of
 ``docs/scoreboard.md``. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the
 command resumes where it stopped, and the board can be filled over several sessions (a learned cell's
@@ -218,6 +218,20 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
     return records
 
 
+def cached_records(out: Path) -> list[dict[str, Any]]:
+    """Every complete cell under ``out`` (whichever invocation ran it), in board order: scenarios as the
+    built-ins are listed, methods as :data:`METHODS`, then seeds."""
+    scenarios, methods = list(BUILTIN_SCENARIOS), list(METHODS)
+    records = [json.loads(path.read_text(encoding="utf-8")) for path in (out / "cells").rglob("*.json")]
+    records = [r for r in records if r["scenario"] in scenarios and r["method"] in methods]
+
+    def order(record: dict[str, Any]) -> tuple[int, int, int]:
+        return (scenarios.index(record["scenario"]), methods.index(record["method"]),
+                -1 if record["seed"] is None else record["seed"])
+
+    return sorted(records, key=order)
+
+
 def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per (scenario, method): its seeds, budget, wall time and every metric aggregated."""
     grouped: dict[tuple[str, str], list[dict[str, Any]]] = {}
@@ -326,7 +340,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     board = Board(out=out, scenarios=tuple(args.scenarios), methods=tuple(args.methods), seeds=tuple(args.seeds),
                   episodes=args.episodes, episode_seconds=0.3 if args.quick else None,
                   extra_train_flags=QUICK_FLAGS if args.quick else (), eval_workers=0 if args.quick else None)
-    board_rows = rows(fill(board))
+    fill(board)
+    board_rows = rows(cached_records(out))  # every cell ever completed here, not only this invocation's
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
     if args.docs:
         write_outputs(board_rows, DOCS_JSON, generated_page=DOCS_PAGE)

@@ -86,3 +86,12 @@ def test_committed_board_matches_its_page():
     rows = json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"]
     page = scoreboard.DOCS_PAGE.read_text(encoding="utf-8")
     assert scoreboard.format_board(rows).strip() in page
+
+
+def test_the_board_aggregates_every_cached_cell_in_board_order(tmp_path, capsys):
+    base = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--episodes", "1"]
+    assert scoreboard.main([*base, "--methods", "adaptive_jacobian"]) == 0
+    assert scoreboard.main([*base, "--methods", "gradient"]) == 0  # a later invocation, another method
+    capsys.readouterr()
+    methods = [row["method"] for row in json.loads((tmp_path / "scoreboard.json").read_text())["rows"]]
+    assert methods == ["gradient", "adaptive_jacobian"]  # both, in the registry's order
