@@ -20,6 +20,7 @@ episodes), plus each seed's mean.
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import math
 import tempfile
@@ -31,7 +32,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
-from ee_formation_env.baselines.metrics import run_episodes
+from ee_formation_env.baselines.metrics import fault_kinds, run_episodes
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario import load_scenario
 
@@ -161,7 +162,14 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
     seconds = board.episode_seconds or load_scenario(scenario).episode_seconds
     overrides = {"episode_seconds": seconds}
     if method.learned:
-        episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
+        from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
+
+        try:
+            episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
+        except TrainingFaults as fault:  # a result too: this method does not train on this scenario
+            return {"scenario": scenario, "method": method.name, "seed": seed, "eval_seeds": board.eval_seeds(),
+                    "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
+                    "episodes": [], "failed": str(fault)}
     else:
         metrics = run_episodes(scenario, method.reference, board.eval_seeds(), overrides=overrides)
         episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
@@ -238,8 +246,17 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     for record in records:
         grouped.setdefault((record["scenario"], record["method"]), []).append(record)
     out = []
-    for (scenario, method), cells in grouped.items():
-        cells = sorted(cells, key=lambda c: -1 if c["seed"] is None else c["seed"])
+    for (scenario, method), every_cell in grouped.items():
+        every_cell = sorted(every_cell, key=lambda c: -1 if c["seed"] is None else c["seed"])
+        failures = [{"seed": c["seed"], "reason": c["failed"]} for c in every_cell if c.get("failed")]
+        cells = [c for c in every_cell if not c.get("failed")]
+        if not cells:  # every training run of this row stopped: reported, with no metrics
+            out.append({"scenario": scenario, "method": method, "split": "train",
+                        "seeds": [c["seed"] for c in every_cell], "eval_seeds": every_cell[0]["eval_seeds"],
+                        "episode_seconds": every_cell[0]["episode_seconds"], "budget": {"agent_steps_per_seed": []},
+                        "wall_seconds": float(sum(c["wall_seconds"] for c in every_cell)), "faults": [],
+                        "failures": failures, "metrics": {}})
+            continue
         eval_seeds = cells[0]["eval_seeds"]
         if any(c["eval_seeds"] != eval_seeds for c in cells):
             raise ValueError(f"cells: {scenario} / {method} mixes evaluation seeds; delete its cells and rerun")
@@ -252,7 +269,9 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                        **({"total_timesteps": cells[0]["budget"]["total_timesteps"]}
                           if "total_timesteps" in cells[0]["budget"] else {})},
             "wall_seconds": float(sum(c["wall_seconds"] for c in cells)),
-            "faults": sorted({e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]}),
+            "faults": [{"reason": reason, "episodes": count} for reason, count in fault_kinds(collections.Counter(
+                e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]))],
+            "failures": failures,
             "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS},
         })
     return out
@@ -267,6 +286,10 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
                       f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
                   "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
         for row in (r for r in board_rows if r["scenario"] == scenario):
+            if not row["metrics"]:
+                lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
+                             " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
+                continue
             cells = []
             for key, _, _, _, spec in METRICS:
                 metric = row["metrics"][key]
@@ -278,7 +301,11 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
                          f" | {row['wall_seconds']:,.0f} |")
         faulted = [row for row in board_rows if row["scenario"] == scenario and row["faults"]]
         for row in faulted:
-            lines.append(f"\n- {row['method']}: physics faults: {'; '.join(row['faults'][:3])}")
+            kinds = "; ".join(f"{fault['reason']} ({fault['episodes']}x)" for fault in row["faults"][:3])
+            lines.append(f"\n- {row['method']}: physics faults: {kinds}")
+        for row in (r for r in board_rows if r["scenario"] == scenario and r["failures"]):
+            for failure in row["failures"]:
+                lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 

@@ -95,3 +95,20 @@ def test_the_board_aggregates_every_cached_cell_in_board_order(tmp_path, capsys)
     capsys.readouterr()
     methods = [row["method"] for row in json.loads((tmp_path / "scoreboard.json").read_text())["rows"]]
     assert methods == ["gradient", "adaptive_jacobian"]  # both, in the registry's order
+
+
+def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypatch, capsys):
+    from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
+
+    def stopped(*args, **kwargs):
+        raise TrainingFaults("training: 100 of the last 100 training episodes ended in a physics fault (...)")
+
+    monkeypatch.setattr(scoreboard, "_learned_cell", stopped)
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "torque-ppo",
+            "--seeds", "0", "--episodes", "1"]
+    assert scoreboard.main(argv) == 0
+    (row,) = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+    assert row["metrics"] == {} and row["failures"][0]["seed"] == 0
+    assert "physics fault" in row["failures"][0]["reason"]
+    table = (tmp_path / "scoreboard.md").read_text()
+    assert "training failed" in table and "- torque-ppo, seed 0: training: 100 of the last 100" in table
