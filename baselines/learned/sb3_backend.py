@@ -27,7 +27,7 @@ from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
 from ee_formation_env.baselines.learned.training_env import batched_env_factory
-from ee_formation_env.baselines.metrics import fault_kind
+from ee_formation_env.baselines.metrics import fault_kinds
 
 
 class TrainingFaults(ValueError):
@@ -172,28 +172,27 @@ def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int) -> Any:
 
 
 class FaultTally:
-    """Training episodes seen by the fault monitor, how many ended in a physics fault, and why (reasons with
-    their numbers masked, so that one kind of fault counts once: "arm_1: joint speed # rad/s exceeds ...")."""
+    """Training episodes seen by the fault monitor, how many ended in a physics fault, and why (grouped by
+    kind, numbers masked: :func:`~ee_formation_env.baselines.metrics.fault_kinds`)."""
 
     def __init__(self) -> None:
         self.episodes = 0
-        self.faulted = 0
-        self.kinds: collections.Counter[str] = collections.Counter()
-        self.examples: dict[str, str] = {}  # kind -> its latest reason, numbers included
+        self.reasons: collections.Counter[str] = collections.Counter()
         self.recent: collections.deque[bool] = collections.deque(maxlen=FAULT_WINDOW)
+
+    @property
+    def faulted(self) -> int:
+        return sum(self.reasons.values())
 
     def add(self, reason: str) -> None:
         self.episodes += 1
         self.recent.append(bool(reason))
         if reason:
-            self.faulted += 1
-            kind = fault_kind(reason)
-            self.kinds[kind] += 1
-            self.examples[kind] = reason
+            self.reasons[reason] += 1
 
     def as_dict(self) -> dict[str, Any]:
         return {"training_episodes": self.episodes, "faulted_training_episodes": self.faulted,
-                "fault_reasons": {self.examples[kind]: count for kind, count in self.kinds.most_common(5)}}
+                "fault_reasons": dict(fault_kinds(self.reasons)[:5])}
 
 
 def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int) -> Any:
@@ -212,10 +211,10 @@ def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int) -> An
                 tally.add(str(infos[copy * n_agents].get("physics_fault_reason", "")))
             faulted = sum(tally.recent)
             if len(tally.recent) == FAULT_WINDOW and faulted > max_fraction * FAULT_WINDOW:
-                kind, count = tally.kinds.most_common(1)[0]
+                example, count = fault_kinds(tally.reasons)[0]
                 raise TrainingFaults(
                     f"training: {faulted} of the last {FAULT_WINDOW} training episodes ended in a physics fault "
-                    f"(most often {tally.examples[kind]!r}: {count} of the {tally.faulted} faulted episodes so far), "
+                    f"(most often {example!r}: {count} of the {tally.faulted} faulted episodes so far), "
                     f"after {self.model.num_timesteps:,} agent steps; the policy cannot learn from episodes the "
                     "physics ends. Make the arms drivable: lower the scenario's torque_limits (N m) or "
                     "--residual-scale, or raise its max_joint_velocity (--max-fault-fraction 1 trains anyway)")

@@ -187,8 +187,15 @@ class BatchedTrainingEnv:
                 factors[rows] = hold_penalty_factors(layout, final[rows])
             rewards = rewards - self.hold_penalty * factors.reshape(K, N)
         self._raw = self._rows(result.observations)
-        return result._replace(observations=self._featured(self._raw), rewards=rewards,
-                               infos={**result.infos, "final_observation": self._featured(final)})
+        observations = self._featured(self._raw)
+        # A copy that did not end ended its step in the observation it returns: only ended copies differ.
+        featured_final = observations.copy()
+        ended = np.flatnonzero(result.terminations | result.truncations)
+        if len(ended):
+            featured_final[ended] = self._featured(final.reshape(K, N, -1)[ended].reshape(-1, self._size),
+                                                   copies=len(ended))
+        return result._replace(observations=observations, rewards=rewards,
+                               infos={**result.infos, "final_observation": featured_final})
 
     def close(self) -> None:
         self.env.close()
@@ -204,14 +211,17 @@ class BatchedTrainingEnv:
         """(K, N * size) -> (K * N, size): one row per agent, copy-major."""
         return observations.reshape(-1, self._size)
 
-    def _featured(self, rows: np.ndarray) -> np.ndarray:
-        """(K * N, size) raw rows -> (K, N * featured size) observations with the features appended."""
+    def _featured(self, rows: np.ndarray, copies: int | None = None) -> np.ndarray:
+        """(C * N, size) raw rows of ``copies`` = C copies (default all K) -> (C, N * featured size)
+        observations with the features appended."""
+        copies = self.num_envs if copies is None else copies
         if self.obs_features == "none":
-            return rows.reshape(self.num_envs, -1)
+            return rows.reshape(copies, -1)
         out = np.empty((len(rows), self._featured_size), dtype=np.float32)
         for (_, part), apply in zip(self._layout_rows, self._features):
+            part = part[part < len(rows)]  # rows of one layout: agent-major positions repeat per copy
             out[part] = apply(rows[part])
-        return out.reshape(self.num_envs, -1)
+        return out.reshape(copies, -1)
 
     def _checked_residuals(self, actions: Any) -> np.ndarray:
         """Residuals (K * N, n) float64 clipped to [-1, 1], or the batched env's error for bad ones (naming
