@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from ee_formation_env.baselines import MODEL_BASED_POLICIES
+from ee_formation_env.baselines.learned.action_scale import DEFAULT_ACTION_ACCELERATION
 from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
 from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
@@ -91,7 +92,12 @@ class TrainConfig:
                       "residual", choices=MODES)
     reference: str = _flag("reference controller of --mode residual", "adaptive_jacobian",
                            choices=MODEL_BASED_POLICIES)
-    residual_scale: float = _flag("residual action scale (0, 1]", 0.3, type=float)
+    residual_scale: float = _flag("residual mode: the correction's share of one unit of learned action, in (0, 1]",
+                                  0.3, type=float)
+    action_acceleration: float = _flag("one unit of learned action (torque mode) or correction (residual mode) is "
+                                       "the torque giving this joint acceleration at the initial configuration, "
+                                       "rad/s^2, at most the torque limit (action_scale.py)",
+                                       DEFAULT_ACTION_ACCELERATION, type=float)
     correction_penalty: float = _flag("residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]",
                                       0.5, type=float)
     residual_gate: bool = _flag("residual mode: scale the correction by min(1, the agent's error in tolerances), "
@@ -203,6 +209,8 @@ class TrainConfig:
             raise ValueError("--obs-features: expected none with --imitate (the policy sees what its reference sees)")
         if not 0 < self.residual_scale <= 1:
             raise ValueError("--residual-scale: expected a value in (0, 1]")
+        if not (math.isfinite(self.action_acceleration) and self.action_acceleration > 0):
+            raise ValueError("--action-acceleration: expected a finite value > 0 (rad/s^2)")
         if imitating and (self.mode != "torque" or self.backend != "sb3" or self.algo != "ppo"):
             raise ValueError("--imitate: expected none, except with --mode torque, --backend sb3 and --algo ppo")
         if self.imitation_rounds < 1 or self.imitation_episodes < 1:

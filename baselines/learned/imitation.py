@@ -44,9 +44,14 @@ Learner = Callable[[np.ndarray], np.ndarray]  # stacked observations (k, size) -
 
 def demonstrations(env: Any, reference: str, episodes: int, seeds: np.ndarray,
                    learner: Learner | None = None, learner_share: float = 0.0,
-                   rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   rng: np.random.Generator | None = None, action_scales: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Roll ``episodes`` episodes of ``env`` (reset seeds ``seeds``) and return every agent's observations
     (samples, size) and the reference's normalized actions there (samples, n), clipped to [-1, 1].
+
+    ``action_scales`` (N, n): ``env`` takes learned actions scaled per joint by them
+    (:class:`~ee_formation_env.baselines.learned.action_scale.ScaledActionEnv`); the labels are then the
+    reference's actions divided by them (clipped to [-1, 1]: the reference drives within the learned range).
 
     The reference drives, except that with ``learner`` given each step is driven by the learner (all
     agents, its actions clipped to [-1, 1]) with probability ``learner_share`` (``rng`` decides).
@@ -70,7 +75,8 @@ def demonstrations(env: Any, reference: str, episodes: int, seeds: np.ndarray,
         while env.agents:
             stacked = np.stack([observations[agent] for agent in agents])
             reference_actions = team(observations)
-            wanted = np.clip(np.stack([reference_actions[agent] for agent in agents]), -1.0, 1.0)
+            wanted = np.stack([reference_actions[agent] for agent in agents])
+            wanted = np.clip(wanted if action_scales is None else wanted / action_scales, -1.0, 1.0)
             observations_seen.append(stacked)
             labels.append(wanted)
             driving = wanted
@@ -94,7 +100,10 @@ def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
     from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, make_training_env
 
     venv = model.get_env()  # VecNormalize: the policy sees normalized observations
-    env = make_training_env(args.scenario, args.training_overrides(), "torque")
+    env = make_training_env(args.scenario, args.training_overrides(), "torque",
+                            action_acceleration=args.action_acceleration)
+    scales = getattr(env, "scales", None)  # a ScaledActionEnv: the learned actions' per-joint scales
+    scales = None if scales is None else np.stack([scales[agent] for agent in env.possible_agents])
     rng = np.random.default_rng(args.seed)
     seeds = rng.integers(0, EVAL_SEED_OFFSET, size=args.imitation_rounds * args.imitation_episodes)
     observations, labels, rounds, started = [], [], [], time.time()
@@ -103,7 +112,7 @@ def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
             learner = None if index == 0 else functools.partial(actor_mean, model, venv)
             episode_seeds = seeds[index * args.imitation_episodes:(index + 1) * args.imitation_episodes]
             seen, wanted = demonstrations(env, args.imitate, args.imitation_episodes, episode_seeds, learner,
-                                          0.0 if index == 0 else IMITATION_LEARNER_SHARE, rng)
+                                          0.0 if index == 0 else IMITATION_LEARNER_SHARE, rng, scales)
             observations.append(seen)
             labels.append(wanted)
             loss = fit_actor(model, venv, np.concatenate(observations), np.concatenate(labels),

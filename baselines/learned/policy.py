@@ -14,6 +14,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionPolicy,
+                                                             action_scales, all_ones)
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.features import FeaturePolicy
 from ee_formation_env.baselines.learned.residual import ResidualPolicy
@@ -106,13 +108,18 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> C
     per_agent = {agent: learned if features == "none" else
                  FeaturePolicy(learned, env.observation_layout(agent), features) for agent in env.possible_agents}
     gate = config.get("residual_gate", False)
+    # Runs saved before physical action scales had none: the default, which leaves the built-in robots as they were.
+    scales = action_scales(env.task, config.get("action_acceleration", DEFAULT_ACTION_ACCELERATION))
+    scales = None if all_ones(scales) else scales
 
     def build(copy_env: Any) -> dict[str, Any]:
         if config["mode"] == "torque":
-            return dict(per_agent)
+            return dict(per_agent) if scales is None else {
+                agent: ScaledActionPolicy(policy, scales[agent]) for agent, policy in per_agent.items()}
         references = baselines.make_policies(config["reference"], copy_env)
         return {agent: ResidualPolicy(references[agent], per_agent[agent], config["residual_scale"],
-                                      copy_env.observation_layout(agent) if gate else None)
+                                      copy_env.observation_layout(agent) if gate else None,
+                                      None if scales is None else scales[agent])
                 for agent in copy_env.possible_agents}
 
     return build

@@ -1,6 +1,8 @@
 """Residual actions: a learned correction added to a reference controller's torque.
 
-``action = reference(observation) + scale * residual`` in the env's normalized units. The same rule is
+``action = reference(observation) + scale * joint_scale * residual`` in the env's normalized units, with
+``joint_scale`` the per-joint physical scale of a learned action
+(:mod:`~ee_formation_env.baselines.learned.action_scale`; 1 on the built-in robots). The same rule is
 used during training (:class:`ResidualActionEnv`, the env the learner steps) and evaluation
 (:class:`ResidualPolicy`, a per-agent policy for :func:`ee_formation_env.baselines.metrics.run_episode`). A zero residual
 applies the reference's action exactly (bit for bit).
@@ -60,10 +62,13 @@ def error_gates(layout: ObservationLayout, observations: np.ndarray,
 
 class ResidualPolicy:
     """Per-agent policy: a reference controller plus a scaled learned residual (gated by the agent's error
-    with ``gate_layout``, the agent's observation layout)."""
+    with ``gate_layout``, the agent's observation layout). ``joint_scale`` (n,): the per-joint physical scale
+    of the residual (:mod:`~ee_formation_env.baselines.learned.action_scale`); None: 1 on every joint."""
 
-    def __init__(self, reference: Any, learned: Any, scale: float, gate_layout: ObservationLayout | None = None):
+    def __init__(self, reference: Any, learned: Any, scale: float, gate_layout: ObservationLayout | None = None,
+                 joint_scale: np.ndarray | None = None):
         self.reference, self.learned, self.scale, self.gate_layout = reference, learned, scale, gate_layout
+        self.joint_scale = None if joint_scale is None else np.asarray(joint_scale, dtype=np.float64)
 
     def reset(self) -> None:
         self.reference.reset()
@@ -71,6 +76,8 @@ class ResidualPolicy:
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         scale = self.scale if self.gate_layout is None else self.scale * error_gate(self.gate_layout, observation)
+        if self.joint_scale is not None:
+            scale = scale * self.joint_scale
         return combine(self.reference(observation), self.learned(observation), scale)
 
     @classmethod
@@ -84,6 +91,7 @@ class ResidualPolicy:
         references = stack_policies([policy.reference for policy in policies])
         learned = stack_policies([policy.learned for policy in policies])
         scales = np.array([policy.scale for policy in policies], dtype=np.float64)
+        joint_scales = joint_scale_rows([policy.joint_scale for policy in policies])
         groups: dict[Any, list[int]] = {}
         for row, policy in enumerate(policies):
             if policy.gate_layout is not None:
@@ -94,9 +102,19 @@ class ResidualPolicy:
             scale = scales.copy()
             for layout, rows in gated:
                 scale[rows] = scales[rows] * error_gates(layout, observations[rows])
-            return combine(np.asarray(references(observations)), np.asarray(learned(observations)), scale[:, None])
+            scale = scale[:, None] if joint_scales is None else scale[:, None] * joint_scales
+            return combine(np.asarray(references(observations)), np.asarray(learned(observations)), scale)
 
         return act
+
+
+def joint_scale_rows(joint_scales: Sequence[np.ndarray | None]) -> np.ndarray | None:
+    """Rows' per-joint scales stacked (rows, n), ones for a row without; None if no row has one."""
+    given = [scale for scale in joint_scales if scale is not None]
+    if not given:
+        return None
+    ones = np.ones_like(given[0])
+    return np.stack([ones if scale is None else scale for scale in joint_scales])
 
 
 def check_residual_settings(reference: str, scale: float, correction_penalty: float) -> None:
@@ -122,10 +140,13 @@ class ResidualRows:
     """
 
     def __init__(self, teams: Sequence[Mapping[str, Any]], agents: Sequence[str], scale: float,
-                 gate_layouts: Mapping[str, ObservationLayout] | None = None):
+                 gate_layouts: Mapping[str, ObservationLayout] | None = None,
+                 joint_scales: Mapping[str, np.ndarray] | None = None):
         self.teams, self.agents = list(teams), list(agents)
         self.team = PolicyTeam({(k, agent): team[agent] for k, team in enumerate(self.teams) for agent in self.agents})
         self.scales = np.full(len(self.teams) * len(self.agents), float(scale))
+        self.joint_scales = None if joint_scales is None else np.tile(
+            np.stack([joint_scales[agent] for agent in self.agents]), (len(self.teams), 1))  # (rows, n)
         groups: dict[ObservationLayout, list[int]] = {}
         if gate_layouts is not None:
             for k in range(len(self.teams)):
@@ -147,7 +168,8 @@ class ResidualRows:
         scales = self.scales.copy()
         for layout, rows in self.gate_groups:
             scales[rows] *= error_gates(layout, observations[rows])
-        return references + scales[:, None] * residuals, np.mean(residuals * residuals, axis=1)
+        scales = scales[:, None] if self.joint_scales is None else scales[:, None] * self.joint_scales
+        return references + scales * residuals, np.mean(residuals * residuals, axis=1)
 
 
 class ResidualActionEnv(BaseParallelWrapper):
@@ -160,10 +182,11 @@ class ResidualActionEnv(BaseParallelWrapper):
 
     def __init__(self, env: Any, reference: str = "adaptive_jacobian", scale: float = 0.1,
                  reference_kwargs: Mapping[str, Any] | None = None, correction_penalty: float = 0.5,
-                 gate: bool = False):
+                 gate: bool = False, joint_scales: Mapping[str, np.ndarray] | None = None):
         check_residual_settings(reference, scale, correction_penalty)
         super().__init__(env)
         self.scale, self.correction_penalty = float(scale), float(correction_penalty)
+        self.joint_scales = joint_scales
         self.agents_in_order = list(env.possible_agents)
         shapes = {env.action_space(agent).shape for agent in self.agents_in_order}
         self._uniform = len(shapes) == 1
@@ -173,8 +196,8 @@ class ResidualActionEnv(BaseParallelWrapper):
         self._observations: dict[str, np.ndarray] = {}
         # Agents of one robot type: the team in one array (a few calls for the whole team); mixed robots agent
         # by agent.
-        self._rows = (ResidualRows([self.references.policies], self.agents_in_order, self.scale, self.gate_layouts)
-                      if self._uniform else None)
+        self._rows = (ResidualRows([self.references.policies], self.agents_in_order, self.scale, self.gate_layouts,
+                                   joint_scales) if self._uniform else None)
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         self._observations, infos = self.env.reset(seed=seed, options=options)
@@ -207,6 +230,8 @@ class ResidualActionEnv(BaseParallelWrapper):
         else:
             scales = self.scale * np.array([error_gate(self.gate_layouts[agent], self._observations[agent])
                                             for agent in agents])
+        if self.joint_scales is not None:
+            scales = [scale * self.joint_scales[agent] for agent, scale in zip(agents, scales)]
         combined = {agent: references[agent] + scale * residual
                     for agent, scale, residual in zip(agents, scales, residuals)}
         return self._apply(combined, penalties)

@@ -216,8 +216,9 @@ def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int) -> An
                     f"training: {faulted} of the last {FAULT_WINDOW} training episodes ended in a physics fault "
                     f"(most often {example!r}: {count} of the {tally.faulted} faulted episodes so far), "
                     f"after {self.model.num_timesteps:,} agent steps; the policy cannot learn from episodes the "
-                    "physics ends. Make the arms drivable: lower the scenario's torque_limits (N m) or "
-                    "--residual-scale, or raise its max_joint_velocity (--max-fault-fraction 1 trains anyway)")
+                    "physics ends. Make the arms drivable: lower --action-acceleration (rad/s^2), --residual-scale or "
+                    "the scenario's torque_limits (N m), or raise its max_joint_velocity (--max-fault-fraction 1 "
+                    "trains anyway)")
             return True
 
     return FaultMonitor()

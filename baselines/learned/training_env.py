@@ -24,6 +24,8 @@ import gymnasium
 import numpy as np
 
 from ee_formation_env import baselines
+from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionEnv,
+                                                             action_scales, all_ones, check_action_acceleration)
 from ee_formation_env.baselines.learned.features import FEATURE_SETS, FeatureEnv, feature_space, transform_stack
 from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
 from ee_formation_env.baselines.learned.shaping import HoldShapingEnv, check_hold_penalty, hold_penalty_factors
@@ -39,19 +41,25 @@ EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training rese
 def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
                       reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
                       correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
-                      obs_features: str = "none") -> Any:
-    """The training env of ``scenario`` (plus ``overrides``) in ``mode``, shaped and featured (module docstring)."""
+                      obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION) -> Any:
+    """The training env of ``scenario`` (plus ``overrides``) in ``mode``, shaped and featured (module docstring);
+    learned actions in the physical units of ``action_acceleration`` (rad/s^2, :mod:`.action_scale`)."""
     from ee_formation_env import parallel_env
 
     if mode not in TRAINING_MODES:
         raise ValueError(f"mode: expected 'torque' or 'residual', got {mode!r}")
     if obs_features not in FEATURE_SETS:
         raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {obs_features!r}")
+    check_action_acceleration(action_acceleration)
     env = parallel_env(scenario, **dict(overrides or {}))
     try:
+        scales = action_scales(env.task, action_acceleration)
+        scales = None if all_ones(scales) else scales
         if mode == "residual":
             env = ResidualActionEnv(env, reference=reference, scale=residual_scale,
-                                    correction_penalty=correction_penalty, gate=gate)
+                                    correction_penalty=correction_penalty, gate=gate, joint_scales=scales)
+        elif scales is not None:
+            env = ScaledActionEnv(env, scales)
         if hold_penalty > 0:
             env = HoldShapingEnv(env, hold_penalty)
         return env if obs_features == "none" else FeatureEnv(env, obs_features)
@@ -66,7 +74,8 @@ def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = Non
     return functools.partial(make_training_env, config.scenario,
                              config.training_overrides() if overrides is None else dict(overrides), config.mode,
                              config.reference, config.residual_scale, config.correction_penalty,
-                             config.residual_gate, config.hold_penalty, config.obs_features)
+                             config.residual_gate, config.hold_penalty, config.obs_features,
+                             config.action_acceleration)
 
 
 def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None
@@ -76,7 +85,8 @@ def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | No
     return functools.partial(BatchedTrainingEnv, config.scenario,
                              config.training_overrides() if overrides is None else dict(overrides), config.mode,
                              config.reference, config.residual_scale, config.correction_penalty,
-                             config.residual_gate, config.hold_penalty, config.obs_features)
+                             config.residual_gate, config.hold_penalty, config.obs_features,
+                             config.action_acceleration)
 
 
 class BatchedTrainingEnv:
@@ -95,7 +105,8 @@ class BatchedTrainingEnv:
     def __init__(self, scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
                  reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
                  correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
-                 obs_features: str = "none", num_envs: int = 1):
+                 obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION,
+                 num_envs: int = 1):
         from ee_formation_env import vector_env
 
         if mode not in TRAINING_MODES:
@@ -105,15 +116,17 @@ class BatchedTrainingEnv:
         if mode == "residual":
             check_residual_settings(reference, residual_scale, correction_penalty)
         check_hold_penalty(hold_penalty)
+        check_action_acceleration(action_acceleration)
         self.env = env = vector_env(scenario, num_envs=num_envs, **dict(overrides or {}))
         try:
-            self._build(mode, reference, residual_scale, correction_penalty, gate, hold_penalty, obs_features)
+            self._build(mode, reference, residual_scale, correction_penalty, gate, hold_penalty, obs_features,
+                        action_acceleration)
         except Exception:
             env.close()
             raise
 
     def _build(self, mode: str, reference: str, residual_scale: float, correction_penalty: float, gate: bool,
-               hold_penalty: float, obs_features: str) -> None:
+               hold_penalty: float, obs_features: str, action_acceleration: float) -> None:
         env = self.env
         self.num_envs, self.scenario, self.task = env.num_envs, env.scenario, env.task
         self.possible_agents = self.agents = list(env.possible_agents)
@@ -135,11 +148,16 @@ class BatchedTrainingEnv:
         self._observation_spaces = {agent: feature_space(space, layout, obs_features)
                                     for agent, (space, _), layout in zip(self.possible_agents, spaces, layouts)}
         self._featured_size = self._observation_spaces[self.possible_agents[0]].shape[0]
+        scales = action_scales(self.task, action_acceleration)
+        scales = None if all_ones(scales) else scales
+        # Torque mode: the learned actions' per-joint scales as flat rows (K, T); None: the env's own actions.
+        self._action_scales = None if scales is None or mode == "residual" else np.tile(
+            np.concatenate([scales[agent] for agent in self.possible_agents]), (self.num_envs, 1))
         self.residuals = None
         if mode == "residual":
             teams = [baselines.make_policies(reference, env) for _ in range(self.num_envs)]
             gate_layouts = dict(zip(self.possible_agents, layouts)) if gate else None
-            self.residuals = ResidualRows(teams, self.possible_agents, residual_scale, gate_layouts)
+            self.residuals = ResidualRows(teams, self.possible_agents, residual_scale, gate_layouts, scales)
         self._raw: np.ndarray | None = None  # the batched env's last observations (K * N, size)
 
     # -- spaces ---------------------------------------------------------------------------------------
@@ -168,6 +186,8 @@ class BatchedTrainingEnv:
     def step_arrays(self, actions: np.ndarray) -> BatchedStep:
         K, N = self.num_envs, len(self.possible_agents)
         if self.residuals is None:
+            if self._action_scales is not None:
+                actions = np.clip(self.env.checked_action_array(actions), -1.0, 1.0) * self._action_scales
             result = self.env.step_arrays(actions)
             rewards = result.rewards
         else:

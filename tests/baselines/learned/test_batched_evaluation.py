@@ -1,10 +1,11 @@
 """The learned policy of a run evaluated on the batched env (``run_episodes``, what the comparison uses):
 each episode's metrics equal the one-episode loop's, in torque mode with observation features and in
-residual mode with the error gate, planar and spatial."""
+residual mode with the error gate, planar and spatial, and on a KUKA team (physically scaled actions)."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -19,8 +20,13 @@ FAST = ["--n-envs", "1", "--n-workers", "0", "--train-episode-seconds", "0.5", "
         "--eval-seconds", "0.1", "--no-progress", "--eval-workers", "0", "--total-timesteps", "200"]
 
 
+KUKA_TEAM = str(Path(__file__).parents[3] / "studies" / "scenarios" / "kuka_team.yaml")  # physical action scales
+
+
 @pytest.mark.parametrize("scenario, mode", [("planar_square", ["--mode", "torque", "--obs-features", "log-error"]),
-                                            ("spatial_tetrahedron", ["--mode", "residual", "--residual-gate"])])
+                                            ("spatial_tetrahedron", ["--mode", "residual", "--residual-gate"]),
+                                            (KUKA_TEAM, ["--mode", "torque"]),
+                                            (KUKA_TEAM, ["--mode", "residual", "--residual-gate"])])
 def test_learned_policy_batched_equals_one_episode_at_a_time(tmp_path, scenario, mode):
     run_dir = tmp_path / "run"
     assert train_command(["--scenario", scenario, *mode, "--out", str(run_dir), *FAST]) == 0

@@ -191,7 +191,8 @@ def test_three_ppo_updates_give_the_pinned_parameters(mode):
 
 
 def _undrivable_scenario(tmp_path):
-    """planar_square with 1e5 N m torque limits: any sizeable action ends the episode in a joint-speed fault."""
+    """planar_square with 1e5 N m torque limits, and learned actions allowed all of it (``UNDRIVABLE``'s
+    --action-acceleration): any sizeable action ends the episode in a joint-speed fault."""
     import yaml
 
     from ee_formation_env.builtin import builtin_scenario
@@ -204,7 +205,7 @@ def _undrivable_scenario(tmp_path):
 
 
 UNDRIVABLE = ["--mode", "torque", "--n-envs", "4", "--n-workers", "0", "--train-episode-seconds", "0.05",
-              "--log-std-init", "0", *EVAL_FAST]
+              "--log-std-init", "0", "--action-acceleration", "1e9", *EVAL_FAST]
 
 
 def test_training_stops_naming_the_fault_when_most_episodes_fault(tmp_path, capsys):
@@ -214,7 +215,7 @@ def test_training_stops_naming_the_fault_when_most_episodes_fault(tmp_path, caps
     message = capsys.readouterr().err
     assert message.startswith("error: training: ")
     assert "of the last 100 training episodes ended in a physics fault" in message
-    assert "joint speed" in message and "torque_limits" in message
+    assert "joint speed" in message and "--action-acceleration" in message
     assert (run_dir / "model" / "state.json").is_file()  # the model so far is kept
     assert not (run_dir / "comparison.json").exists()  # no comparison table from faulted training
 

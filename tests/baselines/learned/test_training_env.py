@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -9,6 +10,9 @@ import pytest
 
 from conftest import mixed_team
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, make_training_env
+
+# Physically scaled learned actions (its URDF efforts are far above its links' needs): action_scale.py.
+KUKA_TEAM = str(Path(__file__).parents[3] / "studies" / "scenarios" / "kuka_team.yaml")
 
 # (mode, settings) of the training envs compared: both modes, gated and plain residuals, features and shaping.
 CASES = {
@@ -28,7 +32,7 @@ def _single(scenario: str, overrides: dict, settings: dict) -> Any:
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-@pytest.mark.parametrize("scenario, steps", [("planar_square", 40), ("spatial_tetrahedron", 12)])
+@pytest.mark.parametrize("scenario, steps", [("planar_square", 40), ("spatial_tetrahedron", 12), (KUKA_TEAM, 12)])
 def test_copies_are_single_training_envs_through_autoresets(closer, case, scenario, steps):
     # Short episodes: every copy ends and restarts (its references reset) within the steps compared.
     overrides = {"episode_seconds": 0.15 if scenario == "planar_square" else 0.05}
