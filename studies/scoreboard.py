@@ -15,6 +15,10 @@ budget, once per training seed, and each trained policy is evaluated on the same
 percentile intervals of a stratified bootstrap over training seeds within each evaluation episode (the
 resampling of rliable's ``StratifiedBootstrap``, each evaluation episode a stratum; for a reference, over
 episodes), plus each seed's mean.
+
+Generalization: a scenario with a test set (:mod:`ee_formation_env.scenario_sets`) also gets ``split: "test"``
+rows, one per test scenario: every reference controller evaluated there, and every learned method's policy,
+trained on the training scenario only, evaluated there unchanged (zero-shot) on the same held-out seeds.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import fault_kinds, run_episodes
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario import load_scenario
+from ee_formation_env.scenario_sets import held_out_scenarios
 
 
 @dataclass(frozen=True)
@@ -146,9 +151,16 @@ class Board:
     extra_train_flags: tuple[str, ...] = ()  # train.py flags added to every learned method's (--quick's budget)
     eval_workers: int | None = None  # train.py's --eval-workers (None: its default)
 
-    def cell_path(self, scenario: str, method: Method, seed: int | None) -> Path:
+    test_sets: bool = True  # also evaluate on each scenario's test set (scenario_sets)
+
+    def cell_path(self, scenario: str, method: Method, seed: int | None, test: str | None = None) -> Path:
+        """A training-split cell, or with ``test`` the cell of that test scenario (of training ``scenario``)."""
         name = "reference.json" if seed is None else f"seed-{seed}.json"
-        return self.out / "cells" / scenario / method.name / name
+        folder = self.out / "cells" / scenario / method.name
+        return folder / name if test is None else folder / "test" / test / name
+
+    def run_dir(self, scenario: str, method: Method, seed: int) -> Path:
+        return self.out / "runs" / scenario / method.name / f"seed-{seed}"
 
     def eval_seeds(self) -> list[int]:
         from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
@@ -185,7 +197,7 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     from ee_formation_env.baselines.learned.config import TrainConfig
     from ee_formation_env.baselines.learned.run import train
 
-    run_dir = board.out / "runs" / scenario / method.name / f"seed-{seed}"
+    run_dir = board.run_dir(scenario, method, seed)
     if not (run_dir / "comparison.json").is_file():
         evaluation = ["--eval-episodes", str(board.episodes), "--eval-seconds", str(seconds), "--no-progress",
                       *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
@@ -204,32 +216,71 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     return comparison["results"]["learned"]["per_episode"], budget
 
 
+def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None, test: str,
+                  test_scenario: dict[str, Any], trained: dict[str, Any]) -> dict[str, Any]:
+    """Evaluate one cell of a test scenario: a reference controller there, or the policy of the training run
+    of (``scenario``, ``method``, ``seed``) (its training cell ``trained``) unchanged there."""
+    started = time.time()
+    seconds = board.episode_seconds or load_scenario(test_scenario).episode_seconds
+    record = {"scenario": test, "trained_on": scenario, "split": "test", "method": method.name, "seed": seed,
+              "eval_seeds": board.eval_seeds(), "episode_seconds": seconds, "budget": trained["budget"]}
+    if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
+        return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
+    if method.learned:
+        from ee_formation_env.baselines.learned.policy import learned_policy_factory
+        from ee_formation_env.baselines.metrics import evaluation_env
+
+        run_dir = board.run_dir(scenario, method, seed)
+        config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+        with evaluation_env(test_scenario, len(board.eval_seeds()), episode_seconds=seconds) as env:
+            metrics = run_episodes(None, learned_policy_factory(run_dir, env, config), board.eval_seeds(), env=env)
+    else:
+        metrics = run_episodes(test_scenario, method.reference, board.eval_seeds(),
+                               overrides={"episode_seconds": seconds})
+    episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]
+    return {**record, "wall_seconds": time.time() - started, "episodes": episodes}
+
+
+def _cached(path: Path, label: str, compute: Callable[[], dict[str, Any]], progress: Callable[[str], None]
+            ) -> dict[str, Any]:
+    """The cell at ``path``, computed and written atomically (a complete file or none) if not cached."""
+    if path.is_file():
+        progress(f"cached  {label}")
+    else:
+        progress(f"running {label}")
+        record = compute()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(".partial")
+        partial.write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
+        partial.replace(path)
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
 def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Run every cell of ``board`` that is not cached (written atomically when complete); every cell record."""
+    """Run every cell of ``board`` that is not cached (written atomically when complete), the test-set cells
+    after their training cell; every cell record."""
     records = []
     for scenario in board.scenarios:
+        tests = held_out_scenarios(scenario) if board.test_sets else {}
         for name in board.methods:
             method = METHODS[name]
             for seed in (board.seeds if method.learned else (None,)):
-                path = board.cell_path(scenario, method, seed)
                 label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
-                if path.is_file():
-                    progress(f"cached  {label}")
-                else:
-                    progress(f"running {label}")
-                    record = run_cell(board, scenario, method, seed)
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    partial = path.with_suffix(".partial")
-                    partial.write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
-                    partial.replace(path)
-                records.append(json.loads(path.read_text(encoding="utf-8")))
+                trained = _cached(board.cell_path(scenario, method, seed), label,
+                                  lambda: run_cell(board, scenario, method, seed), progress)
+                records.append(trained)
+                for test, test_scenario in tests.items():
+                    records.append(_cached(
+                        board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
+                        lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained), progress))
     return records
 
 
 def cached_records(out: Path) -> list[dict[str, Any]]:
     """Every complete cell under ``out`` (whichever invocation ran it), in board order: scenarios as the
-    built-ins are listed, methods as :data:`METHODS`, then seeds."""
-    scenarios, methods = list(BUILTIN_SCENARIOS), list(METHODS)
+    built-ins are listed, each followed by its test scenarios, methods as :data:`METHODS`, then seeds."""
+    scenarios = [name for train in BUILTIN_SCENARIOS for name in (train, *held_out_scenarios(train))]
+    methods = list(METHODS)
     records = [json.loads(path.read_text(encoding="utf-8")) for path in (out / "cells").rglob("*.json")]
     records = [r for r in records if r["scenario"] in scenarios and r["method"] in methods]
 
@@ -247,11 +298,14 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         grouped.setdefault((record["scenario"], record["method"]), []).append(record)
     out = []
     for (scenario, method), every_cell in grouped.items():
+        # split "train": the scenario the method trains on; "test": a held-out scenario (trained_on says which)
+        split = {"split": every_cell[0].get("split", "train"),
+                 **({"trained_on": every_cell[0]["trained_on"]} if "trained_on" in every_cell[0] else {})}
         every_cell = sorted(every_cell, key=lambda c: -1 if c["seed"] is None else c["seed"])
         failures = [{"seed": c["seed"], "reason": c["failed"]} for c in every_cell if c.get("failed")]
         cells = [c for c in every_cell if not c.get("failed")]
         if not cells:  # every training run of this row stopped: reported, with no metrics
-            out.append({"scenario": scenario, "method": method, "split": "train",
+            out.append({"scenario": scenario, "method": method, **split,
                         "seeds": [c["seed"] for c in every_cell], "eval_seeds": every_cell[0]["eval_seeds"],
                         "episode_seconds": every_cell[0]["episode_seconds"], "budget": {"agent_steps_per_seed": []},
                         "wall_seconds": float(sum(c["wall_seconds"] for c in every_cell)), "faults": [],
@@ -262,7 +316,7 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             raise ValueError(f"cells: {scenario} / {method} mixes evaluation seeds; delete its cells and rerun")
         values = [[episode_values(e, c["episode_seconds"]) for e in c["episodes"]] for c in cells]
         out.append({
-            "scenario": scenario, "method": method, "split": "train",  # the built-in scenario it trains on
+            "scenario": scenario, "method": method, **split,
             "seeds": [c["seed"] for c in cells if c["seed"] is not None],
             "eval_seeds": eval_seeds, "episode_seconds": cells[0]["episode_seconds"],
             "budget": {"agent_steps_per_seed": [c["budget"].get("agent_steps", 0) for c in cells],
@@ -281,7 +335,10 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
     """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
     lines: list[str] = []
     for scenario in dict.fromkeys(row["scenario"] for row in board_rows):
-        lines += [f"### {scenario}", "",
+        first = next(row for row in board_rows if row["scenario"] == scenario)
+        title = scenario if first["split"] == "train" else (
+            f"{scenario} (test: policies trained on {first['trained_on']}, evaluated here unchanged)")
+        lines += [f"### {title}", "",
                   "| method | seeds | agent steps per seed | " + " | ".join(
                       f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
                   "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
@@ -348,6 +405,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="cells, runs and results (default results/scoreboard; --quick: a temporary folder)")
     parser.add_argument("--quick", action="store_true",
                         help="tiny budgets and short episodes: a smoke test of the machinery, not a result")
+    parser.add_argument("--no-test-sets", action="store_true",
+                        help="skip the held-out test scenarios (ee_formation_env.scenario_sets): training splits only")
     parser.add_argument("--docs", action="store_true",
                         help="also write docs/results/scoreboard.json and the tables of docs/scoreboard.md")
     args = parser.parse_args(argv)
@@ -366,7 +425,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = args.out or (Path(tempfile.mkdtemp(prefix="scoreboard-")) if args.quick else Path("results/scoreboard"))
     board = Board(out=out, scenarios=tuple(args.scenarios), methods=tuple(args.methods), seeds=tuple(args.seeds),
                   episodes=args.episodes, episode_seconds=0.3 if args.quick else None,
-                  extra_train_flags=QUICK_FLAGS if args.quick else (), eval_workers=0 if args.quick else None)
+                  extra_train_flags=QUICK_FLAGS if args.quick else (), eval_workers=0 if args.quick else None,
+                  test_sets=not args.no_test_sets)
     fill(board)
     board_rows = rows(cached_records(out))  # every cell ever completed here, not only this invocation's
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")

@@ -14,6 +14,13 @@ quantities computed from the agent's *own* observation only, so that a shared po
 - ``sin q`` and ``cos q`` of every joint (the Jacobian is a trigonometric function of q);
 - every joint velocity as ``sign(dq) log1p(|dq| / velocity_scale)``, so that damping near rest is resolved.
 
+``"invariant"`` is ``"log-error"`` computed on the observation *in the agent's first-link frame*
+(:func:`first_link_frame_stack`): every vector (``z_ij``, and ``z*_ij`` and ``e_ij`` of displacement slots)
+turned about the base z axis by ``-q_1`` and ``q_1`` itself replaced by 0. A base yaw changes an agent's raw
+inputs (its z_ij turn, its q_1 shifts) but not this observation, and joint torques mean the same in either
+pose, so a policy on it acts the same on any base yaw: the same physical problem gets the same actions. It
+needs arms whose first joint turns about their base z axis (:func:`check_invariant_arms`).
+
 The same transform runs in training (:class:`FeatureEnv`, around the env the learner steps) and evaluation
 (:class:`FeaturePolicy`, around the learned per-agent policy); ``train.py`` saves its name in the run's config.
 """
@@ -29,7 +36,7 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
 
-FEATURE_SETS = ("none", "log-error")
+FEATURE_SETS = ("none", "log-error", "invariant")
 VELOCITY_SCALE = 0.05  # rad/s: joint speeds below this are resolved linearly by the log feature
 
 
@@ -77,6 +84,42 @@ def log_error_feature_stack(layout: ObservationLayout, observations: np.ndarray,
     ], axis=1)
 
 
+def first_link_frame_stack(layout: ObservationLayout, observations: np.ndarray) -> np.ndarray:
+    """A stack (k, size) of observations in each agent's first-link frame (module docstring), float64: the
+    slot vectors turned by ``-q_1`` about the base z axis, ``q_1`` set to 0; masks, distances, distance
+    errors and the other joints' states unchanged."""
+    out = np.array(observations, dtype=np.float64)
+    parts = layout.split(out)  # views into ``out``
+    angle = parts.q[:, 0].copy()
+    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    vectors = [parts.relative_positions] + ([parts.desired, parts.edge_errors] if layout.error_width > 1 else [])
+    for vector in vectors:
+        x, y = vector[..., 0].copy(), vector[..., 1].copy()
+        vector[..., 0] = cos * x + sin * y
+        vector[..., 1] = -sin * x + cos * y
+    parts.q[:, 0] = 0.0
+    return out
+
+
+def check_invariant_arms(task: Any) -> None:
+    """``ValueError`` naming ``obs_features`` unless every arm's first joint turns about its base z axis
+    (+z, through the base origin: what the ``"invariant"`` set's frame needs)."""
+    from ee_formation_env.kinematics import rpy_to_matrix
+
+    for i, model in enumerate(task.models):
+        rotation, origin = np.eye(3), np.zeros(3)
+        for joint in model.joints:  # the fixed joints before the first movable one, then that one
+            origin = origin + rotation @ np.asarray(joint.origin_xyz, dtype=np.float64)
+            rotation = rotation @ rpy_to_matrix(np.asarray(joint.origin_rpy, dtype=np.float64))
+            if joint.movable:
+                break
+        axis = rotation @ np.asarray(joint.axis, dtype=np.float64)
+        if not (np.allclose(axis, [0.0, 0.0, 1.0], atol=1e-9) and np.allclose(origin[:2], 0.0, atol=1e-9)):
+            raise ValueError(f"obs_features: 'invariant' needs arms whose first joint turns about their base z axis; "
+                             f"arms[{i}] joint {joint.name!r} turns about {np.round(axis, 6).tolist()} through "
+                             f"{np.round(origin, 6).tolist()} m in its base frame")
+
+
 def transform(layout: ObservationLayout, features: str) -> Callable[[np.ndarray], np.ndarray]:
     """``observation -> observation with the features appended`` (float32), or the identity for ``"none"``."""
     _check(features)
@@ -93,6 +136,8 @@ def transform_stack(layout: ObservationLayout, features: str) -> Callable[[np.nd
         return lambda observations: observations
 
     def apply(observations: np.ndarray) -> np.ndarray:
+        if features == "invariant":
+            observations = first_link_frame_stack(layout, observations)
         extra = log_error_feature_stack(layout, observations)
         return np.concatenate([np.asarray(observations, dtype=np.float32), extra.astype(np.float32)], axis=1)
 
@@ -100,12 +145,15 @@ def transform_stack(layout: ObservationLayout, features: str) -> Callable[[np.nd
 
 
 def feature_space(space: gymnasium.spaces.Box, layout: ObservationLayout, features: str) -> gymnasium.spaces.Box:
-    """The observation space with the features' bounds appended."""
+    """The observation space with the features' bounds appended (``"invariant"``: unbounded, as its turned
+    vectors leave the raw observation's per-axis bounds)."""
     n = feature_size(layout, features)
     if n == 0:
         return space
-    low = np.concatenate([space.low, np.full(n, -np.inf, dtype=np.float32)]).astype(np.float32)
-    high = np.concatenate([space.high, np.full(n, np.inf, dtype=np.float32)]).astype(np.float32)
+    raw_low, raw_high = (space.low, space.high) if features != "invariant" else (
+        np.full(space.shape, -np.inf, dtype=np.float32), np.full(space.shape, np.inf, dtype=np.float32))
+    low = np.concatenate([raw_low, np.full(n, -np.inf, dtype=np.float32)]).astype(np.float32)
+    high = np.concatenate([raw_high, np.full(n, np.inf, dtype=np.float32)]).astype(np.float32)
     return gymnasium.spaces.Box(low, high, dtype=np.float32)
 
 

@@ -17,7 +17,7 @@ from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionPolicy,
                                                              action_scales, all_ones)
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
-from ee_formation_env.baselines.learned.features import FeaturePolicy
+from ee_formation_env.baselines.learned.features import FeaturePolicy, check_invariant_arms
 from ee_formation_env.baselines.learned.residual import ResidualPolicy
 
 
@@ -105,6 +105,8 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> C
         predict = rllib_predictor(model_dir)
     learned = LearnedPolicy(predict, normalizer)
     features = config.get("obs_features", "none")  # runs saved before the option had none
+    if features == "invariant":
+        check_invariant_arms(env.task)
     per_agent = {agent: learned if features == "none" else
                  FeaturePolicy(learned, env.observation_layout(agent), features) for agent in env.possible_agents}
     gate = config.get("residual_gate", False)

@@ -26,7 +26,8 @@ import numpy as np
 from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionEnv,
                                                              action_scales, all_ones, check_action_acceleration)
-from ee_formation_env.baselines.learned.features import FEATURE_SETS, FeatureEnv, feature_space, transform_stack
+from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, check_invariant_arms, feature_space,
+                                                         transform_stack)
 from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
 from ee_formation_env.baselines.learned.shaping import HoldShapingEnv, check_hold_penalty, hold_penalty_factors
 from ee_formation_env.vector import BatchedStep
@@ -53,6 +54,8 @@ def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None,
     check_action_acceleration(action_acceleration)
     env = parallel_env(scenario, **dict(overrides or {}))
     try:
+        if obs_features == "invariant":
+            check_invariant_arms(env.task)
         scales = action_scales(env.task, action_acceleration)
         scales = None if all_ones(scales) else scales
         if mode == "residual":
@@ -148,6 +151,8 @@ class BatchedTrainingEnv:
         self._observation_spaces = {agent: feature_space(space, layout, obs_features)
                                     for agent, (space, _), layout in zip(self.possible_agents, spaces, layouts)}
         self._featured_size = self._observation_spaces[self.possible_agents[0]].shape[0]
+        if obs_features == "invariant":
+            check_invariant_arms(self.task)
         scales = action_scales(self.task, action_acceleration)
         scales = None if all_ones(scales) else scales
         # Torque mode: the learned actions' per-joint scales as flat rows (K, T); None: the env's own actions.

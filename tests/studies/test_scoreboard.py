@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from ee_formation_env.scenario_sets import held_out_scenarios
 from studies import scoreboard
 
 
@@ -40,10 +41,20 @@ def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
             "residual-ppo", "--seeds", "0", "1", "--episodes", "2"]
     assert scoreboard.main(argv) == 0
     first = capsys.readouterr().out
-    assert first.count("running ") == 3 and "cached" not in first
+    tests = list(held_out_scenarios("planar_square"))
+    cells = 3 * (1 + len(tests))  # the reference and two training seeds, each on the training and test scenarios
+    assert first.count("running ") == cells and "cached" not in first
     board = json.loads((tmp_path / "scoreboard.json").read_text())
-    rows = {row["method"]: row for row in board["rows"]}
-    assert set(rows) == {"gradient", "residual-ppo"}
+    every = {(row["scenario"], row["method"]): row for row in board["rows"]}
+    assert set(every) == {(scenario, method) for scenario in ["planar_square", *tests]
+                          for method in ("gradient", "residual-ppo")}
+    assert [row["scenario"] for row in board["rows"]][::2] == ["planar_square", *tests]  # each test after its train
+    for test in tests:  # the training seeds' policies, evaluated unchanged on each test scenario
+        row = every[(test, "residual-ppo")]
+        assert row["split"] == "test" and row["trained_on"] == "planar_square" and row["seeds"] == [0, 1]
+        assert len(row["metrics"]["success"]["per_seed"]) == 2
+        assert every[(test, "gradient")]["split"] == "test"
+    rows = {method: every[("planar_square", method)] for method in ("gradient", "residual-ppo")}
     learned, reference = rows["residual-ppo"], rows["gradient"]
     assert learned["seeds"] == [0, 1] and reference["seeds"] == []
     assert learned["eval_seeds"] == reference["eval_seeds"] == [10_000, 10_001]
@@ -57,11 +68,12 @@ def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
     assert learned["budget"]["agent_steps_per_seed"][0] > 0
     table = (tmp_path / "scoreboard.md").read_text()
     assert "### planar_square" in table and "| residual-ppo | 0, 1 |" in table
+    assert f"### {tests[0]} (test: policies trained on planar_square, evaluated here unchanged)" in table
     # Run again: every cell is read from its file, nothing is trained or evaluated again.
     stamps = {path: path.stat().st_mtime_ns for path in (tmp_path / "cells").rglob("*.json")}
     assert scoreboard.main(argv) == 0
     again = capsys.readouterr().out
-    assert again.count("cached  ") == 3 and "running" not in again
+    assert again.count("cached  ") == cells and "running" not in again
     assert {path: path.stat().st_mtime_ns for path in (tmp_path / "cells").rglob("*.json")} == stamps
 
 
@@ -89,7 +101,7 @@ def test_committed_board_matches_its_page():
 
 
 def test_the_board_aggregates_every_cached_cell_in_board_order(tmp_path, capsys):
-    base = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--episodes", "1"]
+    base = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--episodes", "1", "--no-test-sets"]
     assert scoreboard.main([*base, "--methods", "adaptive_jacobian"]) == 0
     assert scoreboard.main([*base, "--methods", "gradient"]) == 0  # a later invocation, another method
     capsys.readouterr()
@@ -105,7 +117,7 @@ def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypat
 
     monkeypatch.setattr(scoreboard, "_learned_cell", stopped)
     argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "torque-ppo",
-            "--seeds", "0", "--episodes", "1"]
+            "--seeds", "0", "--episodes", "1", "--no-test-sets"]
     assert scoreboard.main(argv) == 0
     (row,) = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
     assert row["metrics"] == {} and row["failures"][0]["seed"] == 0

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import ee_formation_env
+
 from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, FeaturePolicy, feature_size,
                                                          log_error_features, transform)
 from ee_formation_env.baselines.learned.training_env import make_training_env
@@ -80,6 +82,38 @@ def test_feature_policy_sees_what_training_saw(make_env):
 
 
 def test_unknown_feature_set_is_rejected(make_env):
-    assert FEATURE_SETS == ("none", "log-error")
+    assert FEATURE_SETS == ("none", "log-error", "invariant")
     with pytest.raises(ValueError, match="obs_features"):
         FeatureEnv(make_env("planar_square"), "squared")
+
+
+@pytest.mark.parametrize("scenario, rotated", [
+    ("planar_square", "planar_square_rotated"),
+    ("planar_square_displacement", "planar_square_displacement_rotated"),
+])
+def test_invariant_features_do_not_see_the_base_yaw(closer, scenario, rotated):
+    """The same physical start on yawed bases: raw observations differ, invariant ones agree (float32 rounding)."""
+    from ee_formation_env.scenario_sets import held_out_scenarios
+
+    plain = closer(ee_formation_env.parallel_env(scenario, initial_q_noise=0.0))
+    turned = closer(ee_formation_env.parallel_env(held_out_scenarios(scenario)[rotated], initial_q_noise=0.0))
+    first, _ = plain.reset(seed=0)
+    second, _ = turned.reset(seed=0)
+    for agent in plain.possible_agents:
+        layout = plain.observation_layout(agent)
+        assert np.abs(first[agent] - second[agent]).max() > 0.5  # the raw inputs do see it
+        a, b = (transform(layout, "invariant")(obs[agent]) for obs in (first, second))
+        assert a.shape == (layout.size + feature_size(layout, "invariant"),)
+        assert np.allclose(a, b, atol=1e-5), agent
+        assert a[layout.size - 2 * layout.n_joints] == 0.0  # q_1 is not an input
+
+
+def test_invariant_features_need_a_first_joint_about_the_base_z_axis(closer):
+    from ee_formation_env.baselines.learned.features import check_invariant_arms
+
+    check_invariant_arms(closer(ee_formation_env.parallel_env("planar_square")).task)
+    with pytest.raises(ValueError, match="obs_features: 'invariant' needs arms whose first joint turns about their "
+                                         "base z axis; arms\\[0\\] joint 'joint_1'"):
+        check_invariant_arms(closer(ee_formation_env.parallel_env("spatial_tetrahedron")).task)
+    with pytest.raises(ValueError, match="obs_features: 'invariant'"):
+        make_training_env("spatial_tetrahedron", obs_features="invariant")

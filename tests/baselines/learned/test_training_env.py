@@ -20,6 +20,7 @@ CASES = {
     "residual-gated": dict(mode="residual", gate=True, residual_scale=0.3, correction_penalty=0.8),
     "torque-shaped": dict(mode="torque", hold_penalty=0.5, obs_features="log-error"),
     "residual-shaped": dict(mode="residual", hold_penalty=1.0, obs_features="log-error"),
+    "residual-invariant": dict(mode="residual", gate=True, obs_features="invariant"),
 }
 
 
@@ -34,6 +35,8 @@ def _single(scenario: str, overrides: dict, settings: dict) -> Any:
 @pytest.mark.parametrize("case", sorted(CASES))
 @pytest.mark.parametrize("scenario, steps", [("planar_square", 40), ("spatial_tetrahedron", 12), (KUKA_TEAM, 12)])
 def test_copies_are_single_training_envs_through_autoresets(closer, case, scenario, steps):
+    if case == "residual-invariant" and scenario == "spatial_tetrahedron":
+        pytest.skip("the PERA arm's first joint does not turn about its base z axis (no invariant features)")
     # Short episodes: every copy ends and restarts (its references reset) within the steps compared.
     overrides = {"episode_seconds": 0.15 if scenario == "planar_square" else 0.05}
     count, seeds = 3, [5, 11, 2]
