@@ -49,16 +49,33 @@ class Method:
     name: str
     reference: str | None = None  # the reference controller's name, for a reference method
     train_flags: tuple[str, ...] = ()  # train.py flags of a learned method (its preset sets the rest)
+    needs_invariant_arms: bool = False  # its observation features need arms turning about their base z axis
 
     @property
     def learned(self) -> bool:
         return self.reference is None
 
+    def applies_to(self, scenario: str) -> bool:
+        """Whether the method can run on ``scenario`` (a method whose features the arms cannot have, cannot)."""
+        if not self.needs_invariant_arms:
+            return True
+        from ee_formation_env.baselines.learned.features import check_invariant_arms
+        from ee_formation_env.task import build_task
 
-#: The board's methods: the paper's three laws, and PPO in residual and torque mode at train.py's presets.
+        try:
+            check_invariant_arms(build_task(load_scenario(scenario)))
+        except ValueError:
+            return False
+        return True
+
+
+#: The board's methods: the paper's three laws, PPO in residual and torque mode at train.py's presets, and
+#: residual PPO on the base-yaw-invariant features (the generalization design; arms turning about base z only).
 METHODS: dict[str, Method] = {
     **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
     "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
+    "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
+        "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque")),
 }
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
@@ -264,6 +281,9 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
         tests = held_out_scenarios(scenario) if board.test_sets else {}
         for name in board.methods:
             method = METHODS[name]
+            if not method.applies_to(scenario):
+                progress(f"skipped {scenario} / {name}: not applicable (its features need arms turning about base z)")
+                continue
             for seed in (board.seeds if method.learned else (None,)):
                 label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
                 trained = _cached(board.cell_path(scenario, method, seed), label,
@@ -279,25 +299,30 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
 def cached_records(out: Path) -> list[dict[str, Any]]:
     """Every complete cell under ``out`` (whichever invocation ran it), in board order: scenarios as the
     built-ins are listed, each followed by its test scenarios, methods as :data:`METHODS`, then seeds."""
-    scenarios = [name for train in BUILTIN_SCENARIOS for name in (train, *held_out_scenarios(train))]
+    places = [(train, name) for train in BUILTIN_SCENARIOS for name in (train, *held_out_scenarios(train))]
     methods = list(METHODS)
     records = [json.loads(path.read_text(encoding="utf-8")) for path in (out / "cells").rglob("*.json")]
-    records = [r for r in records if r["scenario"] in scenarios and r["method"] in methods]
+    records = [r for r in records if _place(r) in places and r["method"] in methods]
 
     def order(record: dict[str, Any]) -> tuple[int, int, int]:
-        return (scenarios.index(record["scenario"]), methods.index(record["method"]),
+        return (places.index(_place(record)), methods.index(record["method"]),
                 -1 if record["seed"] is None else record["seed"])
 
     return sorted(records, key=order)
 
 
+def _place(record: dict[str, Any]) -> tuple[str, str]:
+    """(training scenario, evaluated scenario) of a cell: a test scenario may share a built-in's name."""
+    return record.get("trained_on", record["scenario"]), record["scenario"]
+
+
 def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per (scenario, method): its seeds, budget, wall time and every metric aggregated."""
-    grouped: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    grouped: dict[tuple[tuple[str, str], str], list[dict[str, Any]]] = {}
     for record in records:
-        grouped.setdefault((record["scenario"], record["method"]), []).append(record)
+        grouped.setdefault((_place(record), record["method"]), []).append(record)
     out = []
-    for (scenario, method), every_cell in grouped.items():
+    for ((_, scenario), method), every_cell in grouped.items():
         # split "train": the scenario the method trains on; "test": a held-out scenario (trained_on says which)
         split = {"split": every_cell[0].get("split", "train"),
                  **({"trained_on": every_cell[0]["trained_on"]} if "trained_on" in every_cell[0] else {})}
@@ -334,15 +359,15 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
     """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
     lines: list[str] = []
-    for scenario in dict.fromkeys(row["scenario"] for row in board_rows):
-        first = next(row for row in board_rows if row["scenario"] == scenario)
-        title = scenario if first["split"] == "train" else (
-            f"{scenario} (test: policies trained on {first['trained_on']}, evaluated here unchanged)")
+    for place in dict.fromkeys(_place(row) for row in board_rows):
+        scenario = place[1]
+        title = scenario if place[0] == scenario else (
+            f"{scenario} (test: policies trained on {place[0]}, evaluated here unchanged)")
         lines += [f"### {title}", "",
                   "| method | seeds | agent steps per seed | " + " | ".join(
                       f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
                   "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
-        for row in (r for r in board_rows if r["scenario"] == scenario):
+        for row in (r for r in board_rows if _place(r) == place):
             if not row["metrics"]:
                 lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
                              " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
@@ -356,11 +381,11 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
             steps = row["budget"]["agent_steps_per_seed"]
             lines.append(f"| {row['method']} | {seeds} | {max(steps):,} | " + " | ".join(cells) +
                          f" | {row['wall_seconds']:,.0f} |")
-        faulted = [row for row in board_rows if row["scenario"] == scenario and row["faults"]]
+        faulted = [row for row in board_rows if _place(row) == place and row["faults"]]
         for row in faulted:
             kinds = "; ".join(f"{fault['reason']} ({fault['episodes']}x)" for fault in row["faults"][:3])
             lines.append(f"\n- {row['method']}: physics faults: {kinds}")
-        for row in (r for r in board_rows if r["scenario"] == scenario and r["failures"]):
+        for row in (r for r in board_rows if _place(r) == place and r["failures"]):
             for failure in row["failures"]:
                 lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
         lines.append("")

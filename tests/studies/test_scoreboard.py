@@ -124,3 +124,23 @@ def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypat
     assert "physics fault" in row["failures"][0]["reason"]
     table = (tmp_path / "scoreboard.md").read_text()
     assert "training failed" in table and "- torque-ppo, seed 0: training: 100 of the last 100" in table
+
+
+def _record(scenario, method, seed, settle, **place):
+    episode = {"success": True, "settling_time": settle, "final_formation_error": 0.0, "physics_fault": 0,
+               "contact_steps": 0, "mean_return": 1.0}
+    return {"scenario": scenario, "method": method, "seed": seed, "eval_seeds": [10_000], "episode_seconds": 5.0,
+            "budget": {"agent_steps": 1}, "wall_seconds": 1.0, "episodes": [episode], **place}
+
+
+def test_a_test_scenario_named_as_a_builtin_is_its_own_row():
+    """planar_square_rotated is a built-in (trained there) and a test scenario of planar_square (trained
+    elsewhere): two rows, two tables, never merged."""
+    records = [_record("planar_square_rotated", "residual-ppo", 0, 1.0),
+               _record("planar_square_rotated", "residual-ppo", 0, 2.0, split="test", trained_on="planar_square")]
+    rows = scoreboard.rows(records)
+    assert [(row["split"], row.get("trained_on"), row["metrics"]["settling_time_or_limit"]["mean"]) for row in rows] == [
+        ("train", None, 1.0), ("test", "planar_square", 2.0)]
+    table = scoreboard.format_board(rows)
+    assert "### planar_square_rotated\n" in table
+    assert "### planar_square_rotated (test: policies trained on planar_square" in table
