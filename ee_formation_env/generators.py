@@ -9,14 +9,20 @@ validation (rigidity, reach, singularities) accepts every scenario built here.
 
 - :func:`planar_ring`: ``planar_2link`` arms (2 DOF), ``dim = 2``;
 - :func:`spatial_ring`: ``pera_arm`` arms (7 DOF), ``dim = 3``, with gravity.
+
+The random families of the random-scenario study (and of :data:`ee_formation_env.scenario_sets.RANDOM_FAMILIES`)
+are here too: :func:`planar_scenario` and :func:`spatial_scenario`, one seeded scenario per seed.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
+import pybullet
+import pybullet_data
 
 from ee_formation_env.robots import SPATIAL_INITIAL_Q, ROBOTS
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix
@@ -100,3 +106,158 @@ def spatial_ring(n_agents: int, **overrides: Any) -> dict[str, Any]:
                 "formation": "distance", "dim": 3, "physics_hz": 1000.0, "frame_skip": 5, "episode_seconds": 50.0}
     scenario.update(overrides)
     return scenario
+
+
+# -- the random-scenario study's families (seeded generators of plain scenario data) ----------------------
+PLANAR_SECONDS = 20.0  # s, episode length of a random planar scenario
+SPATIAL_SECONDS = 30.0  # s, of a random spatial scenario
+
+# Spatial robots: (urdf, end-effector link, base height in m). The PERA-like arm hangs from its base.
+SPATIAL_ROBOTS: dict[str, tuple[str, str, float]] = {
+    "kuka_iiwa": (os.path.join(pybullet_data.getDataPath(), "kuka_iiwa", "model.urdf"), "lbr_iiwa_link_7", 0.0),
+    "franka_panda": (os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf"), "panda_hand", 0.0),
+    "pera_arm": (str(ROBOTS["pera_arm"].urdf), ROBOTS["pera_arm"].ee_link, 1.0),
+}
+_SPATIAL_REGION_HEIGHT = (0.35, 0.65)  # m, z range of the shared end-effector region
+_SPATIAL_REGION_RADIUS = 0.25  # m, horizontal radius of the shared region around the ring's centre
+_MIN_VERTEX_SPACING = 0.15  # m between any two end-effectors (initial) or target vertices
+_MIN_ARM_CLEARANCE = 0.03  # m between the collision shapes of two arms in their initial poses
+
+
+def planar_scenario(seed: int) -> dict[str, Any]:
+    """One random planar scenario of the random-scenario study (``studies/random_scenarios.py`` describes the
+    family); the same ``seed`` gives the same dict."""
+    rng = np.random.default_rng([0, seed])
+    n_agents = int(rng.integers(3, 7))
+    radius = float(rng.uniform(4.0, 6.0))
+    offset = float(rng.uniform(-math.pi, math.pi))
+    reach = sum(planar_link_lengths())  # m
+    arms, targets = [], []
+    for i in range(n_agents):
+        angle = offset + 2 * math.pi * i / n_agents
+        base = np.array([radius * math.cos(angle), radius * math.sin(angle)])
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        elbow = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.4, math.pi - 0.4))
+        arms.append({"robot": "planar_2link", "base_position": [*base.tolist(), 0.0], "base_rpy": [0.0, 0.0, yaw],
+                     "initial_q": [float(rng.uniform(-math.pi, math.pi)), elbow]})
+        # Target vertex: 0.8-2.6 m from its own base, within +-60 deg of the direction to the ring's centre.
+        distance = float(rng.uniform(0.8, reach - 0.4))
+        direction = angle + math.pi + float(rng.uniform(-math.pi / 3, math.pi / 3))
+        targets.append((base + distance * np.array([math.cos(direction), math.sin(direction)])).tolist())
+    return {"name": f"random_planar_{seed}", "arms": arms, "edges": trilateration_edges(n_agents, 2),
+            "shape": targets, "formation": "distance", "dim": 2, "initial_q_noise": 0.0,
+            "episode_seconds": PLANAR_SECONDS}
+
+
+def _sample_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, rng: np.random.Generator,
+                 taken: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A configuration (rad) of ``robot`` putting its end-effector (world, m) in the shared region."""
+    urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
+    chain = chain_model(urdf, ee_link)
+    rotation = rpy_to_matrix(np.array([0.0, 0.0, yaw]))
+    # Keep away from the joint limits (10 % margin) and from singular configurations.
+    span = chain.upper - chain.lower
+    for _ in range(50):
+        q = rng.uniform(chain.lower + 0.1 * span, chain.upper - 0.1 * span, size=(512, chain.n_joints))
+        ee = base + chain.forward_batch(q) @ rotation.T
+        inside = ((np.linalg.norm(ee[:, :2] - centre[:2], axis=1) <= _SPATIAL_REGION_RADIUS)
+                  & (ee[:, 2] >= _SPATIAL_REGION_HEIGHT[0]) & (ee[:, 2] <= _SPATIAL_REGION_HEIGHT[1]))
+        for k in np.flatnonzero(inside):
+            if all(np.linalg.norm(ee[k] - other) >= _MIN_VERTEX_SPACING for other in taken):
+                if np.linalg.svd(chain.jacobian(q[k]), compute_uv=False).min() >= 0.05:
+                    return q[k], ee[k]
+    raise LookupError(f"no configuration of {robot} reaches the shared region")
+
+
+class _ClearanceChecker:
+    """Loads arms into a private DIRECT PyBullet client to reject initial poses that touch another arm."""
+
+    def __init__(self) -> None:
+        self.client = pybullet.connect(pybullet.DIRECT)
+        self.bodies: list[int] = []
+
+    def place(self, robot: str, base: np.ndarray, yaw: float, q: np.ndarray) -> int:
+        urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
+        body = pybullet.loadURDF(urdf, base.tolist(), pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
+                                 useFixedBase=True, physicsClientId=self.client)
+        names = chain_model(urdf, ee_link).joint_names
+        for j in range(pybullet.getNumJoints(body, physicsClientId=self.client)):
+            name = pybullet.getJointInfo(body, j, physicsClientId=self.client)[1].decode()
+            if name in names:
+                pybullet.resetJointState(body, j, float(q[names.index(name)]), physicsClientId=self.client)
+        return body
+
+    def clear(self, body: int) -> bool:
+        """True if ``body`` is at least :data:`_MIN_ARM_CLEARANCE` from every arm placed before it."""
+        return all(not pybullet.getClosestPoints(body, other, _MIN_ARM_CLEARANCE, physicsClientId=self.client)
+                   for other in self.bodies)
+
+    def close(self) -> None:
+        pybullet.disconnect(self.client)
+
+
+def _clear_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, rng: np.random.Generator,
+                taken: list[np.ndarray], checker: _ClearanceChecker) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_sample_pose`, resampled until the arm clears every arm already placed in ``checker``."""
+    for _ in range(100):
+        q, ee = _sample_pose(robot, base, yaw, centre, rng, taken)
+        body = checker.place(robot, base, yaw, q)
+        if checker.clear(body):
+            checker.bodies.append(body)
+            return q, ee
+        pybullet.removeBody(body, physicsClientId=checker.client)
+    raise LookupError(f"no collision-free pose of {robot}")
+
+
+def spatial_scenario(seed: int) -> dict[str, Any]:
+    """One random spatial scenario of the random-scenario study (``studies/random_scenarios.py`` describes the
+    family); the same ``seed`` gives the same dict.
+
+    A draw whose arms cannot all be posed clear of each other is redrawn (a seeded sequence of attempts).
+    """
+    for attempt in range(50):
+        try:
+            return _spatial_attempt(seed, np.random.default_rng([1, seed, attempt]))
+        except LookupError:
+            continue
+    raise RuntimeError(f"spatial_scenario({seed}): no valid draw in 50 attempts")
+
+
+def _spatial_attempt(seed: int, rng: np.random.Generator) -> dict[str, Any]:
+    """One draw of :func:`spatial_scenario` (LookupError if its arms cannot be posed)."""
+    n_agents = int(rng.integers(3, 5))
+    robots = [str(name) for name in rng.choice(list(SPATIAL_ROBOTS), size=n_agents)]
+    radius = float(rng.uniform(0.45, 0.65))
+    offset = float(rng.uniform(-math.pi, math.pi))
+    initial_checker, target_checker = _ClearanceChecker(), _ClearanceChecker()
+    try:
+        arms, targets = _pose_arms(robots, radius, offset, rng, initial_checker, target_checker)
+    finally:
+        initial_checker.close()
+        target_checker.close()
+    n_agents = len(robots)
+    edges = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
+    return {"name": f"random_spatial_{seed}", "arms": arms, "edges": edges,
+            "shape": [t.tolist() for t in targets], "formation": "distance", "dim": 3, "initial_q_noise": 0.0,
+            "frame_skip": 5, "episode_seconds": SPATIAL_SECONDS}
+
+
+def _pose_arms(robots: list[str], radius: float, offset: float, rng: np.random.Generator,
+               initial_checker: _ClearanceChecker, target_checker: _ClearanceChecker) -> tuple[list[dict], list]:
+    """Bases on the ring, collision-free initial poses and target vertices (LookupError if none found)."""
+    n_agents = len(robots)
+    centre = np.zeros(3)
+    arms, initial_ee, targets = [], [], []
+    for i, robot in enumerate(robots):
+        angle = offset + 2 * math.pi * i / n_agents
+        urdf, ee_link, height = SPATIAL_ROBOTS[robot]
+        base = np.array([radius * math.cos(angle), radius * math.sin(angle), height])
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        q0, ee0 = _clear_pose(robot, base, yaw, centre, rng, initial_ee, initial_checker)
+        _, target = _clear_pose(robot, base, yaw, centre, rng, targets, target_checker)
+        initial_ee.append(ee0)
+        targets.append(target)
+        arm = {"base_position": base.tolist(), "base_rpy": [0.0, 0.0, yaw], "initial_q": q0.tolist()}
+        arm.update({"robot": robot} if robot in ROBOTS else {"urdf": urdf, "ee_link": ee_link})
+        arms.append(arm)
+    return arms, targets

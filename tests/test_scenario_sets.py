@@ -48,3 +48,12 @@ def test_a_scenario_without_a_test_set_has_none_and_a_bad_name_type_is_refused()
     assert held_out_scenarios("spatial_tetrahedron") == {}
     with pytest.raises(TypeError, match="train: expected a built-in scenario name"):
         held_out_scenarios(["planar_square"])
+
+
+def test_random_families_are_seeded_and_the_random_studys_own():
+    from ee_formation_env.scenario_sets import RANDOM_FAMILIES
+    from studies import random_scenarios
+
+    assert random_scenarios.planar_scenario is RANDOM_FAMILIES["planar"]
+    assert random_scenarios.spatial_scenario is RANDOM_FAMILIES["spatial"]
+    assert RANDOM_FAMILIES["planar"](5) == RANDOM_FAMILIES["planar"](5) != RANDOM_FAMILIES["planar"](6)
