@@ -9,7 +9,7 @@ reference policy.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -104,23 +104,39 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> C
     else:
         predict = rllib_predictor(model_dir)
     learned = LearnedPolicy(predict, normalizer)
-    features = config.get("obs_features", "none")  # runs saved before the option had none
-    if features == "invariant":
+    # Runs saved before an option existed had its default then: no features, no gate, and the default action
+    # acceleration, which leaves the built-in robots as they were.
+    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, config["mode"],
+                                   config.get("reference"), config.get("residual_scale"),
+                                   config.get("residual_gate", False), config.get("obs_features", "none"),
+                                   config.get("action_acceleration", DEFAULT_ACTION_ACCELERATION))
+
+
+def composed_policy_factory(learned: Mapping[str, Any], env: Any, mode: str, reference: str | None,
+                            residual_scale: float | None, residual_gate: bool, obs_features: str,
+                            action_acceleration: float) -> Callable[[Any], dict[str, Any]]:
+    """``copy_env -> per-agent policies`` around ``learned`` (agent -> a policy on the observation the learner
+    saw: featured by ``obs_features``, output in [-1, 1]), by the training env's rules: the features computed
+    from the env's raw observation (:class:`FeaturePolicy`); in ``"torque"`` mode the learned action scaled per
+    joint by ``action_acceleration`` (rad/s^2, :class:`ScaledActionPolicy`; unscaled where every scale is 1); in
+    ``"residual"`` mode the ``reference`` controller plus ``residual_scale`` times the correction, gated by the
+    agent's error when ``residual_gate`` (:class:`ResidualPolicy`). Each call gives fresh reference controllers;
+    the learned parts are shared (stateless)."""
+    per_agent = {agent: learned[agent] if obs_features == "none" else
+                 FeaturePolicy(learned[agent], env.observation_layout(agent), obs_features)
+                 for agent in env.possible_agents}
+    if obs_features == "invariant":
         check_invariant_arms(env.task)
-    per_agent = {agent: learned if features == "none" else
-                 FeaturePolicy(learned, env.observation_layout(agent), features) for agent in env.possible_agents}
-    gate = config.get("residual_gate", False)
-    # Runs saved before physical action scales had none: the default, which leaves the built-in robots as they were.
-    scales = action_scales(env.task, config.get("action_acceleration", DEFAULT_ACTION_ACCELERATION))
+    scales = action_scales(env.task, action_acceleration)
     scales = None if all_ones(scales) else scales
 
     def build(copy_env: Any) -> dict[str, Any]:
-        if config["mode"] == "torque":
+        if mode == "torque":
             return dict(per_agent) if scales is None else {
                 agent: ScaledActionPolicy(policy, scales[agent]) for agent, policy in per_agent.items()}
-        references = baselines.make_policies(config["reference"], copy_env)
-        return {agent: ResidualPolicy(references[agent], per_agent[agent], config["residual_scale"],
-                                      copy_env.observation_layout(agent) if gate else None,
+        references = baselines.make_policies(reference, copy_env)
+        return {agent: ResidualPolicy(references[agent], per_agent[agent], residual_scale,
+                                      copy_env.observation_layout(agent) if residual_gate else None,
                                       None if scales is None else scales[agent])
                 for agent in copy_env.possible_agents}
 

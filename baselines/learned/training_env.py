@@ -100,7 +100,9 @@ class BatchedTrainingEnv:
     actions (K * N, n) or (K, N, n)): in residual mode the actions are corrections, rewards carry the
     correction factor and the hold penalty, observations (K, N * size) carry the features
     (``infos["final_observation"]`` too: the observation each copy ended in, featured). Every agent must have
-    the same observation size and joints (one policy is shared by all). The other infos are the batched env's.
+    the same observation size and joints (one policy is shared by all). The other infos are the batched env's,
+    and so are ``state()``, ``state_space`` and the copies' generators ``np_randoms``: it has the array API
+    that :class:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv` wraps (``from_batched``).
 
     Arguments: those of :func:`make_training_env`, and ``num_envs`` (K).
     """
@@ -176,6 +178,20 @@ class BatchedTrainingEnv:
     def joint_slices(self) -> list[slice]:
         """Agent i's joints in the flat actions (K, T) and ``applied_torque``."""
         return self.env.joint_slices
+
+    @property
+    def state_space(self) -> gymnasium.spaces.Box:
+        """The batched env's global state space (one copy's): the state carries no features."""
+        return self.env.state_space
+
+    def state(self) -> np.ndarray:
+        """Every copy's global state (K, state_dim), the batched env's."""
+        return self.env.state()
+
+    @property
+    def np_randoms(self) -> list:
+        """The copies' generators (the batched env's list itself, so that assigning into it sets them)."""
+        return self.env.np_randoms
 
     # -- array API ------------------------------------------------------------------------------------
     def reset_arrays(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None

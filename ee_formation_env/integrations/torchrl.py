@@ -44,6 +44,13 @@ So copy k of ``make_torchrl_env(S, num_envs=K, seed=s)`` replays, step for step 
 episode, ``parallel_env(S)`` reset with seed ``s + k`` and then without a seed
 (``tests/integrations/test_torchrl.py``). Stepping again without a reset after a done continues the
 started episode.
+
+**Any batched env with the array API**: :meth:`BatchedTorchRLEnv.from_batched` (or
+``make_torchrl_env(batched_env=env)``) wraps an env built already, e.g. the learning wing's training env
+(residual actions, observation features, shaped rewards), which this package never imports: the wing hands
+it over. What the wrapper needs of it is listed in :data:`BATCHED_ENV_API`. Each agent's observation columns
+come from the env's own observation sizes (agents concatenated in order), not from the raw env's layout, so
+feature-augmented observations fit.
 """
 
 from __future__ import annotations
@@ -89,12 +96,23 @@ def group_map(env: Any) -> dict[str, list[str]]:
 
 def make_torchrl_env(scenario: Any = "planar_square", group_map_type: MarlGroupMapType | dict | None = None,
                      return_state: bool = True, seed: int | None = None, device: Any = "cpu",
-                     num_envs: int | None = None, **overrides: Any) -> EnvBase:
+                     num_envs: int | None = None, batched_env: Any = None, **overrides: Any) -> EnvBase:
     """The formation env (built-in name, file or dict ``scenario``, with scenario ``overrides``) as a TorchRL
     env. ``group_map_type``: None for :func:`group_map`, a ``MarlGroupMapType`` or an explicit dict.
     ``return_state``: include ``env.state()`` as ``"state"`` (for centralized critics, e.g. MAPPO).
     ``num_envs``: None for one env in TorchRL's ``PettingZooWrapper`` (batch size ``[]``); K >= 1 for
-    :class:`BatchedTorchRLEnv` over ``vector_env(scenario, num_envs=K)`` (batch size ``[K]``)."""
+    :class:`BatchedTorchRLEnv` over ``vector_env(scenario, num_envs=K)`` (batch size ``[K]``).
+    ``batched_env``: a batched env built already (:data:`BATCHED_ENV_API`) to wrap as
+    :meth:`BatchedTorchRLEnv.from_batched` does; ``scenario`` and ``overrides`` are then its own, and
+    ``num_envs``, if given, must be its number of copies."""
+    if batched_env is not None:
+        if overrides:
+            raise ValueError(f"overrides: the batched env is built already (its scenario is its own), got "
+                             f"{sorted(overrides)}")
+        if num_envs is not None and num_envs != batched_env.num_envs:
+            raise ValueError(f"num_envs: the batched env has {batched_env.num_envs} copies, got {num_envs!r}")
+        return BatchedTorchRLEnv.from_batched(batched_env, group_map_type=group_map_type, return_state=return_state,
+                                              seed=seed, device=device)
     if num_envs is not None:
         return BatchedTorchRLEnv(scenario, num_envs=num_envs, group_map_type=group_map_type,
                                  return_state=return_state, seed=seed, device=device, **overrides)
@@ -110,6 +128,17 @@ _AGENT_INFO = ("edge_errors", "edge_mask", "singularity_margin", "torque_saturat
                "contacts")
 _COPY_INFO = ("formation_error", "physics_fault", "sim_time")
 _DONE_KEYS = ("done", "terminated", "truncated")
+
+#: What :class:`BatchedTorchRLEnv` uses of the batched env it steps (``ee_formation_env.vector.VectorFormationEnv``
+#: has all of it): ``num_envs`` (K), ``possible_agents``, ``scenario`` (the group names read its arms),
+#: ``observation_space(agent)`` and ``action_space(agent)`` (one copy's), ``joint_slices`` (agent i's joints in
+#: the flat actions (K, T) and ``applied_torque``), ``np_randoms`` (the copies' generators: put back after the
+#: probe reset that sizes the info specs), ``reset_arrays(seed, options)`` and ``step_arrays(actions (K, T))``
+#: returning a ``BatchedStep`` whose observations (K, O) are the agents' observations concatenated in agent
+#: order and whose infos carry the vector env's numeric keys and ``final_observation``, ``close()``; with
+#: ``return_state``, ``state()`` (K, state_dim) and ``state_space``.
+BATCHED_ENV_API = ("num_envs", "possible_agents", "scenario", "observation_space", "action_space", "joint_slices",
+                   "np_randoms", "reset_arrays", "step_arrays", "close")
 
 
 def _box_spec(space: Any, count: int, device: Any) -> Bounded | Unbounded:
@@ -128,15 +157,26 @@ def _tensor(array: np.ndarray, device: Any) -> torch.Tensor:
 
 class BatchedTorchRLEnv(EnvBase):
     """K copies of one formation scenario as one native TorchRL env, batch size ``[K]`` (module docstring:
-    keys, done and reset handling). Build it with ``make_torchrl_env(scenario, num_envs=K)``.
+    keys, done and reset handling). Build it with ``make_torchrl_env(scenario, num_envs=K)``, or around a
+    batched env built already with :meth:`from_batched` (``batched_env``: then ``scenario``, ``num_envs`` and
+    ``overrides`` are not used; the TorchRL env owns it and closes it).
 
     ``group_map`` (attribute): group -> agents, as :func:`group_map` (or ``group_map_type``) gives it.
-    ``vector_env`` (attribute): the underlying :class:`ee_formation_env.vector.VectorFormationEnv`."""
+    ``vector_env`` (attribute): the batched env it steps: the :class:`ee_formation_env.vector.VectorFormationEnv`
+    of ``scenario``, or the env given to :meth:`from_batched`."""
 
     def __init__(self, scenario: Any = "planar_square", num_envs: int = 1,
                  group_map_type: MarlGroupMapType | dict | None = None, return_state: bool = True,
-                 seed: int | None = None, device: Any = "cpu", **overrides: Any):
-        vec = ee_formation_env.vector_env(scenario, num_envs=num_envs, **overrides)
+                 seed: int | None = None, device: Any = "cpu", batched_env: Any = None, **overrides: Any):
+        if batched_env is None:
+            vec = ee_formation_env.vector_env(scenario, num_envs=num_envs, **overrides)
+        else:
+            missing = [name for name in (*BATCHED_ENV_API, *(("state", "state_space") if return_state else ()))
+                       if not hasattr(batched_env, name)]
+            if missing:
+                raise TypeError(f"batched_env: {type(batched_env).__name__} lacks {missing} of the array API "
+                                "(BATCHED_ENV_API)")
+            vec = batched_env
         super().__init__(device=device, batch_size=torch.Size([vec.num_envs]))
         self.vector_env = vec
         self.return_state = return_state
@@ -154,10 +194,11 @@ class BatchedTorchRLEnv(EnvBase):
         self._obs_columns: dict[str, Any] = {}
         self._joint_columns: dict[str, Any] = {}
         self._shapes: dict[str, tuple[int, int, int]] = {}
+        observation_slices = _observation_slices(vec)
+        self._n_joints = max(part.stop for part in vec.joint_slices)
         for group, members in groups.items():
             rows = np.array([index[a] for a in members])
-            obs = np.concatenate([np.arange(vec.observation_slices[i].start, vec.observation_slices[i].stop)
-                                  for i in rows])
+            obs = np.concatenate([np.arange(observation_slices[i].start, observation_slices[i].stop) for i in rows])
             joints = np.concatenate([np.arange(vec.joint_slices[i].start, vec.joint_slices[i].stop) for i in rows])
             self._agent_rows[group] = rows
             self._obs_columns[group] = _as_slice(obs)
@@ -169,6 +210,16 @@ class BatchedTorchRLEnv(EnvBase):
         self._pending_seed: int | None = None
         if seed is not None:
             self.set_seed(seed)
+
+    @classmethod
+    def from_batched(cls, env: Any, group_map_type: MarlGroupMapType | dict | None = None, return_state: bool = True,
+                     seed: int | None = None, device: Any = "cpu") -> "BatchedTorchRLEnv":
+        """The TorchRL env around ``env``, a batched env built already with the array API
+        (:data:`BATCHED_ENV_API`; e.g. the learning wing's ``BatchedTrainingEnv``). Keys, done and reset
+        handling as for a scenario; each agent's observation is its part of the env's observations, sized by
+        ``env.observation_space(agent)``. It owns ``env`` (``close()`` closes it)."""
+        return cls(batched_env=env, group_map_type=group_map_type, return_state=return_state, seed=seed,
+                   device=device)
 
     # ------------------------------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
@@ -234,7 +285,7 @@ class BatchedTorchRLEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         vec = self.vector_env
         K = vec.num_envs
-        actions = np.empty((K, vec.n_joints), dtype=np.float32)
+        actions = np.empty((K, self._n_joints), dtype=np.float32)
         for group in self.group_map:
             action = tensordict.get((group, "action"))
             actions[:, self._joint_columns[group]] = action.detach().reshape(K, -1).cpu().numpy()
@@ -281,6 +332,17 @@ class BatchedTorchRLEnv(EnvBase):
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(scenario={self.vector_env.scenario.name!r}, num_envs={self.vector_env.num_envs}, "
                 f"groups={ {g: len(a) for g, a in self.group_map.items()} }, device={self.device})")
+
+
+def _observation_slices(env: Any) -> list[slice]:
+    """Agent i's columns of the batched env's observations (K, O): the agents' observations concatenated in
+    agent order, each as long as its ``observation_space`` (for the vector env: its ``observation_slices``)."""
+    slices, start = [], 0
+    for agent in env.possible_agents:
+        size = int(np.prod(env.observation_space(agent).shape))
+        slices.append(slice(start, start + size))
+        start += size
+    return slices
 
 
 def _as_slice(columns: np.ndarray) -> slice | np.ndarray:

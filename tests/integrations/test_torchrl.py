@@ -271,3 +271,38 @@ def test_the_docs_benchmarl_snippet_runs_as_written(tmp_path, monkeypatch):
     exec(compile(blocks[0], "docs/training.md (BenchMARL snippet)", "exec"), namespace)
     assert namespace["config"].loggers == ["csv"]
     assert list(tmp_path.rglob("*.csv")) or list(tmp_path.iterdir())
+
+
+def test_from_batched_wraps_a_built_batched_env_as_a_scenario_name_does():
+    """BatchedTorchRLEnv.from_batched(vector_env(S, K)) and make_torchrl_env(batched_env=...) step exactly as
+    make_torchrl_env(S, num_envs=K), through an episode end; overrides beside a built env, a wrong num_envs and
+    an env without the array API are refused, naming what is wrong."""
+    import ee_formation_env
+    from ee_formation_env.integrations.torchrl import BatchedTorchRLEnv
+
+    K, seed, steps = 2, 4, 7
+    named = make_torchrl_env("planar_square", num_envs=K, seed=seed, episode_seconds=0.05)
+    wrapped = [BatchedTorchRLEnv.from_batched(ee_formation_env.vector_env("planar_square", num_envs=K,
+                                                                          episode_seconds=0.05), seed=seed),
+               make_torchrl_env(batched_env=ee_formation_env.vector_env("planar_square", num_envs=K,
+                                                                        episode_seconds=0.05), seed=seed)]
+    try:
+        actions = _action_steps(named, steps, 3)
+        tds = [env.reset() for env in (named, *wrapped)]
+        for t in range(steps):
+            outs = []
+            for i, env in enumerate((named, *wrapped)):
+                tds[i]["planar_2link", "action"] = actions["planar_2link"][t]
+                out, tds[i] = env.step_and_maybe_reset(tds[i])
+                outs.append(out)
+            for out in outs[1:]:
+                assert (out == outs[0]).all()
+        with pytest.raises(ValueError, match="overrides"):
+            make_torchrl_env(batched_env=wrapped[0].vector_env, episode_seconds=1.0)
+        with pytest.raises(ValueError, match="num_envs"):
+            make_torchrl_env(batched_env=wrapped[0].vector_env, num_envs=K + 1)
+        with pytest.raises(TypeError, match="step_arrays"):
+            BatchedTorchRLEnv.from_batched(ee_formation_env.parallel_env("planar_square"))
+    finally:
+        for env in (named, *wrapped):
+            env.close()

@@ -1,0 +1,565 @@
+"""BenchMARL tasks on the training env, evaluation with the project's metrics, and actor export (the ``torchrl`` extra).
+
+    from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, evaluate_benchmarl_policy,
+                                                                   export_benchmarl_policy, load_benchmarl_policy)
+
+    task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({"mode": "residual"})  # options + scenario overrides
+    experiment = Experiment(task=task, algorithm_config=MappoConfig.get_from_yaml(), ...)
+    experiment.run()
+    summary = evaluate_benchmarl_policy(experiment, episodes=10)   # what `ee-formation evaluate` reports
+    export_benchmarl_policy(experiment, "mappo_actor")             # plain tensors + JSON, no pickle
+    actors = load_benchmarl_policy("mappo_actor")                  # numpy actors; BenchMARL not needed
+
+**The env.** A task's ``get_env_fun`` builds the learning wing's
+:class:`~ee_formation_env.baselines.learned.training_env.BatchedTrainingEnv` (K copies: torque or residual
+actions, observation features, hold penalty, physically scaled actions) and hands it to
+:meth:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv.from_batched`: the env package never imports
+the learning wing. The training env shares one policy among identical agents, so a task needs a team of one
+robot kind (one BenchMARL group).
+
+**Config.** A task's config is one dict: the fields of :class:`TrainingTaskOptions` (missing ones take their
+defaults), optionally ``scenario`` (a scenario file or dict instead of the member's built-in scenario), and
+scenario overrides: every other key, checked by the scenario loader (an unknown key is its error, naming it).
+The overrides apply to training and evaluation alike; training then sets ``episode_seconds`` to
+``train_episode_seconds`` and, where the options give one, ``initial_q_noise`` to ``train_initial_q_noise``.
+Everything is checked when the task is made (``get_task``), before any env is built.
+
+**Evaluation: what was chosen.** BenchMARL builds its test env by the same ``get_env_fun`` call as the
+training env (only ``num_envs`` differs, and both are 10 by default), so a task cannot tell the two apart:
+both are training envs. BenchMARL's own evaluation (``evaluation_interval``) thus reports episodes under
+training conditions (training episode length and start noise, shaped rewards): a learning curve.
+:func:`evaluate_benchmarl_policy` is the project's evaluation: the scenario's own episodes (its
+``episode_seconds`` and ``initial_q_noise``, with the task's overrides), the env's reward, the metrics of
+:mod:`ee_formation_env.baselines.metrics` on held-out seeds >= 10,000 (training resets use seeds below), the
+policy deterministic (the Gaussian's mean, through the tanh of BenchMARL's ``TanhNormal``).
+
+**No task YAML.** BenchMARL's ``Task.get_from_yaml()`` reads ``benchmarl/conf/task/<env>/<task>.yaml``
+inside BenchMARL's own package and type-checks it with a dataclass it looks up there too; neither fits a task
+defined outside BenchMARL. The defaults are :class:`TrainingTaskOptions`'s, and ``get_from_yaml(path)``
+reads a config dict from a YAML file of yours.
+
+**Export.** :func:`export_benchmarl_policy` writes a folder (atomically,
+:func:`~ee_formation_env.baselines.learned.checkpoint.atomic_directory`): ``actor.pt``, every group's layer
+weights and biases as plain tensors (``torch.load(weights_only=True)``), and ``actor.json``: per group its
+agents, layer sizes, activation, whether its agents share parameters, the action distribution and bounds and
+the observation normalization (none: the task adds no normalizing transform), plus the task's options,
+scenario and overrides. :func:`load_benchmarl_policy` reads it back into :class:`BenchmarlActors` (numpy),
+which :func:`evaluate_benchmarl_policy` also accepts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, Optional
+
+import numpy as np
+import torch
+import yaml
+from benchmarl.environments.common import Task, TaskClass
+from benchmarl.models.mlp import Mlp
+from torchrl.envs import EnvBase
+from torchrl.modules.distributions import IndependentNormal, TanhNormal
+
+from ee_formation_env.baselines import MODEL_BASED_POLICIES
+from ee_formation_env.baselines.learned.action_scale import DEFAULT_ACTION_ACCELERATION, check_action_acceleration
+from ee_formation_env.baselines.learned.checkpoint import atomic_directory, load_tensors, read_json, write_json
+from ee_formation_env.baselines.learned.config import MODES, PRESETS
+from ee_formation_env.baselines.learned.features import FEATURE_SETS
+from ee_formation_env.baselines.learned.policy import LearnedPolicy, ObservationNormalizer, composed_policy_factory
+from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
+from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, BatchedTrainingEnv
+from ee_formation_env.baselines.metrics import DEFAULT_POSITION_TOLERANCE, run_episodes, summarize
+from ee_formation_env.builtin import BUILTIN_SCENARIOS
+from ee_formation_env.integrations.benchmarl import EEFormationTaskClass
+from ee_formation_env.integrations.torchrl import BatchedTorchRLEnv
+from ee_formation_env.scenario import load_scenario
+
+EXPORT_FORMAT = 1
+ACTOR_TENSORS, ACTOR_DESCRIPTION = "actor.pt", "actor.json"
+
+
+# ------------------------------------------------------------------------------------------ options
+def _option(default: Any, unit: str, meaning: str) -> Any:
+    """A field of :class:`TrainingTaskOptions`: its unit ("" if none) and meaning travel in its metadata
+    (:meth:`TrainingTaskOptions.options_table`)."""
+    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning})
+
+
+@dataclass(frozen=True)
+class TrainingTaskOptions:
+    """The training options of a BenchMARL task: what :class:`BatchedTrainingEnv` is built with. Fields left
+    ``None`` take the mode's preset of ``train.py`` (:data:`~ee_formation_env.baselines.learned.config.PRESETS`,
+    :meth:`resolved`); the other defaults are ``TrainConfig``'s, except ``mode``. Checked on construction: a bad
+    value raises ``ValueError`` (``TypeError`` for a wrong type) naming the field. Units and meanings:
+    :meth:`options_table`.
+    """
+
+    mode: str = _option("torque", "", "torque: the policy outputs the normalized joint torques; residual: it outputs "
+                        "a correction added to the reference controller's torques")
+    reference: str = _option("adaptive_jacobian", "", "residual mode: the reference controller (a model-based one: "
+                             + ", ".join(MODEL_BASED_POLICIES) + ")")
+    residual_scale: float = _option(0.3, "", "residual mode: the correction's share of one unit of learned action, "
+                                    "in (0, 1]")
+    residual_gate: bool = _option(True, "", "residual mode: scale the correction by min(1, the agent's error in "
+                                  "success tolerances), so that it fades out at the goal")
+    correction_penalty: float = _option(0.5, "", "residual mode: each agent's reward is multiplied by 1 - this * "
+                                        "mean(correction^2), in [0, 1]")
+    obs_features: Optional[str] = _option(None, "", "features appended to each agent's observation, from it alone "
+                                          "(features.py): " + " or ".join(FEATURE_SETS))
+    hold_penalty: Optional[float] = _option(None, "reward per step", "training only: subtract this times "
+                                            f"min(1, joint speed / {SPEED_SCALE} rad/s) from an in-formation agent's "
+                                            "reward (shaping.py), in [0, 1]")
+    action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
+                                         "correction) is the torque giving a joint this acceleration at the "
+                                         "initial configuration, at most its torque limit (action_scale.py)")
+    train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
+                                                     "scenario's episode_seconds)")
+    train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
+                                                     "joint positions while training (None in a preset: the "
+                                                     "scenario's; evaluation: the scenario's)")
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode: expected one of {list(MODES)}, got {self.mode!r}")
+        if self.reference not in MODEL_BASED_POLICIES:
+            raise ValueError(f"reference: expected a model-based controller {list(MODEL_BASED_POLICIES)}, "
+                             f"got {self.reference!r}")
+        if not isinstance(self.residual_gate, bool):
+            raise TypeError(f"residual_gate: expected True or False, got {self.residual_gate!r}")
+        if self.obs_features is not None and self.obs_features not in FEATURE_SETS:
+            raise ValueError(f"obs_features: expected one of {list(FEATURE_SETS)} or None, got {self.obs_features!r}")
+        self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
+        self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
+        self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
+        object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
+        self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
+        self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
+
+    def _number(self, name: str, valid: Callable[[float], bool], expected: str, optional: bool = False) -> None:
+        """Check field ``name`` is a finite real number (or None if ``optional``) for which ``valid`` holds, and
+        store it as a float."""
+        value = getattr(self, name)
+        if value is None and optional:
+            return
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise TypeError(f"{name}: expected a number ({expected}), got {type(value).__name__} {value!r}")
+        if not (math.isfinite(value) and valid(value)):
+            raise ValueError(f"{name}: expected {expected}, got {value!r}")
+        object.__setattr__(self, name, float(value))
+
+    @classmethod
+    def options_table(cls) -> str:
+        """Every option with its default, unit and meaning, as a Markdown table (docs/training.md shows it)."""
+        lines = ["| option | default | unit | meaning |", "|---|---|---|---|"]
+        for spec in dataclasses.fields(cls):
+            default = f"`{spec.default!r}`" if isinstance(spec.default, str) else f"`{spec.default}`"
+            if spec.default is None:
+                default = "mode preset (" + ", ".join(
+                    f"{mode}: `{getattr(PRESETS[mode], spec.name)}`" for mode in ("torque", "residual")) + ")"
+            lines.append(f"| `{spec.name}` | {default} | {spec.metadata['unit'] or '-'} | {spec.metadata['meaning']} |")
+        return "\n".join(lines)
+
+    @classmethod
+    def fields(cls) -> tuple[str, ...]:
+        """The option names, in order (the keys of a task config that are not scenario overrides)."""
+        return tuple(spec.name for spec in dataclasses.fields(cls))
+
+    def resolved(self) -> "TrainingTaskOptions":
+        """A copy with every ``None`` field filled from the mode's preset, as ``TrainConfig.resolved`` fills them
+        (``train_initial_q_noise`` stays None, the scenario's, where the preset says so: residual mode)."""
+        preset = PRESETS[self.mode]
+        filled = {name: getattr(preset, name) for name in ("obs_features", "hold_penalty", "train_episode_seconds",
+                                                           "train_initial_q_noise") if getattr(self, name) is None}
+        return dataclasses.replace(self, **filled)
+
+    def training_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of the training env (options resolved): episode length and, if set, start noise."""
+        options = self.resolved()
+        overrides: dict[str, Any] = {"episode_seconds": options.train_episode_seconds}
+        if options.train_initial_q_noise is not None:
+            overrides["initial_q_noise"] = options.train_initial_q_noise
+        return overrides
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as plain values (JSON-ready): ``TrainingTaskOptions(**options.to_dict())`` is a copy."""
+        return dataclasses.asdict(self)
+
+    def training_env(self, scenario: Any, overrides: Mapping[str, Any], num_envs: int) -> BatchedTrainingEnv:
+        """The training env of these options (resolved): ``num_envs`` copies of ``scenario`` with ``overrides``
+        and then :meth:`training_overrides`."""
+        options = self.resolved()
+        return BatchedTrainingEnv(scenario, {**overrides, **self.training_overrides()}, options.mode,
+                                  options.reference, options.residual_scale, options.correction_penalty,
+                                  options.residual_gate, options.hold_penalty, options.obs_features,
+                                  options.action_acceleration, num_envs=num_envs)
+
+    def policy_factory(self, learned: Mapping[str, Any], env: Any) -> Callable[[Any], dict[str, Any]]:
+        """``copy_env -> per-agent policies`` that act as the training env of these options with the learned
+        per-agent parts ``learned`` (:func:`~ee_formation_env.baselines.learned.policy.composed_policy_factory`)."""
+        options = self.resolved()
+        return composed_policy_factory(learned, env, options.mode, options.reference, options.residual_scale,
+                                       options.residual_gate, options.obs_features, options.action_acceleration)
+
+
+def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[TrainingTaskOptions, Any, dict[str, Any]]:
+    """A task config as (options, scenario, scenario overrides): the option fields, ``scenario`` (default
+    ``default_scenario``) and every other key as an override. Raises naming the first bad option."""
+    if not isinstance(config, Mapping):
+        raise TypeError(f"config: expected a dict of options and scenario overrides, got {type(config).__name__}")
+    names = set(TrainingTaskOptions.fields())
+    options = TrainingTaskOptions(**{key: value for key, value in config.items() if key in names})
+    overrides = {key: value for key, value in config.items() if key not in names and key != "scenario"}
+    return options, config.get("scenario", default_scenario), overrides
+
+
+# ------------------------------------------------------------------------------------------ the BenchMARL task
+class TrainingTaskClass(EEFormationTaskClass):
+    """How BenchMARL builds and reads one formation task on the training env (module docstring). The specs and
+    groups are those of :class:`~ee_formation_env.integrations.benchmarl.EEFormationTaskClass`."""
+
+    def __init__(self, name: str, config: Dict[str, Any]):
+        super().__init__(name, config)
+        self.check()
+
+    def parts(self) -> tuple[TrainingTaskOptions, Any, dict[str, Any]]:
+        """(options, scenario, scenario overrides) of the config (:func:`split_config`)."""
+        return split_config(self.config, self.name.lower())
+
+    def check(self) -> None:
+        """Raise naming the field for a bad option or scenario override (the scenario loads, no physics)."""
+        options, scenario, overrides = self.parts()
+        load_scenario(scenario, **overrides)
+        load_scenario(scenario, **{**overrides, **options.training_overrides()})
+
+    def _scenario_and_overrides(self) -> tuple[Any, dict[str, Any]]:
+        """The scenario and its overrides as evaluation uses them (without the training options)."""
+        _, scenario, overrides = self.parts()
+        return scenario, overrides
+
+    def get_env_fun(self, num_envs: int, continuous_actions: bool, seed: Optional[int],
+                    device: Any) -> Callable[[], EnvBase]:
+        if not continuous_actions:
+            raise ValueError("continuous_actions: the formation env has continuous (torque) actions only")
+        self.check()  # the config may have been edited since the task was made
+        options, scenario, overrides = self.parts()
+        # BenchMARL calls this for its test env too, with the same arguments: both are training envs (module
+        # docstring); copy k of either resets with seed + k first.
+        return lambda: BatchedTorchRLEnv.from_batched(options.training_env(scenario, overrides, num_envs), seed=seed,
+                                                      device=device)
+
+    def max_steps(self, env: EnvBase) -> int:
+        """The training episode's steps (BenchMARL's test env is a training env)."""
+        options, scenario, overrides = self.parts()
+        return load_scenario(scenario, **{**overrides, **options.training_overrides()}).max_steps
+
+    @staticmethod
+    def env_name() -> str:
+        return "ee_formation_training"
+
+
+class _TrainingTaskBase(Task):
+    """The members' behaviour; the members themselves are made from the built-in registry below."""
+
+    @staticmethod
+    def associated_class():
+        return TrainingTaskClass
+
+    def get_task(self, config: Optional[Dict[str, Any]] = None) -> TaskClass:
+        """This task with ``config`` (options and scenario overrides; none: every option's default on the
+        built-in scenario). Raises naming the field of a bad value."""
+        return self.associated_class()(name=self.name, config=dict(config or {}))
+
+    def get_from_yaml(self, path: Optional[str] = None) -> TaskClass:
+        """This task with the config dict of the YAML file ``path`` (none: the defaults, as :meth:`get_task`);
+        no YAML ships (module docstring)."""
+        if path is None:
+            return self.get_task()
+        config = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+        if not isinstance(config, dict):
+            raise ValueError(f"{path}: expected a mapping of task options and scenario overrides")
+        return self.get_task(config)
+
+
+# One member per built-in scenario, ``planar_square`` -> ``EEFormationTrainingTask.PLANAR_SQUARE`` (BenchMARL's
+# convention: members are None-valued, numbered by Task.__new__; the task class reads the lower-cased name).
+EEFormationTrainingTask = _TrainingTaskBase(
+    "EEFormationTrainingTask", [(name.upper(), None) for name in BUILTIN_SCENARIOS], module=__name__,
+    qualname="EEFormationTrainingTask")
+EEFormationTrainingTask.__doc__ = ("The built-in scenarios as BenchMARL tasks on the training env "
+                                   "(``ee_formation_env.builtin.BUILTIN_SCENARIOS``).")
+
+
+# ------------------------------------------------------------------------------------------ the actors
+#: Activations the numpy actor computes, by name (BenchMARL's MLP default is Tanh), and their torch layers.
+ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {"Tanh": np.tanh, "ReLU": lambda x: np.maximum(x, 0.0)}
+TORCH_ACTIVATIONS = {torch.nn.Tanh: "Tanh", torch.nn.ReLU: "ReLU"}
+#: The action distributions the export reads: TorchRL's TanhNormal and IndependentNormal.
+DISTRIBUTIONS = {TanhNormal: "tanh_normal", IndependentNormal: "normal"}
+
+
+@dataclass
+class GroupActor:
+    """One group's deterministic actor in numpy (float64): an MLP from the observation (obs_dim,) to the
+    Gaussian's parameters (2 n,), of which the first n are its mean ``loc``; the action is
+    ``(high + low) / 2 + (high - low) / 2 * tanh(loc)`` (``"tanh_normal"``, TorchRL's ``TanhNormal``) or ``loc``
+    (``"normal"``).
+
+    ``weights[l]`` (A, in, out) and ``biases[l]`` (A, out) of the l-th linear layer, with ``activation`` between
+    layers; A = 1 when the group's agents share parameters, else one row per agent of ``agents``."""
+
+    agents: List[str]
+    weights: List[np.ndarray]
+    biases: List[np.ndarray]
+    activation: str
+    distribution: str
+    low: np.ndarray  # (n,) the action bounds of the distribution
+    high: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation: expected one of {list(ACTIVATIONS)}, got {self.activation!r}")
+        if self.distribution not in DISTRIBUTIONS.values():
+            raise ValueError(f"distribution: expected one of {list(DISTRIBUTIONS.values())}, got {self.distribution!r}")
+        rows = {len(w) for w in self.weights} | {len(b) for b in self.biases}
+        if rows not in ({1}, {len(self.agents)}):
+            raise ValueError(f"weights: expected 1 (shared) or {len(self.agents)} rows per layer, got {sorted(rows)}")
+
+    @property
+    def shared(self) -> bool:
+        return len(self.weights[0]) == 1
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        """Input, hidden and output widths: (obs_dim, ..., 2 n)."""
+        return [int(self.weights[0].shape[1]), *(int(w.shape[2]) for w in self.weights)]
+
+    def _action(self, outputs: np.ndarray) -> np.ndarray:
+        loc = outputs[..., :outputs.shape[-1] // 2]
+        if self.distribution == "normal":
+            return loc
+        return (self.high + self.low) / 2 + (self.high - self.low) / 2 * np.tanh(loc)
+
+    def act(self, observations: np.ndarray) -> np.ndarray:
+        """The deterministic actions (..., n_agents, n) of the group's agents for observations (..., n_agents,
+        obs_dim), agents in the order of ``agents``."""
+        hidden = np.asarray(observations, dtype=np.float64)[..., None, :]  # (..., A, 1, in) against (A, in, out)
+        activation = ACTIVATIONS[self.activation]
+        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            hidden = hidden @ weight + bias[:, None, :]
+            if layer < len(self.weights) - 1:
+                hidden = activation(hidden)
+        return self._action(hidden[..., 0, :])
+
+    def predict(self, agent: str) -> Callable[[np.ndarray], np.ndarray]:
+        """``observation (obs_dim,) or stack (k, obs_dim) -> action`` of one agent. A stack gives each row's
+        action bit for bit (``predict.stacks``, :class:`~ee_formation_env.baselines.learned.policy.LearnedPolicy`)."""
+        row = 0 if self.shared else self.agents.index(agent)
+        steps = [(weight[row], bias[row]) for weight, bias in zip(self.weights, self.biases)]
+        activation = ACTIVATIONS[self.activation]
+
+        def predict(observation: np.ndarray) -> np.ndarray:
+            hidden = np.asarray(observation, dtype=np.float64)
+            stack = hidden.ndim == 2
+            if stack:  # (k, 1, d) @ (d, h): row by row the products of one observation, exactly
+                hidden = hidden[:, None, :]
+            for layer, (weight, bias) in enumerate(steps):
+                hidden = hidden @ weight + bias
+                if layer < len(steps) - 1:
+                    hidden = activation(hidden)
+            return self._action(hidden[:, 0, :] if stack else hidden)
+
+        predict.stacks = True
+        return predict
+
+
+@dataclass
+class BenchmarlActors:
+    """A trained BenchMARL experiment's deterministic actors (numpy, per group) and the task they trained on:
+    its ``options`` (:class:`TrainingTaskOptions`, resolved), ``scenario`` and scenario ``overrides``."""
+
+    groups: Dict[str, GroupActor]
+    options: TrainingTaskOptions
+    scenario: Any
+    overrides: Dict[str, Any]
+    task: str = ""  # the task member's name, e.g. "PLANAR_SQUARE"
+
+    def learned_policies(self) -> dict[str, LearnedPolicy]:
+        """Agent -> its learned part on the observation the learner saw (featured), output clipped to
+        [-1, 1]; the agents of a group that share parameters share one policy object (one stacked call)."""
+        policies = {}
+        for actor in self.groups.values():
+            normalizer = ObservationNormalizer.identity(actor.layer_sizes[0])  # BenchMARL adds no normalization
+            shared = LearnedPolicy(actor.predict(actor.agents[0]), normalizer) if actor.shared else None
+            for agent in actor.agents:
+                policies[agent] = shared or LearnedPolicy(actor.predict(agent), normalizer)
+        return policies
+
+    def policy_factory(self) -> Callable[[Any], dict[str, Any]]:
+        """``copy_env -> per-agent policies`` acting as the task's training env did, for
+        :func:`~ee_formation_env.baselines.metrics.run_episodes` (fresh reference controllers per call)."""
+        learned = self.learned_policies()
+        return lambda copy_env: self.options.policy_factory(learned, copy_env)(copy_env)
+
+    def description(self) -> dict[str, Any]:
+        """``actor.json``: what rebuilds the actors around ``actor.pt``'s tensors (module docstring)."""
+        return {"format": EXPORT_FORMAT, "task": self.task, "scenario": _plain_scenario(self.scenario),
+                "overrides": self.overrides, "options": self.options.to_dict(),
+                "groups": {group: {"agents": actor.agents, "layer_sizes": actor.layer_sizes,
+                                   "activation": actor.activation, "shared_parameters": actor.shared,
+                                   "distribution": actor.distribution, "action_low": actor.low.tolist(),
+                                   "action_high": actor.high.tolist(), "observation_normalization": None}
+                           for group, actor in self.groups.items()}}
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write ``actor.pt`` and ``actor.json`` into the folder ``path``, atomically; returns it."""
+        description = self.description()  # checks the scenario is JSON-ready before anything is written
+        # float32, as BenchMARL trains them (exact: the numpy actors hold them widened to float64); torch's
+        # (A, out, in) layout.
+        tensors = {group: {"weight": [torch.from_numpy(w.transpose(0, 2, 1).astype(np.float32)) for w in actor.weights],
+                           "bias": [torch.from_numpy(b.astype(np.float32)) for b in actor.biases]}
+                   for group, actor in self.groups.items()}
+        with atomic_directory(Path(path)) as partial:
+            torch.save(tensors, partial / ACTOR_TENSORS)
+            write_json(partial / ACTOR_DESCRIPTION, description)
+        return Path(path)
+
+
+def _plain_scenario(scenario: Any) -> Any:
+    """The task's scenario as JSON holds it: a built-in name or file path (str) or a dict."""
+    if isinstance(scenario, os.PathLike):
+        return os.fspath(scenario)
+    if not isinstance(scenario, (str, dict)):
+        raise ValueError(f"scenario: an export records a built-in name, a file or a dict, got "
+                         f"{type(scenario).__name__}")
+    return scenario
+
+
+def actors_from_experiment(experiment: Any) -> BenchmarlActors:
+    """The deterministic actors of a BenchMARL ``experiment`` on a training task, read from its group policies:
+    per group, BenchMARL's ``ProbabilisticActor`` around its MLP (``Linear`` layers, a ``Tanh`` or ``ReLU``
+    activation, no normalization layers, decentralized) and ``NormalParamExtractor``, with a ``TanhNormal`` or
+    ``IndependentNormal`` distribution: what MAPPO, IPPO, MASAC and ISAC build (tested with MAPPO). Anything else
+    raises ``ValueError``."""
+    task = experiment.task
+    if not isinstance(task, TrainingTaskClass):
+        raise ValueError(f"experiment.task: expected a training task (an EEFormationTrainingTask member: the export "
+                         f"and the evaluation read its training options), got {type(task).__name__}")
+    options, scenario, overrides = task.parts()
+    groups = {}
+    for group, actor in experiment.group_policies.items():
+        where = f"experiment.group_policies[{group!r}]"
+        try:
+            network, head = actor.module[0], actor.module[1]
+            model = network.module[0]
+            mlp = model.mlp
+            distribution = head.distribution_class
+        except (AttributeError, IndexError, TypeError) as error:
+            raise ValueError(f"{where}: expected BenchMARL's ProbabilisticActor around an MLP ({error})") from None
+        if not isinstance(model, Mlp) or mlp.centralized or list(model.in_keys) != [(group, "observation")]:
+            raise ValueError(f"{where}: expected a decentralized BenchMARL Mlp on ({group!r}, 'observation')")
+        if distribution not in DISTRIBUTIONS:
+            raise ValueError(f"{where}: expected a TanhNormal or IndependentNormal actor, got {distribution.__name__}")
+        weights, biases, activations = [], [], set()
+        params = mlp.params
+        for index, layer in enumerate(mlp._empty_net):
+            if isinstance(layer, torch.nn.Linear):
+                weight = params[str(index), "weight"].detach().cpu().numpy().astype(np.float64)
+                bias = params[str(index), "bias"].detach().cpu().numpy().astype(np.float64)
+                if mlp.share_params:  # one set for the group: a leading axis of 1
+                    weight, bias = weight[None], bias[None]
+                weights.append(weight.transpose(0, 2, 1))  # (A, out, in) -> (A, in, out)
+                biases.append(bias)
+            elif type(layer) in TORCH_ACTIVATIONS:
+                activations.add(TORCH_ACTIVATIONS[type(layer)])
+            else:
+                raise ValueError(f"{where}: layer {index} is a {type(layer).__name__}; the export handles Linear "
+                                 f"layers and one of the activations {list(ACTIVATIONS)}")
+        if len(activations) > 1:
+            raise ValueError(f"{where}: expected one activation, got {sorted(activations)}")
+        n = weights[-1].shape[-1] // 2  # the MLP outputs loc and scale
+        low, high = -np.ones(n), np.ones(n)  # IndependentNormal: unbounded, the env clips
+        if distribution is TanhNormal:  # bounds per agent (n_agents, n); a group's agents have one action space
+            bounds = [head.distribution_kwargs[key].detach().cpu().numpy().astype(np.float64).reshape(-1, n)
+                      for key in ("low", "high")]
+            if not all(np.all(bound == bound[0]) for bound in bounds):
+                raise ValueError(f"{where}: expected one action range for the group's agents")
+            low, high = bounds[0][0], bounds[1][0]
+        groups[group] = GroupActor(list(experiment.group_map[group]), weights, biases,
+                                   activations.pop() if activations else "Tanh", DISTRIBUTIONS[distribution], low, high)
+    return BenchmarlActors(groups, options.resolved(), scenario, overrides, task=task.name)
+
+
+def export_benchmarl_policy(experiment: Any, path: str | os.PathLike) -> Path:
+    """Write the deterministic actors of ``experiment`` (:func:`actors_from_experiment`) into the folder ``path``
+    (``actor.pt`` + ``actor.json``, module docstring), atomically; returns the folder."""
+    return actors_from_experiment(experiment).save(path)
+
+
+def load_benchmarl_policy(path: str | os.PathLike) -> BenchmarlActors:
+    """The actors exported into the folder ``path``, read with ``torch.load(weights_only=True)`` and JSON only
+    (nothing in the files is run; BenchMARL is not needed). A malformed folder raises ``ValueError`` naming
+    the file."""
+    folder = Path(path)
+    description = read_json(folder / ACTOR_DESCRIPTION, ACTOR_DESCRIPTION)
+    tensors = load_tensors(folder / ACTOR_TENSORS, ACTOR_TENSORS)
+    if not isinstance(description, dict) or description.get("format") != EXPORT_FORMAT:
+        raise ValueError(f"{ACTOR_DESCRIPTION}: expected format {EXPORT_FORMAT}")
+    try:
+        options = TrainingTaskOptions(**description["options"])
+        groups = {}
+        for group, entry in description["groups"].items():
+            weights = [np.asarray(w.numpy(), dtype=np.float64).transpose(0, 2, 1) for w in tensors[group]["weight"]]
+            biases = [np.asarray(b.numpy(), dtype=np.float64) for b in tensors[group]["bias"]]
+            actor = GroupActor(list(entry["agents"]), weights, biases, entry["activation"], entry["distribution"],
+                               np.asarray(entry["action_low"], dtype=np.float64),
+                               np.asarray(entry["action_high"], dtype=np.float64))
+            if actor.layer_sizes != list(entry["layer_sizes"]) or actor.shared != entry["shared_parameters"]:
+                raise ValueError(f"group {group!r}: {ACTOR_TENSORS} does not fit {ACTOR_DESCRIPTION}")
+            groups[group] = actor
+        return BenchmarlActors(groups, options, description["scenario"], dict(description["overrides"]),
+                               task=str(description.get("task", "")))
+    except (KeyError, TypeError, AttributeError, IndexError) as error:
+        raise ValueError(f"{ACTOR_DESCRIPTION} / {ACTOR_TENSORS}: malformed ({error!r})") from None
+
+
+# ------------------------------------------------------------------------------------------ evaluation
+def evaluate_benchmarl_policy(source: Any, task: Optional[TrainingTaskClass] = None, episodes: int = 10,
+                              seed: int = EVAL_SEED_OFFSET, position_tolerance: float = DEFAULT_POSITION_TOLERANCE,
+                              num_envs: Optional[int] = None) -> dict[str, Any]:
+    """The project's evaluation of a BenchMARL policy: :func:`~ee_formation_env.baselines.metrics.summarize` of
+    ``episodes`` episodes reset with seeds ``seed, seed + 1, ...`` (held out: ``seed`` >= 10,000), plus
+    ``"per_episode"`` (each episode's :class:`~ee_formation_env.baselines.metrics.EpisodeMetrics` as a dict):
+    what ``ee-formation evaluate`` returns per policy (``format_table({name: summary})`` prints its table).
+
+    ``source``: a BenchMARL ``Experiment`` on a training task, :class:`BenchmarlActors` or an export folder.
+    ``task``: the task whose options, scenario and overrides to evaluate with (default: the one the actors
+    trained on). The episodes are the scenario's own (its ``episode_seconds`` and ``initial_q_noise``, with the
+    task's overrides; not the training ones), run on the batched env (``num_envs`` copies, default one per
+    episode, at most 16); the policy is the deterministic actor composed as the training env acts
+    (residual mode: the reference controller plus the scaled, gated correction).
+    """
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes: expected an integer >= 1, got {episodes!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < EVAL_SEED_OFFSET:
+        raise ValueError(f"seed: expected an integer >= {EVAL_SEED_OFFSET} (held-out seeds; training resets use "
+                         f"seeds below it), got {seed!r}")
+    if isinstance(source, BenchmarlActors):
+        actors = source
+    elif isinstance(source, (str, os.PathLike)):
+        actors = load_benchmarl_policy(source)
+    else:
+        actors = actors_from_experiment(source)
+    if task is not None:
+        options, scenario, overrides = task.parts()
+        actors = dataclasses.replace(actors, options=options, scenario=scenario, overrides=overrides, task=task.name)
+    seeds = [seed + k for k in range(episodes)]
+    results = run_episodes(actors.scenario, actors.policy_factory(), seeds, position_tolerance=position_tolerance,
+                           overrides=actors.overrides, num_envs=num_envs)
+    summary = summarize(results)
+    summary["per_episode"] = [result.as_dict() for result in results]
+    return summary
