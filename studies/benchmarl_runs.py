@@ -1,0 +1,142 @@
+"""BenchMARL runs on the training tasks: train for a wall-clock budget, evaluate with the project's metrics, export.
+
+    python -m studies.benchmarl_runs --algorithm mappo --mode torque --minutes 30 --seed 0
+    python -m studies.benchmarl_runs --algorithm ippo --mode residual --minutes 10 --scenario planar_square
+    python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
+
+Needs the ``torchrl`` extra. The task is
+:class:`~ee_formation_env.baselines.learned.benchmarl_task.EEFormationTrainingTask` with ``--mode`` and its
+presets (the options of ``docs/training.md``, "The training options in BenchMARL"); the experiment uses the
+recommended on-policy layout of that page (64 natively batched copies, 8,000 frames per batch, 4 epochs over
+minibatches of 2,000 frames; off-policy algorithms BenchMARL's defaults), csv logging, no BenchMARL
+evaluation (its test env is a training env). Training stops at the first batch collected after ``--minutes``
+of wall time, before that batch's update (:class:`WallClockStop`); then the deterministic policy runs the held-out seeds 10,000 + k through
+:func:`~ee_formation_env.baselines.learned.benchmarl_task.evaluate_benchmarl_policy`, and the folder ``--out``
+gets ``evaluation.json`` (the summary, every episode, budget and wall time), the learning curve
+``curve.csv`` (frames, mean training return per batch) and the exported actor (``policy/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+ALGORITHMS = ("mappo", "ippo", "masac")
+ON_POLICY = ("mappo", "ippo")
+
+
+try:  # the torchrl extra; without it the module imports, and run() fails on its own imports
+    from benchmarl.experiment.callback import Callback as _Callback
+except ImportError:  # pragma: no cover
+    _Callback = object
+
+
+class WallClockStop(Exception):
+    """Raised by :class:`WallClockCallback` to end ``Experiment.run`` at a batch boundary."""
+
+
+class WallClockCallback(_Callback):
+    """A BenchMARL callback that records (frames, mean reward per agent step of the batch, wall s) per batch in
+    ``curve`` and stops the run at the first batch collected after ``seconds`` of wall time. Module-level,
+    because BenchMARL pickles an experiment's callbacks."""
+
+    def __init__(self, seconds: float, curve: list[tuple[int, float, float]]):
+        super().__init__()
+        self.seconds, self.curve, self.started = seconds, curve, time.time()
+
+    def on_setup(self) -> None:
+        self.started = time.time()
+
+    def on_batch_collected(self, batch: Any) -> None:
+        experiment = self.experiment
+        rewards = [batch.get(("next", group, "reward")).float().mean().item() for group in experiment.group_map]
+        self.curve.append((int(experiment.total_frames), sum(rewards) / len(rewards), time.time() - self.started))
+        if time.time() - self.started >= self.seconds:
+            raise WallClockStop(f"wall-clock budget of {self.seconds:.0f} s reached")
+
+
+def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10
+        ) -> dict[str, Any]:
+    """Train, evaluate and export one run into ``out``; the evaluation record."""
+    import torch
+    from benchmarl.algorithms import IppoConfig, MappoConfig, MasacConfig
+    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.models.mlp import MlpConfig
+
+    from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, evaluate_benchmarl_policy,
+                                                                   export_benchmarl_policy)
+
+    torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
+    config = ExperimentConfig.get_from_yaml()
+    if algorithm in ON_POLICY:
+        config.on_policy_n_envs_per_worker = 64
+        config.on_policy_collected_frames_per_batch = 8_000
+        config.on_policy_n_minibatch_iters = 4
+        config.on_policy_minibatch_size = 2_000
+    config.max_n_frames, config.max_n_iters = 10**10, None  # the wall clock stops it
+    config.loggers, config.evaluation, config.render = ["csv"], False, False
+    config.checkpoint_at_end, config.create_json = False, False
+    out.mkdir(parents=True, exist_ok=True)
+    config.save_folder = str(out)
+    algorithm_config = {"mappo": MappoConfig, "ippo": IppoConfig, "masac": MasacConfig}[algorithm].get_from_yaml()
+    task = EEFormationTrainingTask[scenario.upper()].get_task({"mode": mode})
+    curve: list[tuple[int, float, float]] = []
+    experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=MlpConfig.get_from_yaml(),
+                            critic_model_config=MlpConfig.get_from_yaml(), seed=seed, config=config,
+                            callbacks=[WallClockCallback(minutes * 60.0, curve)])
+    started = time.time()
+    try:
+        experiment.run()
+    except WallClockStop as stop:  # BenchMARL closes the run and prints "Experiment failed ...": this stop
+        print(f"training stopped: {stop} (BenchMARL's 'Experiment failed' line above is this stop)", flush=True)
+    train_seconds = time.time() - started
+    n_agents = sum(len(agents) for agents in experiment.group_map.values())
+    evaluation = evaluate_benchmarl_policy(experiment, episodes=episodes, seed=10_000)
+    evaluation["per_episode"] = [{k: v for k, v in e.items() if k != "trajectory"} for e in evaluation["per_episode"]]
+    export_benchmarl_policy(experiment, out / "policy")
+    with (out / "curve.csv").open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["frames", "agent_steps", "mean_reward_per_step", "wall_seconds"])
+        writer.writerows((frames, frames * n_agents, reward, wall) for frames, reward, wall in curve)
+    record = {"algorithm": algorithm, "scenario": scenario, "mode": mode, "seed": seed, "minutes": minutes,
+              "train_seconds": train_seconds, "frames": int(experiment.total_frames),
+              "agent_steps": int(experiment.total_frames) * n_agents, "iterations": experiment.n_iters_performed,
+              "evaluation": evaluation}
+    (out / "evaluation.json").write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
+    return record
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m studies.benchmarl_runs", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS)
+    parser.add_argument("--scenario", default="planar_square", help="built-in scenario")
+    parser.add_argument("--mode", default="torque", choices=("torque", "residual"))
+    parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock training budget")
+    parser.add_argument("--seed", type=int, default=0, help="training seed")
+    parser.add_argument("--episodes", type=int, default=10, help="held-out evaluation episodes (seeds 10000+)")
+    parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>-seed<k>")
+    args = parser.parse_args(argv)
+    from ee_formation_env.builtin import BUILTIN_SCENARIOS
+
+    if args.scenario not in BUILTIN_SCENARIOS:
+        parser.error(f"--scenario: unknown {args.scenario!r}; available: {sorted(BUILTIN_SCENARIOS)}")
+    if not args.minutes > 0:
+        parser.error("--minutes: expected a duration > 0")
+    if args.episodes < 1:
+        parser.error("--episodes: expected an integer >= 1")
+    out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}-seed{args.seed}"
+    record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes)
+    from ee_formation_env.baselines.metrics import format_table
+
+    print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))
+    print(f"{record['agent_steps']:,} agent steps in {record['train_seconds']:.0f} s; wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
