@@ -58,7 +58,9 @@ def test_group_map_of_a_homogeneous_team_is_one_group():
         assert group_map(env) == {"planar_2link": ["arm_0", "arm_1", "arm_2", "arm_3"]}
 
 
-def test_benchmarl_mappo_trains_two_iterations(tmp_path):
+@pytest.mark.parametrize("team", ["planar_square", "mixed"])
+def test_benchmarl_mappo_trains_two_iterations(tmp_path, team):
+    """A homogeneous team (one group) and a mixed one (one group, so one shared policy, per robot kind)."""
     from benchmarl.algorithms import MappoConfig
     from benchmarl.experiment import Experiment, ExperimentConfig
     from benchmarl.models.mlp import MlpConfig
@@ -78,13 +80,16 @@ def test_benchmarl_mappo_trains_two_iterations(tmp_path):
     config.create_json = False
     config.save_folder = str(tmp_path)
     config.checkpoint_at_end = False
-    task = EEFormationTask.PLANAR_SQUARE.get_task({"episode_seconds": 0.1})
+    task = EEFormationTask.PLANAR_SQUARE.get_task(
+        {"episode_seconds": 0.1, **({"scenario": MIXED, "torque_limits": 5.0} if team == "mixed" else {})})
     experiment = Experiment(task=task, algorithm_config=MappoConfig.get_from_yaml(),
                             model_config=MlpConfig.get_from_yaml(), critic_model_config=MlpConfig.get_from_yaml(),
                             seed=0, config=config)
     experiment.run()
     assert experiment.n_iters_performed == 2
     assert experiment.total_frames == 80
+    groups = {"planar_square": ["planar_2link"], "mixed": ["lbr_iiwa", "panda"]}[team]
+    assert sorted(experiment.group_map) == groups and sorted(experiment.losses) == groups  # a policy per group
 
 
 def test_benchmarl_tasks_are_the_builtin_registry():
