@@ -60,9 +60,10 @@ class WallClockCallback(_Callback):
             raise WallClockStop(f"wall-clock budget of {self.seconds:.0f} s reached")
 
 
-def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10
-        ) -> dict[str, Any]:
-    """Train, evaluate and export one run into ``out``; the evaluation record."""
+def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10,
+        episode_seconds: float | None = None) -> dict[str, Any]:
+    """Train, evaluate and export one run into ``out``; the evaluation record. ``episode_seconds``: the
+    evaluation episodes' length (default: the scenario's; training uses the mode's training length)."""
     import torch
     from benchmarl.algorithms import IppoConfig, MappoConfig, MasacConfig
     from benchmarl.experiment import Experiment, ExperimentConfig
@@ -84,7 +85,8 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
     out.mkdir(parents=True, exist_ok=True)
     config.save_folder = str(out)
     algorithm_config = {"mappo": MappoConfig, "ippo": IppoConfig, "masac": MasacConfig}[algorithm].get_from_yaml()
-    task = EEFormationTrainingTask[scenario.upper()].get_task({"mode": mode})
+    task = EEFormationTrainingTask[scenario.upper()].get_task(
+        {"mode": mode, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
     curve: list[tuple[int, float, float]] = []
     experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=MlpConfig.get_from_yaml(),
                             critic_model_config=MlpConfig.get_from_yaml(), seed=seed, config=config,

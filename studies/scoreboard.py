@@ -50,15 +50,26 @@ class Method:
     reference: str | None = None  # the reference controller's name, for a reference method
     train_flags: tuple[str, ...] = ()  # train.py flags of a learned method (its preset sets the rest)
     needs_invariant_arms: bool = False  # its observation features need arms turning about their base z axis
+    benchmarl: tuple[str, str, float] | None = None  # (algorithm, mode, minutes): a studies.benchmarl_runs run
 
     @property
     def learned(self) -> bool:
         return self.reference is None
 
-    def applies_to(self, scenario: str) -> bool:
-        """Whether the method can run on ``scenario`` (a method whose features the arms cannot have, cannot)."""
-        if not self.needs_invariant_arms:
-            return True
+    def unavailable(self, scenario: str) -> str | None:
+        """Why the method cannot run on ``scenario`` here (None if it can): features the arms cannot have, or a
+        BenchMARL method without the ``torchrl`` extra installed."""
+        if self.benchmarl is not None:
+            import importlib.util
+
+            if importlib.util.find_spec("benchmarl") is None:
+                return "needs the torchrl extra (benchmarl)"
+        if self.needs_invariant_arms and not self._invariant_arms(scenario):
+            return "its features need arms whose first joint turns about their base z axis"
+        return None
+
+    @staticmethod
+    def _invariant_arms(scenario: str) -> bool:
         from ee_formation_env.baselines.learned.features import check_invariant_arms
         from ee_formation_env.task import build_task
 
@@ -77,7 +88,12 @@ METHODS: dict[str, Method] = {
     "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
         "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque")),
+    # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
+    "mappo-torque": Method("mappo-torque", benchmarl=("mappo", "torque", 30.0)),
+    "mappo-residual": Method("mappo-residual", benchmarl=("mappo", "residual", 10.0)),
+    "ippo-residual": Method("ippo-residual", benchmarl=("ippo", "residual", 10.0)),
 }
+QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
 DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
 BOOTSTRAP_REPS = 2000
@@ -215,6 +231,8 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     from ee_formation_env.baselines.learned.run import train
 
     run_dir = board.run_dir(scenario, method, seed)
+    if method.benchmarl is not None:
+        return _benchmarl_cell(board, scenario, method, seed, run_dir)
     if not (run_dir / "comparison.json").is_file():
         evaluation = ["--eval-episodes", str(board.episodes), "--eval-seconds", str(seconds), "--no-progress",
                       *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
@@ -243,7 +261,13 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
               "eval_seeds": board.eval_seeds(), "episode_seconds": seconds, "budget": trained["budget"]}
     if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
         return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
-    if method.learned:
+    if method.benchmarl is not None:
+        from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
+
+        actors = load_benchmarl_policy(board.run_dir(scenario, method, seed) / "policy")
+        metrics = run_episodes(test_scenario, actors.policy_factory(), board.eval_seeds(),
+                               overrides={"episode_seconds": seconds})
+    elif method.learned:
         from ee_formation_env.baselines.learned.policy import learned_policy_factory
         from ee_formation_env.baselines.metrics import evaluation_env
 
@@ -273,6 +297,22 @@ def _cached(path: Path, label: str, compute: Callable[[], dict[str, Any]], progr
     return json.loads(path.read_text(encoding="utf-8"))
 
 
+def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_dir: Path
+                    ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Train and evaluate a BenchMARL method (studies.benchmarl_runs; a stopped run starts again: BenchMARL runs
+    are not resumed) and return its held-out episodes and budget."""
+    from studies import benchmarl_runs
+
+    algorithm, mode, minutes = method.benchmarl
+    if not (run_dir / "evaluation.json").is_file():
+        benchmarl_runs.run(algorithm, scenario, mode, QUICK_MINUTES if board.extra_train_flags else minutes, seed,
+                           run_dir, board.episodes, episode_seconds=board.episode_seconds)
+    record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
+    budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
+              "minutes": float(record["minutes"]), "mode": mode, "algorithm": algorithm}
+    return record["evaluation"]["per_episode"], budget
+
+
 def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Run every cell of ``board`` that is not cached (written atomically when complete), the test-set cells
     after their training cell; every cell record."""
@@ -281,8 +321,9 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
         tests = held_out_scenarios(scenario) if board.test_sets else {}
         for name in board.methods:
             method = METHODS[name]
-            if not method.applies_to(scenario):
-                progress(f"skipped {scenario} / {name}: not applicable (its features need arms turning about base z)")
+            why = method.unavailable(scenario)
+            if why:
+                progress(f"skipped {scenario} / {name}: {why}")
                 continue
             for seed in (board.seeds if method.learned else (None,)):
                 label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")

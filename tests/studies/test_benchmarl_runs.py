@@ -39,3 +39,18 @@ def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message,
         benchmarl_runs.main([*argv, "--out", str(tmp_path / "run")])
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_the_scoreboard_runs_a_benchmarl_method_with_its_test_split(tmp_path, capsys):
+    from studies import scoreboard
+
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "mappo-residual",
+            "--seeds", "0", "--episodes", "1"]
+    assert scoreboard.main(argv) == 0
+    rows = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+    assert [row["split"] for row in rows] == ["train", "test", "test", "test", "test"]
+    assert all(row["method"] == "mappo-residual" and row["seeds"] == [0] and row["metrics"] for row in rows)
+    assert (tmp_path / "runs" / "planar_square" / "mappo-residual" / "seed-0" / "policy" / "actor.pt").is_file()
+    capsys.readouterr()
+    assert scoreboard.main(argv) == 0  # resumed: every cell from its file
+    assert "running" not in capsys.readouterr().out

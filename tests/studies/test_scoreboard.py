@@ -144,3 +144,15 @@ def test_a_test_scenario_named_as_a_builtin_is_its_own_row():
     table = scoreboard.format_board(rows)
     assert "### planar_square_rotated\n" in table
     assert "### planar_square_rotated (test: policies trained on planar_square" in table
+
+
+def test_benchmarl_methods_are_skipped_without_the_torchrl_extra(tmp_path, capsys):
+    import importlib.util
+
+    if importlib.util.find_spec("benchmarl") is not None:
+        pytest.skip("benchmarl is installed (tests/studies/test_benchmarl_runs.py runs the method)")
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "mappo-residual",
+            "--episodes", "1"]
+    assert scoreboard.main(argv) == 0
+    assert "skipped planar_square / mappo-residual: needs the torchrl extra (benchmarl)" in capsys.readouterr().out
+    assert json.loads((tmp_path / "scoreboard.json").read_text())["rows"] == []
