@@ -80,11 +80,14 @@ class Method:
         return True
 
 
-#: The board's methods: the paper's three laws, PPO in residual and torque mode at train.py's presets, and
-#: residual PPO on the base-yaw-invariant features (the generalization design; arms turning about base z only).
+#: The board's methods: the paper's three laws, PPO in residual and torque mode at train.py's presets, residual
+#: PPO with the log-error features and on the base-yaw-invariant ones (the generalization design; arms turning
+#: about base z only), and BenchMARL's MAPPO and IPPO on the training task.
 METHODS: dict[str, Method] = {
     **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
     "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
+    "residual-ppo-log-error": Method("residual-ppo-log-error", train_flags=(
+        "--mode", "residual", "--obs-features", "log-error")),
     "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
         "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque")),
