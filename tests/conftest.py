@@ -116,3 +116,20 @@ def mixed_team() -> dict[str, Any]:
         "edges": [[0, 1]], "shape": [[0, 0, 0], [0.2, 0, 0]], "formation": "displacement", "dim": 3,
         "arm_collisions": False,  # the planar arm's first link starts through the kuka's base
     }
+
+
+def tiny_benchmarl_config(save_folder: Any) -> Any:
+    """BenchMARL's ExperimentConfig for a smoke test: 2 iterations of 40 frames on 2 copies, one epoch, no
+    evaluation, loggers, JSON or checkpoint (needs the torchrl extra)."""
+    from benchmarl.experiment import ExperimentConfig
+
+    config = ExperimentConfig.get_from_yaml()
+    config.max_n_iters, config.max_n_frames = 2, None
+    config.on_policy_collected_frames_per_batch = 40
+    config.on_policy_n_envs_per_worker = 2
+    config.on_policy_n_minibatch_iters = 1
+    config.on_policy_minibatch_size = 20
+    config.evaluation, config.render, config.loggers, config.create_json = False, False, [], False
+    config.checkpoint_at_end = False
+    config.save_folder = str(save_folder)
+    return config

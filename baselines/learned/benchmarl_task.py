@@ -60,7 +60,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional
 import numpy as np
 import torch
 import yaml
-from benchmarl.environments.common import Task, TaskClass
+from benchmarl.environments.common import TaskClass
 from benchmarl.models.mlp import Mlp
 from torchrl.envs import EnvBase
 from torchrl.modules.distributions import IndependentNormal, TanhNormal
@@ -75,7 +75,7 @@ from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, BatchedTrainingEnv
 from ee_formation_env.baselines.metrics import DEFAULT_POSITION_TOLERANCE, run_episodes, summarize
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
-from ee_formation_env.integrations.benchmarl import EEFormationTaskClass
+from ee_formation_env.integrations.benchmarl import EEFormationTaskClass, EEFormationTaskBase
 from ee_formation_env.integrations.torchrl import BatchedTorchRLEnv
 from ee_formation_env.scenario import load_scenario
 
@@ -262,17 +262,14 @@ class TrainingTaskClass(EEFormationTaskClass):
         return "ee_formation_training"
 
 
-class _TrainingTaskBase(Task):
-    """The members' behaviour; the members themselves are made from the built-in registry below."""
+class _TrainingTaskBase(EEFormationTaskBase):
+    """The members' behaviour (the plain task's, on :class:`TrainingTaskClass`: ``get_task(config)`` takes
+    options and scenario overrides and raises naming the field of a bad value); the members themselves are
+    made from the built-in registry below."""
 
     @staticmethod
     def associated_class():
         return TrainingTaskClass
-
-    def get_task(self, config: Optional[Dict[str, Any]] = None) -> TaskClass:
-        """This task with ``config`` (options and scenario overrides; none: every option's default on the
-        built-in scenario). Raises naming the field of a bad value."""
-        return self.associated_class()(name=self.name, config=dict(config or {}))
 
     def get_from_yaml(self, path: Optional[str] = None) -> TaskClass:
         """This task with the config dict of the YAML file ``path`` (none: the defaults, as :meth:`get_task`);

@@ -100,8 +100,10 @@ class EEFormationTaskClass(TaskClass):
         return "ee_formation"
 
 
-class _EEFormationTaskBase(Task):
-    """The members' behaviour; the members themselves are made from the built-in registry below."""
+class EEFormationTaskBase(Task):
+    """The members' behaviour (a task enum of formation scenarios: ``get_task(config)`` builds
+    :meth:`associated_class` with the member's name); the members themselves are made from the built-in
+    registry below. A task enum on another task class derives from it and overrides :meth:`associated_class`."""
 
     @staticmethod
     def associated_class():
@@ -114,7 +116,7 @@ class _EEFormationTaskBase(Task):
 
 # One member per built-in scenario, ``planar_square`` -> ``EEFormationTask.PLANAR_SQUARE`` (BenchMARL's
 # convention: members are None-valued, numbered by Task.__new__; the task class reads the lower-cased name).
-EEFormationTask = _EEFormationTaskBase(
+EEFormationTask = EEFormationTaskBase(
     "EEFormationTask", [(name.upper(), None) for name in BUILTIN_SCENARIOS], module=__name__,
     qualname="EEFormationTask")
 EEFormationTask.__doc__ = "The built-in scenarios as BenchMARL tasks (``ee_formation_env.builtin.BUILTIN_SCENARIOS``)."

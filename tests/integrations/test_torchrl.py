@@ -62,24 +62,13 @@ def test_group_map_of_a_homogeneous_team_is_one_group():
 def test_benchmarl_mappo_trains_two_iterations(tmp_path, team):
     """A homogeneous team (one group) and a mixed one (one group, so one shared policy, per robot kind)."""
     from benchmarl.algorithms import MappoConfig
-    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.experiment import Experiment
     from benchmarl.models.mlp import MlpConfig
 
+    from conftest import tiny_benchmarl_config
     from ee_formation_env.integrations.benchmarl import EEFormationTask
 
-    config = ExperimentConfig.get_from_yaml()
-    config.max_n_iters = 2
-    config.max_n_frames = None
-    config.on_policy_collected_frames_per_batch = 40
-    config.on_policy_n_envs_per_worker = 2
-    config.on_policy_n_minibatch_iters = 1
-    config.on_policy_minibatch_size = 20
-    config.evaluation = False
-    config.render = False
-    config.loggers = []
-    config.create_json = False
-    config.save_folder = str(tmp_path)
-    config.checkpoint_at_end = False
+    config = tiny_benchmarl_config(tmp_path)
     task = EEFormationTask.PLANAR_SQUARE.get_task(
         {"episode_seconds": 0.1, **({"scenario": MIXED, "torque_limits": 5.0} if team == "mixed" else {})})
     experiment = Experiment(task=task, algorithm_config=MappoConfig.get_from_yaml(),

@@ -136,23 +136,13 @@ def test_a_zero_residual_steps_exactly_the_reference_controller():
 def _experiment(save_folder, share_policy_params=True, use_tanh_normal=True):
     """MAPPO on the residual task with log-error features, tiny batches (BenchMARL's test env of 2 copies)."""
     from benchmarl.algorithms import MappoConfig
-    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.experiment import Experiment
     from benchmarl.models.mlp import MlpConfig
 
-    config = ExperimentConfig.get_from_yaml()
-    config.max_n_iters = 2
-    config.max_n_frames = None
-    config.on_policy_collected_frames_per_batch = 40
-    config.on_policy_n_envs_per_worker = 2
-    config.on_policy_n_minibatch_iters = 1
-    config.on_policy_minibatch_size = 20
-    config.evaluation = False
+    from conftest import tiny_benchmarl_config
+
+    config = tiny_benchmarl_config(save_folder)
     config.evaluation_episodes = 2
-    config.render = False
-    config.loggers = []
-    config.create_json = False
-    config.save_folder = str(save_folder)
-    config.checkpoint_at_end = False
     config.share_policy_params = share_policy_params
     model = MlpConfig.get_from_yaml()
     model.num_cells = [32, 32]
