@@ -1,14 +1,16 @@
 """BenchMARL runs on the training tasks: train for a wall-clock budget, evaluate with the project's metrics, export.
 
     python -m studies.benchmarl_runs --algorithm mappo --mode torque --minutes 30 --seed 0
+    python -m studies.benchmarl_runs --algorithm mappo --mode torque --settings sb3 --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm ippo --mode residual --minutes 10 --scenario planar_square
     python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
 
 Needs the ``torchrl`` extra. The task is
 :class:`~ee_formation_env.baselines.learned.benchmarl_task.EEFormationTrainingTask` with ``--mode`` and its
 presets (the options of ``docs/training.md``, "The training options in BenchMARL"); the experiment uses the
-recommended on-policy layout of that page (64 natively batched copies, 8,000 frames per batch, 4 epochs over
-minibatches of 2,000 frames; off-policy algorithms BenchMARL's defaults), csv logging, no BenchMARL
+recommended on-policy layout of that page (64 natively batched copies, 8,000 frames per batch) and the learning
+settings ``--settings`` (:data:`SETTINGS`: BenchMARL's defaults, 4 epochs over minibatches of 2,000 frames; or
+``sb3``, train.py's torque preset's where BenchMARL has the knob; off-policy algorithms keep BenchMARL's layout), csv logging, no BenchMARL
 evaluation (its test env is a training env). Training stops at the first batch collected after ``--minutes``
 of wall time, before that batch's update (:class:`WallClockStop`); then the deterministic policy runs the held-out seeds 10,000 + k through
 :func:`~ee_formation_env.baselines.learned.benchmarl_task.evaluate_benchmarl_policy`, and the folder ``--out``
@@ -21,13 +23,57 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import sys
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 ALGORITHMS = ("mappo", "ippo", "masac")
 ON_POLICY = ("mappo", "ippo")
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The learning settings a run changes from BenchMARL's YAML defaults (the rest stay BenchMARL's).
+    ``epochs``, ``minibatch_frames``, ``frames_per_batch`` and ``n_envs`` apply to on-policy algorithms only
+    (off-policy ones keep BenchMARL's layout); ``lmbda`` too."""
+
+    lr: float = 5e-5  # Adam learning rate (BenchMARL's default)
+    lmbda: float = 0.9  # GAE lambda (BenchMARL's default)
+    initial_std: float = 1.0  # the actor's initial standard deviation before the tanh squash (biased softplus)
+    epochs: int = 4  # passes over each collected batch
+    minibatch_frames: int = 2_000  # frames (env steps, all agents) per gradient step
+    frames_per_batch: int = 8_000  # frames collected per iteration
+    n_envs: int = 64  # natively batched env copies
+
+    def __post_init__(self) -> None:
+        for name, expected, valid in (("lr", "a learning rate > 0", lambda x: x > 0),
+                                      ("lmbda", "a value in [0, 1]", lambda x: 0 <= x <= 1),
+                                      ("initial_std", "a standard deviation > 0", lambda x: x > 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"{name}: expected a number ({expected}), got {type(value).__name__} {value!r}")
+            if not (math.isfinite(value) and valid(value)):
+                raise ValueError(f"{name}: expected {expected}, got {value!r}")
+        for name in ("epochs", "minibatch_frames", "frames_per_batch", "n_envs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
+        if self.minibatch_frames > self.frames_per_batch:
+            raise ValueError(f"minibatch_frames: expected at most frames_per_batch ({self.frames_per_batch}), "
+                             f"got {self.minibatch_frames}")
+
+
+#: Named settings: ``benchmarl``, BenchMARL's defaults with the recommended batched layout; ``sb3``, the
+#: settings of train.py's torque preset where BenchMARL has the knob (Adam 3e-4, GAE 0.95, initial standard
+#: deviation e^-2 ~ 0.14, 10 epochs over small minibatches), on the same layout. Differences that remain:
+#: no observation or reward normalization, a constant learning rate, the tanh squash.
+SETTINGS: dict[str, RunSettings] = {
+    "benchmarl": RunSettings(),
+    "sb3": RunSettings(lr=3e-4, lmbda=0.95, initial_std=0.14, epochs=10, minibatch_frames=400),
+}
 
 
 try:  # the torchrl extra; without it the module imports, and run() fails on its own imports
@@ -61,9 +107,10 @@ class WallClockCallback(_Callback):
 
 
 def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10,
-        episode_seconds: float | None = None) -> dict[str, Any]:
+        episode_seconds: float | None = None, settings: RunSettings = SETTINGS["benchmarl"]) -> dict[str, Any]:
     """Train, evaluate and export one run into ``out``; the evaluation record. ``episode_seconds``: the
-    evaluation episodes' length (default: the scenario's; training uses the mode's training length)."""
+    evaluation episodes' length (default: the scenario's; training uses the mode's training length);
+    ``settings``: the learning settings (:data:`SETTINGS`)."""
     import torch
     from benchmarl.algorithms import IppoConfig, MappoConfig, MasacConfig
     from benchmarl.experiment import Experiment, ExperimentConfig
@@ -74,17 +121,21 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
 
     torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
     config = ExperimentConfig.get_from_yaml()
+    config.lr = settings.lr
     if algorithm in ON_POLICY:
-        config.on_policy_n_envs_per_worker = 64
-        config.on_policy_collected_frames_per_batch = 8_000
-        config.on_policy_n_minibatch_iters = 4
-        config.on_policy_minibatch_size = 2_000
+        config.on_policy_n_envs_per_worker = settings.n_envs
+        config.on_policy_collected_frames_per_batch = settings.frames_per_batch
+        config.on_policy_n_minibatch_iters = settings.epochs
+        config.on_policy_minibatch_size = settings.minibatch_frames
     config.max_n_frames, config.max_n_iters = 10**10, None  # the wall clock stops it
     config.loggers, config.evaluation, config.render = ["csv"], False, False
     config.checkpoint_at_end, config.create_json = False, False
     out.mkdir(parents=True, exist_ok=True)
     config.save_folder = str(out)
     algorithm_config = {"mappo": MappoConfig, "ippo": IppoConfig, "masac": MasacConfig}[algorithm].get_from_yaml()
+    algorithm_config.scale_mapping = f"biased_softplus_{settings.initial_std}"
+    if algorithm in ON_POLICY:
+        algorithm_config.lmbda = settings.lmbda
     task = EEFormationTrainingTask[scenario.upper()].get_task(
         {"mode": mode, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
     curve: list[tuple[int, float, float]] = []
@@ -106,7 +157,7 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
         writer.writerow(["frames", "agent_steps", "mean_reward_per_step", "wall_seconds"])
         writer.writerows((frames, frames * n_agents, reward, wall) for frames, reward, wall in curve)
     record = {"algorithm": algorithm, "scenario": scenario, "mode": mode, "seed": seed, "minutes": minutes,
-              "train_seconds": train_seconds, "frames": int(experiment.total_frames),
+              "settings": asdict(settings), "train_seconds": train_seconds, "frames": int(experiment.total_frames),
               "agent_steps": int(experiment.total_frames) * n_agents, "iterations": experiment.n_iters_performed,
               "evaluation": evaluation}
     (out / "evaluation.json").write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
@@ -120,8 +171,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mode", default="torque", choices=("torque", "residual"))
     parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock training budget")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
+    parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS),
+                        help="learning settings: benchmarl (its defaults) or sb3 (train.py's torque preset's)")
     parser.add_argument("--episodes", type=int, default=10, help="held-out evaluation episodes (seeds 10000+)")
-    parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>-seed<k>")
+    parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     args = parser.parse_args(argv)
     from ee_formation_env.builtin import BUILTIN_SCENARIOS
 
@@ -131,8 +184,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--minutes: expected a duration > 0")
     if args.episodes < 1:
         parser.error("--episodes: expected an integer >= 1")
-    out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}-seed{args.seed}"
-    record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes)
+    tag = "" if args.settings == "benchmarl" else f"-{args.settings}"
+    out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
+    record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
+                 settings=SETTINGS[args.settings])
     from ee_formation_env.baselines.metrics import format_table
 
     print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))

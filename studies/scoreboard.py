@@ -43,6 +43,16 @@ from ee_formation_env.scenario_sets import held_out_scenarios
 
 
 @dataclass(frozen=True)
+class BenchmarlRun:
+    """A studies.benchmarl_runs run: algorithm, training-task mode, wall-clock budget and learning settings."""
+
+    algorithm: str
+    mode: str
+    minutes: float
+    settings: str = "benchmarl"  # a name of studies.benchmarl_runs.SETTINGS
+
+
+@dataclass(frozen=True)
 class Method:
     """One row kind of the board: a reference controller, or a ``train.py`` configuration (its flags)."""
 
@@ -50,7 +60,7 @@ class Method:
     reference: str | None = None  # the reference controller's name, for a reference method
     train_flags: tuple[str, ...] = ()  # train.py flags of a learned method (its preset sets the rest)
     needs_invariant_arms: bool = False  # its observation features need arms turning about their base z axis
-    benchmarl: tuple[str, str, float] | None = None  # (algorithm, mode, minutes): a studies.benchmarl_runs run
+    benchmarl: BenchmarlRun | None = None  # a BenchMARL method's run
 
     @property
     def learned(self) -> bool:
@@ -81,20 +91,25 @@ class Method:
 
 
 #: The board's methods: the paper's three laws, PPO in residual and torque mode at train.py's presets, residual
-#: PPO with the log-error features and on the base-yaw-invariant ones (the generalization design; arms turning
-#: about base z only), and BenchMARL's MAPPO and IPPO on the training task.
+#: PPO with the log-error features (``-contact``: and the contact penalty, shaping.py) and on the base-yaw-
+#: invariant ones (the generalization design; arms turning about base z only), and BenchMARL's MAPPO, IPPO and MASAC on the training task (``-sb3``: with the learning
+#: settings of train.py's torque preset, studies.benchmarl_runs.SETTINGS).
 METHODS: dict[str, Method] = {
     **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
     "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
     "residual-ppo-log-error": Method("residual-ppo-log-error", train_flags=(
         "--mode", "residual", "--obs-features", "log-error")),
+    "residual-ppo-log-error-contact": Method("residual-ppo-log-error-contact", train_flags=(
+        "--mode", "residual", "--obs-features", "log-error", "--contact-penalty", "1.0")),
     "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
         "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
-    "mappo-torque": Method("mappo-torque", benchmarl=("mappo", "torque", 30.0)),
-    "mappo-residual": Method("mappo-residual", benchmarl=("mappo", "residual", 10.0)),
-    "ippo-residual": Method("ippo-residual", benchmarl=("ippo", "residual", 10.0)),
+    "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
+    "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
+    "mappo-residual": Method("mappo-residual", benchmarl=BenchmarlRun("mappo", "residual", 10.0)),
+    "ippo-residual": Method("ippo-residual", benchmarl=BenchmarlRun("ippo", "residual", 10.0)),
+    "masac-residual": Method("masac-residual", benchmarl=BenchmarlRun("masac", "residual", 10.0)),
 }
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
@@ -306,13 +321,15 @@ def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_
     are not resumed) and return its held-out episodes and budget."""
     from studies import benchmarl_runs
 
-    algorithm, mode, minutes = method.benchmarl
+    spec = method.benchmarl
     if not (run_dir / "evaluation.json").is_file():
-        benchmarl_runs.run(algorithm, scenario, mode, QUICK_MINUTES if board.extra_train_flags else minutes, seed,
-                           run_dir, board.episodes, episode_seconds=board.episode_seconds)
+        benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if board.extra_train_flags else spec.minutes,
+                           seed, run_dir, board.episodes, episode_seconds=board.episode_seconds,
+                           settings=benchmarl_runs.SETTINGS[spec.settings])
     record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
     budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
-              "minutes": float(record["minutes"]), "mode": mode, "algorithm": algorithm}
+              "minutes": float(record["minutes"]), "mode": spec.mode, "algorithm": spec.algorithm,
+              "settings": spec.settings}
     return record["evaluation"]["per_episode"], budget
 
 

@@ -114,6 +114,8 @@ class TrainingTaskOptions:
     hold_penalty: Optional[float] = _option(None, "reward per step", "training only: subtract this times "
                                             f"min(1, joint speed / {SPEED_SCALE} rad/s) from an in-formation agent's "
                                             "reward (shaping.py), in [0, 1]")
+    contact_penalty: float = _option(0.0, "reward per step", "training only: subtract this from an agent's reward on "
+                                     "every step its arm touches another arm (shaping.py), >= 0")
     action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
                                          "correction) is the torque giving a joint this acceleration at the "
                                          "initial configuration, at most its torque limit (action_scale.py)")
@@ -136,6 +138,7 @@ class TrainingTaskOptions:
         self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
         self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
         self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
+        self._number("contact_penalty", lambda x: x >= 0, "a value >= 0")
         object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
         self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
         self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
@@ -196,7 +199,7 @@ class TrainingTaskOptions:
         return BatchedTrainingEnv(scenario, {**overrides, **self.training_overrides()}, options.mode,
                                   options.reference, options.residual_scale, options.correction_penalty,
                                   options.residual_gate, options.hold_penalty, options.obs_features,
-                                  options.action_acceleration, num_envs=num_envs)
+                                  options.action_acceleration, options.contact_penalty, num_envs=num_envs)
 
     def policy_factory(self, learned: Mapping[str, Any], env: Any) -> Callable[[Any], dict[str, Any]]:
         """``copy_env -> per-agent policies`` that act as the training env of these options with the learned

@@ -138,6 +138,8 @@ class TrainConfig:
                                        "agent's reward on steps where it is in formation "
                                        "(ee_formation_env.baselines.learned.shaping), in [0, 1]; default "
                                        f"{_preset_text('hold_penalty')}", type=float)
+    contact_penalty: float = _flag("training only: subtract this from an agent's reward on every step its arm touches "
+                                   "another arm (ee_formation_env.baselines.learned.shaping), >= 0", 0.0, type=float)
     max_train_seconds: float | None = _flag("sb3: stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     max_fault_fraction: float = _flag("sb3: stop training with an error naming the fault when more than this share "
@@ -233,6 +235,8 @@ class TrainConfig:
             raise ValueError("--gamma: expected a value in (0, 1]")
         if not 0 <= self.hold_penalty <= 1:
             raise ValueError("--hold-penalty: expected a value in [0, 1]")
+        if not (math.isfinite(self.contact_penalty) and self.contact_penalty >= 0):
+            raise ValueError("--contact-penalty: expected a finite value >= 0")
         if not 0 < self.max_fault_fraction <= 1:
             raise ValueError("--max-fault-fraction: expected a value in (0, 1]")
         if self.max_train_seconds is not None and not self.max_train_seconds > 0:

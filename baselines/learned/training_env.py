@@ -3,7 +3,8 @@
 :func:`make_training_env` composes, from the inside out: the formation env (``mode="torque"``: actions are the
 normalized torques), :class:`~ee_formation_env.baselines.learned.residual.ResidualActionEnv` (``mode="residual"``:
 actions are corrections on a reference controller), :class:`~ee_formation_env.baselines.learned.shaping.HoldShapingEnv`
-(``hold_penalty > 0``) and :class:`~ee_formation_env.baselines.learned.features.FeatureEnv` (``obs_features``).
+(``hold_penalty > 0``), :class:`~ee_formation_env.baselines.learned.shaping.ContactShapingEnv`
+(``contact_penalty > 0``) and :class:`~ee_formation_env.baselines.learned.features.FeatureEnv` (``obs_features``).
 It is a module-level function so that ``functools.partial(make_training_env, ...)`` pickles into worker
 processes; :func:`env_factory` builds that partial from a run's configuration.
 
@@ -29,7 +30,8 @@ from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCE
 from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, check_invariant_arms, feature_space,
                                                          transform_stack)
 from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
-from ee_formation_env.baselines.learned.shaping import HoldShapingEnv, check_hold_penalty, hold_penalty_factors
+from ee_formation_env.baselines.learned.shaping import (ContactShapingEnv, HoldShapingEnv, check_contact_penalty,
+                                                       check_hold_penalty, hold_penalty_factors)
 from ee_formation_env.vector import BatchedStep
 
 if TYPE_CHECKING:
@@ -42,7 +44,8 @@ EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training rese
 def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
                       reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
                       correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
-                      obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION) -> Any:
+                      obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION,
+                      contact_penalty: float = 0.0) -> Any:
     """The training env of ``scenario`` (plus ``overrides``) in ``mode``, shaped and featured (module docstring);
     learned actions in the physical units of ``action_acceleration`` (rad/s^2, :mod:`.action_scale`)."""
     from ee_formation_env import parallel_env
@@ -52,6 +55,7 @@ def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None,
     if obs_features not in FEATURE_SETS:
         raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {obs_features!r}")
     check_action_acceleration(action_acceleration)
+    check_contact_penalty(contact_penalty)
     env = parallel_env(scenario, **dict(overrides or {}))
     try:
         if obs_features == "invariant":
@@ -65,6 +69,8 @@ def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None,
             env = ScaledActionEnv(env, scales)
         if hold_penalty > 0:
             env = HoldShapingEnv(env, hold_penalty)
+        if contact_penalty > 0:
+            env = ContactShapingEnv(env, contact_penalty)
         return env if obs_features == "none" else FeatureEnv(env, obs_features)
     except Exception:
         env.close()
@@ -78,7 +84,7 @@ def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = Non
                              config.training_overrides() if overrides is None else dict(overrides), config.mode,
                              config.reference, config.residual_scale, config.correction_penalty,
                              config.residual_gate, config.hold_penalty, config.obs_features,
-                             config.action_acceleration)
+                             config.action_acceleration, config.contact_penalty)
 
 
 def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None
@@ -89,7 +95,7 @@ def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | No
                              config.training_overrides() if overrides is None else dict(overrides), config.mode,
                              config.reference, config.residual_scale, config.correction_penalty,
                              config.residual_gate, config.hold_penalty, config.obs_features,
-                             config.action_acceleration)
+                             config.action_acceleration, config.contact_penalty)
 
 
 class BatchedTrainingEnv:
@@ -98,7 +104,7 @@ class BatchedTrainingEnv:
     ``reset_arrays(seed, options)`` and ``step_arrays(actions)`` behave as those of
     :class:`ee_formation_env.vector.VectorFormationEnv` (per-copy seeds, SAME_STEP autoreset, ``reset_mask``;
     actions (K * N, n) or (K, N, n)): in residual mode the actions are corrections, rewards carry the
-    correction factor and the hold penalty, observations (K, N * size) carry the features
+    correction factor, the hold penalty and the contact penalty, observations (K, N * size) carry the features
     (``infos["final_observation"]`` too: the observation each copy ended in, featured). Every agent must have
     the same observation size and joints (one policy is shared by all). The other infos are the batched env's,
     and so are ``state()``, ``state_space`` and the copies' generators ``np_randoms``: it has the array API
@@ -111,7 +117,7 @@ class BatchedTrainingEnv:
                  reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
                  correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
                  obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION,
-                 num_envs: int = 1):
+                 contact_penalty: float = 0.0, num_envs: int = 1):
         from ee_formation_env import vector_env
 
         if mode not in TRAINING_MODES:
@@ -121,7 +127,9 @@ class BatchedTrainingEnv:
         if mode == "residual":
             check_residual_settings(reference, residual_scale, correction_penalty)
         check_hold_penalty(hold_penalty)
+        check_contact_penalty(contact_penalty)
         check_action_acceleration(action_acceleration)
+        self.contact_penalty = float(contact_penalty)
         self.env = env = vector_env(scenario, num_envs=num_envs, **dict(overrides or {}))
         try:
             self._build(mode, reference, residual_scale, correction_penalty, gate, hold_penalty, obs_features,
@@ -227,6 +235,8 @@ class BatchedTrainingEnv:
             for layout, rows in self._layout_rows:
                 factors[rows] = hold_penalty_factors(layout, final[rows])
             rewards = rewards - self.hold_penalty * factors.reshape(K, N)
+        if self.contact_penalty > 0:
+            rewards = rewards - self.contact_penalty * (result.infos["contacts"] > 0)
         self._raw = self._rows(result.observations)
         observations = self._featured(self._raw)
         # A copy that did not end ended its step in the observation it returns: only ended copies differ.

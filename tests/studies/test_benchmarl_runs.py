@@ -5,13 +5,39 @@ from __future__ import annotations
 import csv
 import json
 
+import importlib.util
+import re
+
 import pytest
 
-pytest.importorskip("benchmarl")
+from studies import benchmarl_runs
 
-from studies import benchmarl_runs  # noqa: E402
+needs_benchmarl = pytest.mark.skipif(importlib.util.find_spec("benchmarl") is None, reason="needs the torchrl extra")
 
 
+@pytest.mark.parametrize("field, value, error, message", [
+    ("lr", 0.0, ValueError, "lr: expected a learning rate > 0"),
+    ("lmbda", 1.5, ValueError, "lmbda: expected a value in [0, 1]"),
+    ("initial_std", "0.1", TypeError, "initial_std: expected a number"),
+    ("initial_std", float("nan"), ValueError, "initial_std: expected a standard deviation > 0"),
+    ("epochs", 0, ValueError, "epochs: expected an integer >= 1"),
+    ("minibatch_frames", 9_000, ValueError, "minibatch_frames: expected at most frames_per_batch (8000)"),
+])
+def test_bad_run_settings_name_the_field(field, value, error, message):
+    with pytest.raises(error, match=re.escape(message)):
+        benchmarl_runs.RunSettings(**{field: value})
+
+
+def test_the_sb3_settings_are_train_pys_torque_preset_where_benchmarl_has_the_knob():
+    from ee_formation_env.baselines.learned.config import PRESETS
+
+    torque, sb3 = PRESETS["torque"], benchmarl_runs.SETTINGS["sb3"]
+    assert sb3.lr == torque.ppo.learning_rate and sb3.epochs == torque.ppo.n_epochs and sb3.lmbda == 0.95
+    assert sb3.initial_std == pytest.approx(2.718281828 ** torque.log_std_init, abs=0.005)
+    assert benchmarl_runs.SETTINGS["benchmarl"] == benchmarl_runs.RunSettings()
+
+
+@needs_benchmarl
 def test_a_short_run_stops_on_the_clock_and_writes_its_evaluation(tmp_path, capsys):
     out = tmp_path / "run"
     assert benchmarl_runs.main(["--minutes", "0.2", "--episodes", "1", "--mode", "residual", "--out", str(out)]) == 0
@@ -29,7 +55,30 @@ def test_a_short_run_stops_on_the_clock_and_writes_its_evaluation(tmp_path, caps
     assert "| mappo (residual) |" in printed and "training stopped: wall-clock budget of 12 s reached" in printed
 
 
+@needs_benchmarl
+def test_the_settings_reach_benchmarl_and_the_record(tmp_path, monkeypatch):
+    import benchmarl.experiment
+
+    seen = {}
+    original = benchmarl.experiment.Experiment.__init__
+
+    def spy(self, *args, **kwargs):
+        seen.update(kwargs)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(benchmarl.experiment.Experiment, "__init__", spy)
+    out = tmp_path / "run"
+    assert benchmarl_runs.main(["--minutes", "0.05", "--episodes", "1", "--mode", "residual", "--settings", "sb3",
+                                "--out", str(out)]) == 0
+    record = json.loads((out / "evaluation.json").read_text())
+    assert record["settings"] == {**benchmarl_runs.SETTINGS["sb3"].__dict__}
+    config, algorithm = seen["config"], seen["algorithm_config"]
+    assert (config.lr, config.on_policy_n_minibatch_iters, config.on_policy_minibatch_size) == (3e-4, 10, 400)
+    assert (algorithm.lmbda, algorithm.scale_mapping) == (0.95, "biased_softplus_0.14")
+
+
 @pytest.mark.parametrize("argv, message", [
+    (["--settings", "fast"], "--settings: invalid choice"),
     (["--scenario", "nowhere"], "--scenario: unknown"),
     (["--minutes", "0"], "--minutes: expected a duration > 0"),
     (["--episodes", "0"], "--episodes: expected an integer >= 1"),
@@ -41,6 +90,7 @@ def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message,
     assert not (tmp_path / "run").exists()
 
 
+@needs_benchmarl
 def test_the_scoreboard_runs_a_benchmarl_method_with_its_test_split(tmp_path, capsys):
     from studies import scoreboard
 

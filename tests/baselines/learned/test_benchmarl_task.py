@@ -41,6 +41,7 @@ FAST = {"train_episode_seconds": 0.05, "episode_seconds": 0.3}
     ({"correction_penalty": 1.5}, "correction_penalty", ValueError),
     ({"obs_features": "log"}, "obs_features", ValueError),
     ({"hold_penalty": -0.1}, "hold_penalty", ValueError),
+    ({"contact_penalty": -1.0}, "contact_penalty", ValueError),
     ({"action_acceleration": 0.0}, "action_acceleration", ValueError),
     ({"action_acceleration": True}, "action_acceleration", TypeError),
     ({"train_episode_seconds": 0}, "train_episode_seconds", ValueError),

@@ -65,7 +65,7 @@ def test_bad_arguments_fail_before_training(tmp_path, capsys):
     for bad in (["--total-timesteps", "0"], ["--residual-scale", "2"], ["--obs-features", "squared"],
                 ["--log-std-init", "nan"], ["--hold-penalty", "1.5"], ["--max-train-seconds", "0"],
                 ["--in-process-envs", "32"], ["--n-workers", "0", "--in-process-envs", "4"],
-                ["--eval-seconds", "-1"]):
+                ["--eval-seconds", "-1"], ["--contact-penalty", "-1"]):
         with pytest.raises(SystemExit):
             train_command([*bad, "--out", str(tmp_path / "x")])
     # The library raises; the command prints one line naming the field and exits with 2.

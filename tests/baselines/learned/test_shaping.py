@@ -1,11 +1,15 @@
-"""Hold shaping: only joint speed inside the formation is charged; leaving the formation never pays."""
+"""Hold shaping: only joint speed inside the formation is charged; leaving the formation never pays. Contact
+shaping: every step an arm touches another arm is charged, to both arms."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ee_formation_env.baselines.learned.shaping import SPEED_SCALE, HoldShapingEnv, hold_penalty_factor
+from conftest import CLOSING, two_planar_arms
+from ee_formation_env.baselines.learned.shaping import (SPEED_SCALE, ContactShapingEnv, HoldShapingEnv,
+                                                       hold_penalty_factor)
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
 
 
 def _observation_at_goal(env, agent, dq):
@@ -43,3 +47,32 @@ def test_shaped_rewards_are_the_envs_outside_the_formation(make_env):
         assert shaped_rewards == rewards
     with pytest.raises(ValueError, match="hold_penalty"):
         HoldShapingEnv(make_env("planar_square"), 1.5)
+
+
+def test_contact_steps_are_charged_to_both_arms_and_only_those(make_env, closer):
+    scenario = two_planar_arms()
+    plain, shaped = make_env(scenario, episode_seconds=2.0), ContactShapingEnv(make_env(scenario, episode_seconds=2.0), 2.5)
+    batched = closer(BatchedTrainingEnv(scenario, {"episode_seconds": 2.0}, "torque", contact_penalty=2.5, num_envs=1))
+    plain.reset(seed=0)
+    shaped.reset(seed=0)
+    batched.reset_arrays(seed=[0])
+    touching = 0
+    for _ in range(150):  # the closing torques bring the forearms into contact and hold them there
+        _, rewards, _, _, infos = plain.step(CLOSING)
+        _, shaped_rewards, *_ = shaped.step(CLOSING)
+        result = batched.step_arrays(np.stack([CLOSING["arm_0"], CLOSING["arm_1"]]))
+        for i, agent in enumerate(plain.possible_agents):
+            expected = rewards[agent] - 2.5 * (infos[agent]["contacts"] > 0)
+            assert shaped_rewards[agent] == pytest.approx(expected) and result.rewards[0, i] == pytest.approx(expected)
+        touching += infos["arm_0"]["contacts"] > 0 and infos["arm_1"]["contacts"] > 0
+        if not plain.agents:
+            break
+    assert touching >= 10
+
+
+@pytest.mark.parametrize("penalty", [-0.1, float("inf"), float("nan")])
+def test_a_bad_contact_penalty_names_the_field(make_env, penalty):
+    with pytest.raises(ValueError, match="contact_penalty: expected a finite value >= 0"):
+        ContactShapingEnv(make_env("planar_square"), penalty)
+    with pytest.raises(ValueError, match="contact_penalty: expected a finite value >= 0"):
+        BatchedTrainingEnv("planar_square", contact_penalty=penalty)
