@@ -18,6 +18,7 @@ from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet, check_start_contacts
+from ee_formation_env.sensing import Sensor
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.reward import agent_error_ratios, edge_tolerances, rewards_from_ratios
 from ee_formation_env.task import build_task
@@ -108,6 +109,8 @@ class FormationEnv(ParallelEnv):
         self.possible_agents = self.task.agents
         self.agents: list[str] = []
         self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity)
+        sensing = self.scenario.sensing
+        self._sensor = Sensor(sensing, self.task, self._observer) if sensing.active else None
         self._observation_spaces = dict(zip(self.possible_agents, self._observer.spaces))
         self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (model.n_joints,), dtype=np.float32)
                                for agent, model in zip(self.possible_agents, self.task.models)}
@@ -189,8 +192,7 @@ class FormationEnv(ParallelEnv):
         self._clipped_actions = np.zeros(len(self.agents), dtype=np.int64)
         self._needs_reset = False
         self._measurement = measured = self._measure()
-        observations = self._observer.observations(self.agents, measured.slot_z, measured.slot_errors,
-                                                   measured.q_observed, measured.dq)
+        observations = self._observations(measured, reset=True)
         infos = self._infos(measured, np.zeros(len(self.arms), dtype=np.int64), [0] * len(self.arms),
                             np.zeros(len(self._torque_limits_flat)))
         return observations, infos
@@ -206,8 +208,7 @@ class FormationEnv(ParallelEnv):
         self._measurement = measured = self._measure()
         contacts = self.arm_set.contacts_per_arm()
 
-        observations = self._observer.observations(self.agents, measured.slot_z, measured.slot_errors,
-                                                   measured.q_observed, measured.dq)
+        observations = self._observations(measured)
         rewards = self._rewards(measured)
         infos = self._infos(measured, clipped, contacts, torques)
         ended = measured.fault != 0 or (self.scenario.terminate_on_contact and any(contacts))
@@ -349,6 +350,16 @@ class FormationEnv(ParallelEnv):
             if not np.all(np.isfinite(action)):
                 shape = self._action_spaces[agent].shape
                 raise ValueError(f"actions[{agent!r}]: expected finite values of shape {shape}, got {action.tolist()}")
+
+    def _observations(self, measured: Measurement, reset: bool = False) -> dict[str, np.ndarray]:
+        """Every live agent's observation of ``measured``: its z_ij as its sensor reports them (sensing.py)."""
+        slot_z, slot_errors = measured.slot_z, measured.slot_errors
+        if self._sensor is not None:  # one copy of the sensor's batched form
+            if reset:
+                self._sensor.reset(slot_z[None], [0])
+            sensed_z, sensed_errors = self._sensor.sense(slot_z[None], [0], [self.np_random])
+            slot_z, slot_errors = sensed_z[0], sensed_errors[0]
+        return self._observer.observations(self.agents, slot_z, slot_errors, measured.q_observed, measured.dq)
 
     def _measure(self) -> Measurement:
         """Read the joint states and compute everything derived from them (a physics fault included)."""

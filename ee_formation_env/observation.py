@@ -166,6 +166,10 @@ class ObservationBuilder:
                 signs = np.array([n.sign for n in slots], dtype=np.float64)
                 desired.append((signs[:, None] * formation.desired_vectors[edges]) @ task.base_rotations[i][:m, :m])
         self._constants = np.concatenate([[0.0, 1.0], *(d.ravel() for d in desired)])
+        # Per real slot: its agent, and its desired relation as its edge error needs it (sensing.py).
+        self.slot_agent = slot_agent
+        stacked = np.concatenate(desired).astype(np.float64)
+        self.slot_desired = stacked**2 if formation.kind == "distance" else stacked  # (S,) m^2 or (S, m) m
 
         joint_bounds = np.concatenate([[0], np.cumsum([layout.n_joints for layout in self.layouts])])
         n_real, n_total = int(slot_bounds[-1]), int(joint_bounds[-1])

@@ -43,6 +43,7 @@ from ee_formation_env.inputs import (MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PH
                                      BoundedSafeLoader, excerpt, is_real_number)
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 from ee_formation_env.reward import RewardConfig, parse_reward
+from ee_formation_env.sensing import SensingConfig, parse_sensing
 from ee_formation_env.robots import ROBOTS, SPATIAL_INITIAL_Q, RobotSpec  # noqa: F401
 
 @dataclass(frozen=True)
@@ -118,6 +119,10 @@ class Scenario:
                                                 "link lengths and masses differ from the nominal URDFs by up to "
                                                 "+-L and +-M; default none (see :mod:`ee_formation_env.mismatch`)",
                                           "relative", default_factory=MismatchConfig)
+    sensing: SensingConfig = _key(None, '``{"noise": s, "delay": d, "bias": b, "yaw": a, "seed": k}``: what the '
+                                        "agents measure of z_ij: Gaussian noise (m), a delay (control steps), a bias "
+                                        "(m) and a frame misalignment (rad) per agent; default exact (see "
+                                        ":mod:`ee_formation_env.sensing`)", default_factory=SensingConfig)
     controller_gains: ControllerGains | None = _key(None, "``{kp, kd, ki, alpha}``: tuned gains of the reference "
                                                           "controllers (built-in scenarios carry theirs); null = "
                                                           "derived from the robots, torque limits and rates")
@@ -148,7 +153,7 @@ class Scenario:
             value = getattr(self, spec.name)
             if spec.name == "arms":
                 value = [_arm_to_dict(arm) for arm in value]
-            elif spec.name in ("reward", "model_mismatch") or (spec.name == "controller_gains" and value is not None):
+            elif spec.name in ("reward", "model_mismatch", "sensing") or (spec.name == "controller_gains" and value is not None):
                 value = {f.name: getattr(value, f.name) for f in fields(value)}
             data[spec.name] = _plain(value)
         return data
@@ -199,7 +204,7 @@ SCENARIO_FIELDS = {spec.name: spec for spec in fields(Scenario)}
 # graph, rates, torque limits, gravity, damping, contacts).
 GAIN_NEUTRAL_FIELDS = frozenset({"name", "episode_seconds", "initial_q_noise", "terminate_on_contact",
                                  "max_joint_velocity", "singularity_threshold", "reward", "model_mismatch",
-                                 "controller_gains"})
+                                 "sensing", "controller_gains"})
 __doc__ += "\n" + scenario_keys_table() + "\n"
 
 
@@ -215,7 +220,7 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                   **overrides: Any) -> Scenario:
     """Parse a scenario (built-in name, YAML/JSON path, dict or parsed :class:`Scenario`) plus overrides.
 
-    ``reward`` and ``model_mismatch`` overrides are merged into the scenario's. Raises ``ValueError``
+    ``reward``, ``model_mismatch`` and ``sensing`` overrides are merged into the scenario's. Raises ``ValueError``
     naming the offending field, or ``TypeError`` for a scenario argument of the wrong type.
     """
     if isinstance(scenario, Scenario):
@@ -252,7 +257,7 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                                                                         if key in SCENARIO_FIELDS else None))
         for key, value in overrides.items())
     for key, value in overrides.items():
-        if key in ("reward", "model_mismatch") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
+        if key in ("reward", "model_mismatch", "sensing") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
             data[key] = {**data[key], **value}
         else:
             data[key] = value
@@ -352,6 +357,7 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", _default("singularity_threshold")))
     kwargs["reward"] = parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
+    kwargs["sensing"] = parse_sensing(data.get("sensing"), len(arms), int(dim))
     kwargs["controller_gains"] = _parse_controller_gains(data.get("controller_gains"))
 
     return Scenario(

@@ -103,6 +103,7 @@ from ee_formation_env.inputs import check_seed, excerpt, numeric_action
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.reward import edge_tolerances
 from ee_formation_env.scenario import Scenario, load_scenario
+from ee_formation_env.sensing import Sensor
 from ee_formation_env.task import build_task
 
 __all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS"]
@@ -150,6 +151,9 @@ class VectorFormationEnv:
         self.possible_agents = self.task.agents
         self.agents = list(self.possible_agents)
         self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity)
+        sensing = self.scenario.sensing
+        self._sensor = Sensor(sensing, self.task, self._observer, K) if sensing.active else None
+        self._sensed: tuple[np.ndarray, np.ndarray] | None = None  # the copies' measured slot z and errors
         self._observation_spaces = dict(zip(self.possible_agents, self._observer.spaces))
         self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (model.n_joints,), dtype=np.float32)
                                for agent, model in zip(self.possible_agents, self.task.models)}
@@ -269,8 +273,7 @@ class VectorFormationEnv:
             self._reset_copies(rows)
         self._needs_reset = False
         measured = self._measurement
-        observations = self._observer.observation_matrix(measured.slot_z, measured.slot_errors,
-                                                         measured.q_observed, measured.dq)
+        observations = self._observer.observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq)
         infos = self._info_arrays(measured)
         infos["final_observation"] = observations.copy()
         K, n = self.num_envs, self.task.n_agents
@@ -388,6 +391,24 @@ class VectorFormationEnv:
             self._measurement = part
         else:
             self._measurement = _with_rows(self._measurement, rows, part)
+        if self._sensor is not None:  # a fresh sensor: it holds the start displacement through its delay
+            self._sensor.reset(part.slot_z, rows)
+            self._sense(part.slot_z, rows)
+
+    def _sense(self, slot_z: np.ndarray, rows: np.ndarray) -> None:
+        """Push the copies ``rows``' true slot displacements ``slot_z`` (len(rows), S, m) through the sensor and
+        keep what they measure."""
+        sensed_z, sensed_errors = self._sensor.sense(slot_z, rows, self.np_randoms)
+        if self._sensed is None:
+            self._sensed = (np.zeros((self.num_envs, *sensed_z.shape[1:])),
+                            np.zeros((self.num_envs, *sensed_errors.shape[1:])))
+        self._sensed[0][rows], self._sensed[1][rows] = sensed_z, sensed_errors
+
+    def _observed_slots(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every copy's slot displacements and edge errors as its agents observe them (sensing.py)."""
+        if self._sensor is None:
+            return self._measurement.slot_z, self._measurement.slot_errors
+        return self._sensed
 
     def _read_states(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The joint states (len(rows), T) of the copies ``rows``: one PyBullet read per arm, one array."""
@@ -496,8 +517,9 @@ class VectorFormationEnv:
                                                     np.array(velocities).reshape(shape))
 
         observer = self._observer
-        observations = observer.observation_matrix(measured.slot_z, measured.slot_errors, measured.q_observed,
-                                                   measured.dq)
+        if self._sensor is not None:
+            self._sense(measured.slot_z, np.arange(self.num_envs))
+        observations = observer.observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq)
         rewards = reward_array(measured.edge_squares, self._edge_tolerances, observer, self.scenario.reward)
         infos = self._info_arrays(measured)
         ended = measured.fault != 0
@@ -510,7 +532,8 @@ class VectorFormationEnv:
         if len(done):
             self._reset_copies(done)
             part = self._measurement
-            observations[done] = observer.observation_matrix(part.slot_z[done], part.slot_errors[done],
+            slot_z, slot_errors = self._observed_slots()
+            observations[done] = observer.observation_matrix(slot_z[done], slot_errors[done],
                                                              part.q_observed[done], part.dq[done])
         return BatchedStep(observations, rewards, ended, truncated, infos)
 

@@ -74,6 +74,13 @@ def all_ones(scales: dict[str, np.ndarray]) -> bool:
     return all(bool(np.all(scale == 1.0)) for scale in scales.values())
 
 
+def rescaling(task: Any, acceleration: float = DEFAULT_ACTION_ACCELERATION) -> dict[str, np.ndarray] | None:
+    """:func:`action_scales`, or None where no joint is rescaled (the learned action is the env's action, as
+    on every built-in robot): what the training env, the saved policy and the labels apply."""
+    scales = action_scales(task, acceleration)
+    return None if all_ones(scales) else scales
+
+
 class ScaledActionPolicy:
     """A learned per-agent policy whose actions (in [-1, 1]) are scaled per joint into the env's normalized
     actions: ``clip(policy(observation), -1, 1) * scale`` (torque mode)."""

@@ -15,7 +15,7 @@ import numpy as np
 
 from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionPolicy,
-                                                             action_scales, all_ones)
+                                                             rescaling)
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.features import FeaturePolicy, check_invariant_arms
 from ee_formation_env.baselines.learned.residual import ResidualPolicy
@@ -127,8 +127,7 @@ def composed_policy_factory(learned: Mapping[str, Any], env: Any, mode: str, ref
                  for agent in env.possible_agents}
     if obs_features == "invariant":
         check_invariant_arms(env.task)
-    scales = action_scales(env.task, action_acceleration)
-    scales = None if all_ones(scales) else scales
+    scales = rescaling(env.task, action_acceleration)
 
     def build(copy_env: Any) -> dict[str, Any]:
         if mode == "torque":

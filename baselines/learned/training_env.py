@@ -26,7 +26,7 @@ import numpy as np
 
 from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionEnv,
-                                                             action_scales, all_ones, check_action_acceleration)
+                                                             check_action_acceleration, rescaling)
 from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, check_invariant_arms, feature_space,
                                                          transform_stack)
 from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
@@ -60,8 +60,7 @@ def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None,
     try:
         if obs_features == "invariant":
             check_invariant_arms(env.task)
-        scales = action_scales(env.task, action_acceleration)
-        scales = None if all_ones(scales) else scales
+        scales = rescaling(env.task, action_acceleration)
         if mode == "residual":
             env = ResidualActionEnv(env, reference=reference, scale=residual_scale,
                                     correction_penalty=correction_penalty, gate=gate, joint_scales=scales)
@@ -163,8 +162,7 @@ class BatchedTrainingEnv:
         self._featured_size = self._observation_spaces[self.possible_agents[0]].shape[0]
         if obs_features == "invariant":
             check_invariant_arms(self.task)
-        scales = action_scales(self.task, action_acceleration)
-        scales = None if all_ones(scales) else scales
+        scales = rescaling(self.task, action_acceleration)
         # Torque mode: the learned actions' per-joint scales as flat rows (K, T); None: the env's own actions.
         self._action_scales = None if scales is None or mode == "residual" else np.tile(
             np.concatenate([scales[agent] for agent in self.possible_agents]), (self.num_envs, 1))
