@@ -4,6 +4,7 @@
     python -m studies.benchmarl_runs --algorithm mappo --mode torque --settings sb3 --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm ippo --mode residual --minutes 10 --scenario planar_square
     python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
+    python -m studies.benchmarl_runs --plot RUN_DIR [RUN_DIR ...] --figure curves.png   (no training)
 
 Needs the ``torchrl`` extra. The task is
 :class:`~ee_formation_env.baselines.learned.benchmarl_task.EEFormationTrainingTask` with ``--mode`` and its
@@ -164,6 +165,55 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
     return record
 
 
+#: The BenchMARL scalars a learning-curve figure shows: (csv-logger file pattern, axis label, log scale).
+CURVE_SCALARS = (("collection_*_info_formation_error.csv", "training formation error (m² or m)", True),
+                 ("train_*_entropy.csv", "policy entropy (nats)", False))
+
+
+def _scalar(run_dir: Path, pattern: str) -> list[float]:
+    """A BenchMARL csv-logger scalar of the run in ``run_dir``, one value per iteration (empty if absent)."""
+    files = sorted(path for path in run_dir.glob(f"*/*/scalars/{pattern}") if "_loss_" not in path.name)
+    if not files:
+        return []
+    with files[0].open(newline="", encoding="utf-8") as handle:
+        return [float(row[1]) for row in csv.reader(handle)]
+
+
+def plot_runs(run_dirs: Sequence[Path], figure: Path) -> Path:
+    """The learning curves of finished runs (their ``curve.csv`` and BenchMARL scalars) against agent steps:
+    the mean reward per agent step, the training formation error and the policy's entropy, one line per run,
+    labelled with its algorithm, settings, seed and held-out success."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from studies._common import save_figure
+
+    fig, axes = plt.subplots(1, 1 + len(CURVE_SCALARS), figsize=(5 * (1 + len(CURVE_SCALARS)), 3.8))
+    for run_dir in run_dirs:
+        record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
+        with (run_dir / "curve.csv").open(newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+        steps = [int(row["agent_steps"]) / 1e6 for row in rows]
+        used = record.get("settings", asdict(SETTINGS["benchmarl"]))  # runs from before the knob: the defaults
+        settings = next((name for name, named in SETTINGS.items() if asdict(named) == used), "custom")
+        label = (f"{record['algorithm']} {record['mode']}, {settings} settings, seed {record['seed']}: "
+                 f"{record['evaluation']['success_rate']:.0%} success")
+        axes[0].plot(steps, [float(row["mean_reward_per_step"]) for row in rows], label=label)
+        for axis, (pattern, _, _) in zip(axes[1:], CURVE_SCALARS):
+            values = _scalar(run_dir, pattern)[:len(steps)]
+            axis.plot(steps[:len(values)], values, label=label)
+    axes[0].set(ylabel="mean reward per agent step")
+    for axis, (_, title, log) in zip(axes[1:], CURVE_SCALARS):
+        axis.set(ylabel=title, yscale="log" if log else "linear")
+    for axis in axes:
+        axis.set(xlabel="agent steps (millions)")
+    axes[0].legend(fontsize=7)
+    figure.parent.mkdir(parents=True, exist_ok=True)
+    return save_figure(fig, figure)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m studies.benchmarl_runs", description=__doc__.split("\n\n")[0])
     parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS)
@@ -175,7 +225,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="learning settings: benchmarl (its defaults) or sb3 (train.py's torque preset's)")
     parser.add_argument("--episodes", type=int, default=10, help="held-out evaluation episodes (seeds 10000+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
+    parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
+                        help="no training: draw the learning curves of these finished runs into --figure")
+    parser.add_argument("--figure", type=Path, default=Path("results/benchmarl/curves.png"), help="with --plot")
     args = parser.parse_args(argv)
+    if args.plot is not None:
+        missing = [str(d) for d in args.plot if not (d / "evaluation.json").is_file() or not (d / "curve.csv").is_file()]
+        if missing:
+            parser.error(f"--plot: not a finished run (no evaluation.json and curve.csv): {missing}")
+        print(f"wrote {plot_runs(args.plot, args.figure)}")
+        return 0
     from ee_formation_env.builtin import BUILTIN_SCENARIOS
 
     if args.scenario not in BUILTIN_SCENARIOS:

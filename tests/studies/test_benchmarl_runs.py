@@ -104,3 +104,31 @@ def test_the_scoreboard_runs_a_benchmarl_method_with_its_test_split(tmp_path, ca
     capsys.readouterr()
     assert scoreboard.main(argv) == 0  # resumed: every cell from its file
     assert "running" not in capsys.readouterr().out
+
+
+def _finished_run(folder, settings=None):
+    scalars = folder / "exp" / "exp" / "scalars"
+    scalars.mkdir(parents=True)
+    (scalars / "collection_planar_2link_info_formation_error.csv").write_text("0,10.0\n1,5.0\n")
+    (scalars / "train_planar_2link_entropy.csv").write_text("0,1.0\n1,0.5\n")
+    (scalars / "train_planar_2link_loss_entropy.csv").write_text("0,-9.0\n1,-9.0\n")
+    (folder / "curve.csv").write_text("frames,agent_steps,mean_reward_per_step,wall_seconds\n"
+                                      "8000,32000,0.1,3.0\n16000,64000,0.2,6.0\n")
+    record = {"algorithm": "mappo", "mode": "torque", "seed": 0, "evaluation": {"success_rate": 0.5}}
+    if settings is not None:
+        record["settings"] = settings
+    (folder / "evaluation.json").write_text(json.dumps(record))
+
+
+def test_plot_draws_finished_runs_without_training(tmp_path, capsys):
+    from dataclasses import asdict
+
+    _finished_run(tmp_path / "a")
+    _finished_run(tmp_path / "b", asdict(benchmarl_runs.SETTINGS["sb3"]))
+    assert benchmarl_runs._scalar(tmp_path / "a", "train_*_entropy.csv") == [1.0, 0.5]  # not the loss term
+    figure = tmp_path / "curves.png"
+    assert benchmarl_runs.main(["--plot", str(tmp_path / "a"), str(tmp_path / "b"), "--figure", str(figure)]) == 0
+    assert figure.stat().st_size > 10_000
+    with pytest.raises(SystemExit):
+        benchmarl_runs.main(["--plot", str(tmp_path / "missing"), "--figure", str(figure)])
+    assert "--plot: not a finished run" in capsys.readouterr().err
