@@ -103,7 +103,10 @@ METHODS: dict[str, Method] = {
         "--mode", "residual", "--obs-features", "log-error", "--contact-penalty", "1.0")),
     "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
         "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
-    "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque")),
+    # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
+    "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
+    "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(
+        "--mode", "torque", "--max-train-seconds", "1800", "--contact-penalty", "1.0")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
