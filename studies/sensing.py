@@ -137,8 +137,9 @@ def format_rows(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def plot_effects(scenarios: Sequence[str], out: Path, episode_seconds: float | None = None) -> Path:
-    """The known effects, law-I: per scenario, the edge error and the formation's rotation over time, exact
-    against biased sensing (the steady motion of mismatched measurements) and alternating yaw."""
+    """The known effects, law-I: per scenario, the largest edge error over time, and the formation's rotation
+    (distance formations) or its centroid's travel (displacement formations), exact against biased sensing
+    (the steady motion of mismatched measurements) and alternating yaw."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,17 +152,23 @@ def plot_effects(scenarios: Sequence[str], out: Path, episode_seconds: float | N
             env = _env(scenario, knob, level, episode_seconds)
             try:
                 metrics = run_episode(env, make_policies(LAWS["law-I"], env), SEEDS[0], record=True)
-                ee, t = np.asarray(metrics.trajectory["ee"])[:, :, :env.dim], np.asarray(metrics.trajectory["t"])
-                errors = [largest_edge_error(env, np.pad(frame, ((0, 0), (0, 3 - env.dim)))) for frame in ee]
-                angles = [rotation_angle(ee[0], frame, signed=env.dim == 2) for frame in ee]
-                angles = np.unwrap(angles) if env.dim == 2 else np.asarray(angles)
+                ee, t = np.asarray(metrics.trajectory["ee"]), np.asarray(metrics.trajectory["t"])
+                errors = [largest_edge_error(env, frame) for frame in ee]
+                planar = ee[:, :, :env.dim]
+                distance = env.scenario.formation == "distance"
+                if distance:
+                    angles = [rotation_angle(planar[0], frame, signed=env.dim == 2) for frame in planar]
+                    motion = np.degrees(np.unwrap(angles) if env.dim == 2 else angles)
+                else:
+                    motion = np.linalg.norm(planar.mean(axis=1) - planar[0].mean(axis=0), axis=1)
             finally:
                 env.close()
             axes[0, column].semilogy(t, np.maximum(errors, 1e-6), label=label)
-            axes[1, column].plot(t, np.degrees(angles), label=label)
+            axes[1, column].plot(t, motion, label=label)
         axes[0, column].axhline(0.01, color="grey", ls=":", lw=1)
         axes[0, column].set(title=f"{scenario}, law-I", ylabel="largest edge error (m)")
-        axes[1, column].set(xlabel="t (s)", ylabel="formation rotation since t = 0 (deg)")
+        axes[1, column].set(xlabel="t (s)", ylabel="formation rotation since t = 0 (deg)" if distance
+                            else "centroid travel since t = 0 (m)")
         axes[0, column].legend(fontsize=8)
     return save_figure(fig, out / "sensing_effects.png")
 
