@@ -2,7 +2,7 @@
 
 - ``train``: train a shared policy and compare it with the reference controllers (the flags of ``train.py``);
 - ``evaluate``: run reference policies on seeded episodes and print the metrics table;
-- ``reproduce``, ``robustness``, ``random-scenarios``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
+- ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
   from the repository root of a checkout (they are not part of the installed package).
 """
 
@@ -65,6 +65,8 @@ COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {
     "robustness": ("the laws under model mismatch, stalls and windup (checkout only)", _study("robustness")),
     "random-scenarios": ("the laws on random planar and spatial scenarios (checkout only)",
                          _study("random_scenarios")),
+    "sensing": ("the laws against noisy, delayed, biased and misaligned measurements (checkout only)",
+                _study("sensing")),
     "scoreboard": ("every built-in scenario x method over training seeds, with intervals (checkout only)",
                    _study("scoreboard")),
 }
