@@ -48,8 +48,11 @@ class RunSettings:
     minibatch_frames: int = 2_000  # frames (env steps, all agents) per gradient step
     frames_per_batch: int = 8_000  # frames collected per iteration
     n_envs: int = 64  # natively batched env copies
+    lr_decay: bool = False  # decay the learning rate linearly to 0 over the wall-clock budget (SB3's schedule)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.lr_decay, bool):
+            raise TypeError(f"lr_decay: expected True or False, got {self.lr_decay!r}")
         for name, expected, valid in (("lr", "a learning rate > 0", lambda x: x > 0),
                                       ("lmbda", "a value in [0, 1]", lambda x: 0 <= x <= 1),
                                       ("initial_std", "a standard deviation > 0", lambda x: x > 0)):
@@ -69,11 +72,13 @@ class RunSettings:
 
 #: Named settings: ``benchmarl``, BenchMARL's defaults with the recommended batched layout; ``sb3``, the
 #: settings of train.py's torque preset where BenchMARL has the knob (Adam 3e-4, GAE 0.95, initial standard
-#: deviation e^-2 ~ 0.14, 10 epochs over small minibatches), on the same layout. Differences that remain:
-#: no observation or reward normalization, a constant learning rate, the tanh squash.
+#: deviation e^-2 ~ 0.14, 10 epochs over small minibatches), on the same layout, at a constant learning rate;
+#: ``sb3-decay``, those with the preset's linear decay of the learning rate to 0 (over the wall-clock budget).
+#: Differences that remain: no observation, reward or advantage normalization, the tanh squash.
 SETTINGS: dict[str, RunSettings] = {
     "benchmarl": RunSettings(),
     "sb3": RunSettings(lr=3e-4, lmbda=0.95, initial_std=0.14, epochs=10, minibatch_frames=400),
+    "sb3-decay": RunSettings(lr=3e-4, lmbda=0.95, initial_std=0.14, epochs=10, minibatch_frames=400, lr_decay=True),
 }
 
 
@@ -89,12 +94,13 @@ class WallClockStop(Exception):
 
 class WallClockCallback(_Callback):
     """A BenchMARL callback that records (frames, mean reward per agent step of the batch, wall s) per batch in
-    ``curve`` and stops the run at the first batch collected after ``seconds`` of wall time. Module-level,
-    because BenchMARL pickles an experiment's callbacks."""
+    ``curve`` and stops the run at the first batch collected after ``seconds`` of wall time; with ``lr`` given,
+    it sets every optimizer's learning rate to ``lr * (1 - elapsed / seconds)`` before each batch's update.
+    Module-level, because BenchMARL pickles an experiment's callbacks."""
 
-    def __init__(self, seconds: float, curve: list[tuple[int, float, float]]):
+    def __init__(self, seconds: float, curve: list[tuple[int, float, float]], lr: float | None = None):
         super().__init__()
-        self.seconds, self.curve, self.started = seconds, curve, time.time()
+        self.seconds, self.curve, self.started, self.lr = seconds, curve, time.time(), lr
 
     def on_setup(self) -> None:
         self.started = time.time()
@@ -103,8 +109,14 @@ class WallClockCallback(_Callback):
         experiment = self.experiment
         rewards = [batch.get(("next", group, "reward")).float().mean().item() for group in experiment.group_map]
         self.curve.append((int(experiment.total_frames), sum(rewards) / len(rewards), time.time() - self.started))
-        if time.time() - self.started >= self.seconds:
+        elapsed = time.time() - self.started
+        if elapsed >= self.seconds:
             raise WallClockStop(f"wall-clock budget of {self.seconds:.0f} s reached")
+        if self.lr is not None:
+            for optimizers in experiment.optimizers.values():
+                for optimizer in optimizers.values():
+                    for group in optimizer.param_groups:
+                        group["lr"] = self.lr * (1.0 - elapsed / self.seconds)
 
 
 def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10,
@@ -142,7 +154,8 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
     curve: list[tuple[int, float, float]] = []
     experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=MlpConfig.get_from_yaml(),
                             critic_model_config=MlpConfig.get_from_yaml(), seed=seed, config=config,
-                            callbacks=[WallClockCallback(minutes * 60.0, curve)])
+                            callbacks=[WallClockCallback(minutes * 60.0, curve,
+                                                         settings.lr if settings.lr_decay else None)])
     started = time.time()
     try:
         experiment.run()
@@ -196,7 +209,7 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path) -> Path:
         with (run_dir / "curve.csv").open(newline="", encoding="utf-8") as handle:
             rows = list(csv.DictReader(handle))
         steps = [int(row["agent_steps"]) / 1e6 for row in rows]
-        used = record.get("settings", asdict(SETTINGS["benchmarl"]))  # runs from before the knob: the defaults
+        used = {**asdict(RunSettings()), **record.get("settings", {})}  # a knob a run predates: its default
         settings = next((name for name, named in SETTINGS.items() if asdict(named) == used), "custom")
         label = (f"{record['algorithm']} {record['mode']}, {settings} settings, seed {record['seed']}: "
                  f"{record['evaluation']['success_rate']:.0%} success")
@@ -222,7 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock training budget")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
     parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS),
-                        help="learning settings: benchmarl (its defaults) or sb3 (train.py's torque preset's)")
+                        help="learning settings: benchmarl (its defaults), sb3 (train.py's torque preset's) or "
+                             "sb3-decay (those with its linear learning-rate decay)")
     parser.add_argument("--episodes", type=int, default=10, help="held-out evaluation episodes (seeds 10000+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",

@@ -22,6 +22,7 @@ needs_benchmarl = pytest.mark.skipif(importlib.util.find_spec("benchmarl") is No
     ("initial_std", float("nan"), ValueError, "initial_std: expected a standard deviation > 0"),
     ("epochs", 0, ValueError, "epochs: expected an integer >= 1"),
     ("minibatch_frames", 9_000, ValueError, "minibatch_frames: expected at most frames_per_batch (8000)"),
+    ("lr_decay", 1, TypeError, "lr_decay: expected True or False"),
 ])
 def test_bad_run_settings_name_the_field(field, value, error, message):
     with pytest.raises(error, match=re.escape(message)):
@@ -132,3 +133,34 @@ def test_plot_draws_finished_runs_without_training(tmp_path, capsys):
     with pytest.raises(SystemExit):
         benchmarl_runs.main(["--plot", str(tmp_path / "missing"), "--figure", str(figure)])
     assert "--plot: not a finished run" in capsys.readouterr().err
+
+
+def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch):
+    import types
+
+    import torch
+
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    optimizer = torch.optim.Adam([parameter], lr=1.0)
+    batch = types.SimpleNamespace(get=lambda key: torch.ones(3))
+    experiment = types.SimpleNamespace(group_map={"arms": ["a", "b"]}, total_frames=100,
+                                       optimizers={"arms": {"loss_objective": optimizer}})
+    curve = []
+    callback = benchmarl_runs.WallClockCallback(100.0, curve, lr=3e-4)
+    callback.experiment = experiment
+    now = [1000.0]
+    monkeypatch.setattr(benchmarl_runs.time, "time", lambda: now[0])
+    callback.on_setup()
+    now[0] += 25.0
+    callback.on_batch_collected(batch)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(3e-4 * 0.75) and curve == [(100, 1.0, 25.0)]
+    now[0] += 80.0
+    with pytest.raises(benchmarl_runs.WallClockStop):
+        callback.on_batch_collected(batch)
+    constant = benchmarl_runs.WallClockCallback(100.0, [])  # no lr: the optimizers are left alone
+    constant.experiment = experiment
+    constant.on_setup()
+    optimizer.param_groups[0]["lr"] = 0.5
+    now[0] += 10.0
+    constant.on_batch_collected(batch)
+    assert optimizer.param_groups[0]["lr"] == 0.5
