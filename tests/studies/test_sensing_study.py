@@ -1,4 +1,4 @@
-"""studies.sensing: the knobs it sets, the rotation it measures, and a quick run's outputs."""
+"""studies.sensing (the study; the env's sensing is tests/test_sensing.py): the knobs it sets, the rotation it measures, and a quick run's outputs."""
 
 from __future__ import annotations
 
