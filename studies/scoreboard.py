@@ -444,8 +444,9 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
                 cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
                              f"{spec.format(metric['ci_high'])}]")
             seeds = ", ".join(map(str, row["seeds"])) or "-"
-            steps = row["budget"]["agent_steps_per_seed"]
-            lines.append(f"| {row['method']} | {seeds} | {max(steps):,} | " + " | ".join(cells) +
+            steps = row["budget"]["agent_steps_per_seed"]  # differ where a wall-clock cap stopped a run
+            budget = f"{max(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}-{max(steps):,}"
+            lines.append(f"| {row['method']} | {seeds} | {budget} | " + " | ".join(cells) +
                          f" | {row['wall_seconds']:,.0f} |")
         faulted = [row for row in board_rows if _place(row) == place and row["faults"]]
         for row in faulted:
