@@ -124,6 +124,8 @@ def _finished_run(folder, settings=None):
 def test_plot_draws_finished_runs_without_training(tmp_path, capsys):
     from dataclasses import asdict
 
+    pytest.importorskip("matplotlib")  # the figures extra (the torchrl venv has none)
+
     _finished_run(tmp_path / "a")
     _finished_run(tmp_path / "b", asdict(benchmarl_runs.SETTINGS["sb3"]))
     assert benchmarl_runs._scalar(tmp_path / "a", "train_*_entropy.csv") == [1.0, 0.5]  # not the loss term
