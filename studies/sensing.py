@@ -28,6 +28,7 @@ import numpy as np
 from ee_formation_env import parallel_env
 from ee_formation_env.baselines import make_policies
 from ee_formation_env.baselines.metrics import run_episode
+from ee_formation_env.scenario import load_scenario
 from studies._common import LAWS, copy_figures, report_outputs, save_figure
 
 #: Each knob's levels: noise (m, standard deviation), delay (control steps), bias (m), yaw (rad).
@@ -75,9 +76,7 @@ def largest_edge_error(env: Any, ee: np.ndarray) -> float:
 
 def _env(scenario: str, knob: str, level: float, episode_seconds: float | None) -> Any:
     """The scenario's env with one knob at one level (and the episode length, if given)."""
-    probe = parallel_env(scenario)
-    n_agents = probe.task.n_agents
-    probe.close()
+    n_agents = load_scenario(scenario).n_agents  # the scenario alone: no second PyBullet world for a count
     extra = {} if episode_seconds is None else {"episode_seconds": episode_seconds}
     return parallel_env(scenario, sensing=sensing_of(knob, level, n_agents), **extra)
 
