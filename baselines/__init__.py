@@ -67,7 +67,8 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
     """A reference policy for one agent: ``reset()`` and ``__call__(observation) -> action``.
 
     ``gains``: a :class:`Gains`, or a dict of overrides of the defaults for this scenario
-    (:func:`ee_formation_env.baselines.reference.gains.default_gains`). ``a_hat0``: initial kinematic estimate (default: the nominal
+    (:func:`ee_formation_env.baselines.reference.gains.default_gains`); on a scenario distribution the defaults
+    are those of the env's current draw, taken again at every ``reset()`` of the policy (after the env's). ``a_hat0``: initial kinematic estimate (default: the nominal
     URDF's parameters). ``options``: controller options: ``anti_windup`` (``approx_jacobian`` and
     ``adaptive_jacobian``), ``projection`` and ``parameter_bounds`` (``adaptive_jacobian``; default box
     ``[0.5, 2] x`` the nominal parameters), see :mod:`ee_formation_env.baselines.reference.controllers`. ``seed`` seeds ``random``.
@@ -79,11 +80,17 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
         return ZeroPolicy(model.chain.n_joints)
     if name == "random":
         return RandomPolicy(model.chain.n_joints, seed=seed + env.task.agent_index(agent))
-    if gains is None or isinstance(gains, Mapping):
-        gains = default_gains(env.task, env.task.agent_index(agent)).with_updates(**dict(gains or {}))
+    index = env.task.agent_index(agent)
+    follow = gains is None or isinstance(gains, Mapping)
+    if follow:
+        updates = dict(gains or {})
+        gains = default_gains(env.task, index).with_updates(**updates)
     elif not isinstance(gains, Gains):
         raise TypeError(f"gains: expected a Gains, a dict or None, got {type(gains).__name__}")
-    return make_controller(name, model, gains, a_hat0, **options)
+    controller = make_controller(name, model, gains, a_hat0, **options)
+    if follow and env.scenario.distribution.active:  # each draw its own gains, taken at every reset
+        controller.gains_source = lambda: default_gains(env.task, index).with_updates(**updates)
+    return controller
 
 
 def make_controller(name: str, model: AgentModel, gains: Gains, a_hat0: Any = None, **options: Any

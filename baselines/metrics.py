@@ -456,7 +456,7 @@ replay it bit for bit).
         # Without a given env, each round gets a fresh one: every episode then starts from a fresh world.
         round_env = env if env is not None else evaluation_env(scenario, count, **dict(overrides or {}))
         try:
-            teams = _BatchedTeams(round_env, [policy(round_env) for _ in range(round_env.num_envs)])
+            teams = _BatchedTeams(round_env, [policy(round_env.copy_view(k)) for k in range(round_env.num_envs)])
             results.update(zip(chunk, _run_round(round_env, teams, chunk, position_tolerance, hold_seconds)))
         finally:
             if env is None:
@@ -479,7 +479,7 @@ def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Seq
         chunk = jobs[start:start + per_round]
         with evaluation_env(scenario, len(chunk), **dict(overrides or {})) as env:
             sources = {name: _policy_source(policies[name]) for name in dict.fromkeys(name for name, _ in chunk)}
-            teams = _BatchedTeams(env, [sources[name](env) for name, _ in chunk])
+            teams = _BatchedTeams(env, [sources[name](env.copy_view(k)) for k, (name, _) in enumerate(chunk)])
             copy_seeds = [seed for _, seed in chunk]
             results.update(zip(chunk, _run_round(env, teams, copy_seeds, position_tolerance, hold_seconds)))
     return {name: [results[(name, seed)] for seed in seeds] for name in policies}
@@ -505,7 +505,7 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
     observations = result.observations
     teams.reset()
     dt = env.scenario.control_dt
-    tolerance = _formation_tolerance(env.task.formation, position_tolerance)
+    tolerances = [_formation_tolerance(env.tasks[k].formation, position_tolerance) for k in range(wanted)]
     start = env.end_effector_positions()
     start_centroids = [start[k].mean(axis=0) for k in range(wanted)]
     joint_slices = env.joint_slices
@@ -557,7 +557,7 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
     metrics = []
     for k in range(wanted):
         series = np.asarray(errors[k])
-        success, settling_time = settle(series, tolerance, dt, hold_seconds, faulted=bool(faults[k]))
+        success, settling_time = settle(series, tolerances[k], dt, hold_seconds, faulted=bool(faults[k]))
         metrics.append(EpisodeMetrics(
             success=success,
             final_formation_error=float(series[-1]),

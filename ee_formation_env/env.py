@@ -13,6 +13,7 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from ee_formation_env.formation import Formation, FormationGraph, formation_error_from_squares
+from ee_formation_env.generators import distribution_bounds, sample_task
 from ee_formation_env.inputs import check_seed, excerpt, numeric_action
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
@@ -108,7 +109,16 @@ class FormationEnv(ParallelEnv):
         self.render_mode = render_mode
         self.possible_agents = self.task.agents
         self.agents: list[str] = []
-        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity)
+        self.world, self.arm_set = build_world(self.task, render_mode)
+        self._bounds = None
+        if self.scenario.distribution.active:  # one draw now: an infeasible distribution is refused here
+            try:
+                self.task = sample_task(self.scenario, np.random.default_rng(0), self._start_problem)
+            except BaseException:
+                self.world.close()
+                raise
+            self._bounds = distribution_bounds(self.scenario, self.task)
+        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds)
         sensing = self.scenario.sensing
         self._sensor = Sensor(sensing, self.task, self._observer) if sensing.active else None
         self._observation_spaces = dict(zip(self.possible_agents, self._observer.spaces))
@@ -118,7 +128,6 @@ class FormationEnv(ParallelEnv):
         self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
         self.action_spaces = dict(self._action_spaces)
 
-        self.world, self.arm_set = build_world(self.task, render_mode)
         self._torque_limits_flat = np.concatenate(self.task.torque_limits)
         self._edge_tolerances = edge_tolerances(self.task.formation.kind,
                                                 np.linalg.norm(self.task.formation.desired_vectors, axis=1),
@@ -186,6 +195,8 @@ class FormationEnv(ParallelEnv):
             raise RuntimeError("reset: the environment is closed")
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
+        if self.scenario.distribution.active:  # this episode's draw, from the episode's generator
+            self._use_task(sample_task(self.scenario, self.np_random, self._start_problem))
         reset_world(self.world, self.arm_set, self.task, self.np_random)
         self.agents = list(self.possible_agents)
         self._step_count = 0
@@ -288,6 +299,21 @@ class FormationEnv(ParallelEnv):
         self.__init__(state.pop("scenario"), **state)
 
     # ------------------------------------------------------------------------------------------ internals
+    def _start_problem(self, task: Any) -> str | None:
+        """Why a drawn task cannot start in this world (arms in contact at their initial configurations), or
+        None; the arms are left placed there."""
+        return start_problem(self.arm_set, task)
+
+    def _use_task(self, task: Any) -> None:
+        """Make a drawn task the current one: its observer (same spaces: the distribution's bounds), edge
+        tolerances and ghost."""
+        self.task = task
+        self._observer = ObservationBuilder(task, self.scenario.max_joint_velocity, self._bounds)
+        self._edge_tolerances = edge_tolerances(task.formation.kind, np.linalg.norm(task.formation.desired_vectors,
+                                                                                    axis=1),
+                                                self.scenario.reward.position_tolerance)
+        self._renderer.formation = task.formation
+
     def _last(self) -> Measurement:
         """The last measurement (taken now if the env was never reset)."""
         if self._measurement is None:
@@ -425,10 +451,26 @@ def build_world(task: Any, render_mode: str | None = None) -> tuple[PhysicsWorld
     return world, arm_set
 
 
+def start_problem(arm_set: ArmSet, task: Any) -> str | None:
+    """Place ``arm_set``'s arms as ``task`` (a scenario distribution's draw) has them, at its initial
+    configurations; why they cannot start there (arms in contact, while ``arm_collisions`` is on), or None."""
+    arm_set.place_bases(task)
+    arm_set.reset(list(task.initial_q))
+    if task.scenario.arm_collisions:
+        try:
+            check_start_contacts(arm_set)
+        except ValueError as error:
+            return str(error)
+    return None
+
+
 def reset_world(world: PhysicsWorld, arm_set: ArmSet, task: Any, rng: np.random.Generator) -> None:
     """Restore the saved world, then place the arms at the scenario's initial joint positions plus uniform
-    noise of half-width ``initial_q_noise`` drawn from ``rng`` (clipped to the joint limits), at rest."""
+    noise of half-width ``initial_q_noise`` drawn from ``rng`` (clipped to the joint limits), at rest. A task
+    whose bases are not the saved ones (a scenario distribution's draw) has its bases moved there first."""
     world.restore_snapshot()
+    if any(arm.config is not config for arm, config in zip(arm_set.arms, task.scenario.arms)):
+        arm_set.place_bases(task)
     noise = task.scenario.initial_q_noise
     starts = []
     for arm, q0 in zip(arm_set.arms, task.initial_q):

@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any
+import warnings
+from typing import Any, Callable
 
 import numpy as np
 import pybullet
 import pybullet_data
 
 from ee_formation_env.robots import SPATIAL_INITIAL_Q, ROBOTS
-from ee_formation_env.kinematics import chain_model, rpy_to_matrix
+from ee_formation_env.kinematics import chain_model, rpy_to_matrix, singularity_margins
 
 _PLANAR_REACH_USED = 2.0  # m, initial base-to-end-effector distance of a planar arm
 _PLANAR_BASE_SPACING = 3.5  # m between neighbouring bases on the circle (keeps the arms apart)
@@ -261,3 +262,169 @@ def _pose_arms(robots: list[str], radius: float, offset: float, rng: np.random.G
         arm.update({"robot": robot} if robot in ROBOTS else {"urdf": urdf, "ee_link": ee_link})
         arms.append(arm)
     return arms, targets
+
+
+# -- scenario distributions (ee_formation_env.distribution): one validated draw per reset ------------------
+def sample_task(scenario: Any, rng: np.random.Generator, accept: Callable[[Any], str | None] | None = None) -> Any:
+    """One validated draw of ``scenario``'s distribution (:mod:`ee_formation_env.distribution`): a
+    :class:`~ee_formation_env.task.FormationTask` of a fixed scenario with the same team. ``rng`` supplies every
+    random number (the env's generator: the reset seed fixes the draw). ``accept(task)`` may reject a draw that
+    passed the geometric checks (the env's start-contact check in its world): it returns the reason, or None.
+    Rejected draws are redrawn; after ``max_tries`` a ``ValueError`` names the distribution and the last reason.
+    """
+    from ee_formation_env.scenario import load_scenario  # the format and the task sit above the generators
+    from ee_formation_env.task import build_task
+
+    config = scenario.distribution
+    reason = ""
+    for _ in range(config.max_tries):
+        try:
+            with warnings.catch_warnings():  # a non-minimal graph warns once at construction, not per draw
+                warnings.simplefilter("ignore", UserWarning)
+                task = build_task(load_scenario(draw_scenario(scenario, rng)))
+            problem = _margin_problem(task, config) or (accept(task) if accept is not None else None)
+        except (ValueError, LookupError) as error:
+            problem = str(error)
+        if problem is None:
+            return task
+        reason = problem
+    raise ValueError(f"distribution: no valid draw of {scenario.name!r} in {config.max_tries} tries (max_tries); "
+                     f"last rejection: {reason}")
+
+
+def draw_scenario(scenario: Any, rng: np.random.Generator) -> dict[str, Any]:
+    """One unvalidated draw of ``scenario``'s distribution as plain scenario data (no ``distribution`` key);
+    LookupError when a ``"reachable"`` vertex cannot be placed."""
+    config = scenario.distribution
+    data = scenario.to_dict()
+    data.pop("distribution")
+    n_agents, dim = scenario.n_agents, scenario.dim
+    arms = data["arms"]
+    models = [chain_model(arm.urdf, arm.ee_link) for arm in scenario.arms]
+    offset = 0.0
+    if config.ring_radius is not None:
+        radius = float(rng.uniform(*config.ring_radius))
+        offset = float(rng.uniform(*config.ring_offset))
+        centre = np.zeros(2)
+        for i, arm in enumerate(arms):
+            angle = offset + 2 * math.pi * i / n_agents
+            arm["base_position"] = [radius * math.cos(angle), radius * math.sin(angle), arm["base_position"][2]]
+            arm["base_rpy"] = [arm["base_rpy"][0], arm["base_rpy"][1], angle + math.pi + float(rng.uniform(*config.base_yaw))]
+    else:
+        centre = np.asarray(scenario.shape)[:, :2].mean(axis=0)
+        for arm in arms:
+            arm["base_rpy"][2] += float(rng.uniform(*config.base_yaw))
+    if config.initial_q == "random":
+        for arm, model in zip(arms, models):
+            arm["initial_q"] = _inner_configurations(model, 1, rng)[0].tolist()
+    if config.shape == "reachable":
+        data["shape"] = _reachable_shape(scenario, arms, models, centre, rng).tolist()
+    else:
+        data["shape"] = _placed_shape(scenario, centre, offset, rng).tolist()
+    if config.graph == "trilateration":
+        data["edges"] = trilateration_edges(n_agents, dim)
+    elif config.graph == "complete":
+        data["edges"] = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
+    data.pop("incidence", None)
+    return data
+
+
+def _inner_configurations(model: Any, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` configurations (rad) uniform within the joint limits less a 10 % margin at each end."""
+    low = np.where(model.continuous, -math.pi, model.lower)
+    high = np.where(model.continuous, math.pi, model.upper)
+    span = high - low
+    return rng.uniform(low + 0.1 * span, high - 0.1 * span, size=(count, model.n_joints))
+
+
+def _placed_shape(scenario: Any, centre: np.ndarray, ring_offset: float, rng: np.random.Generator) -> np.ndarray:
+    """The ``"scenario"`` or ``"regular"`` shape, scaled, stretched and turned, about the layout's centre."""
+    config, dim, n_agents = scenario.distribution, scenario.dim, scenario.n_agents
+    own = np.asarray(scenario.shape, dtype=np.float64)
+    scale = float(rng.uniform(*config.shape_scale))
+    aspect = float(rng.uniform(*config.shape_aspect))
+    turn = float(rng.uniform(*config.shape_rotation))
+    if config.shape == "scenario":
+        points = (own - own.mean(axis=0)) * scale
+    else:  # a regular polygon (or tetrahedron) of circumradius `scale`, vertex i towards arm i's ring angle
+        angles = ring_offset + 2 * math.pi * np.arange(n_agents) / n_agents
+        points = np.zeros((n_agents, dim))
+        if dim == 3 and n_agents == 4:
+            points = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]) / math.sqrt(3)
+            points *= scale
+        else:
+            points[:, 0], points[:, 1] = scale * np.cos(angles), scale * np.sin(angles)
+    points[:, 0] *= aspect
+    points[:, 1] /= aspect
+    c, s = math.cos(turn), math.sin(turn)
+    points[:, :2] = points[:, :2] @ np.array([[c, s], [-s, c]])
+    placed = points.copy()
+    placed[:, :2] += centre
+    if dim == 3:
+        height = own[:, 2].mean() if config.region_height is None else float(rng.uniform(*config.region_height))
+        placed[:, 2] += height
+    return placed
+
+
+def _reachable_shape(scenario: Any, arms: list[dict], models: list[Any], centre: np.ndarray,
+                     rng: np.random.Generator) -> np.ndarray:
+    """Each vertex the end-effector of a random configuration of its own arm (world frame) inside the shared
+    region, away from singularities and from the vertices before it; LookupError if one cannot be placed."""
+    config, dim = scenario.distribution, scenario.dim
+    vertices: list[np.ndarray] = []
+    for i, (arm, model) in enumerate(zip(arms, models)):
+        rotation = rpy_to_matrix(np.asarray(arm["base_rpy"], dtype=np.float64))
+        base = np.asarray(arm["base_position"], dtype=np.float64)
+        for _ in range(20):
+            q = _inner_configurations(model, 256, rng)
+            ee = base + model.forward_batch(q) @ rotation.T
+            inside = np.linalg.norm(ee[:, :2] - centre, axis=1) <= config.region_radius
+            if dim == 3 and config.region_height is not None:
+                inside &= (ee[:, 2] >= config.region_height[0]) & (ee[:, 2] <= config.region_height[1])
+            found = None
+            for k in np.flatnonzero(inside):
+                if all(np.linalg.norm(ee[k, :dim] - other) >= config.vertex_spacing for other in vertices):
+                    if singularity_margins(model.jacobian(q[k])[None], dim)[0] >= config.singularity_margin:
+                        found = ee[k, :dim]
+                        break
+            if found is not None:
+                vertices.append(found)
+                break
+        else:
+            raise LookupError(f"distribution: arms[{i}] reaches no vertex in the shared region (region_radius "
+                              f"{config.region_radius} m about {centre.round(3).tolist()})")
+    return np.array(vertices)
+
+
+def _margin_problem(task: Any, config: Any) -> str | None:
+    """Why a validated draw breaks the distribution's own margins (initial singularity margin, vertex
+    spacing), or None."""
+    for i, (model, q0) in enumerate(zip(task.models, task.initial_q)):
+        margin = float(singularity_margins(model.jacobian(q0)[None], task.dim)[0])
+        if margin < config.singularity_margin:
+            return f"arms[{i}]: initial singularity margin {margin:.3f} m < singularity_margin {config.singularity_margin} m"
+    shape = np.asarray(task.scenario.shape)
+    gaps = np.linalg.norm(shape[:, None] - shape[None], axis=-1) + np.diag(np.full(len(shape), np.inf))
+    if gaps.min() < config.vertex_spacing:
+        return f"shape: two vertices {gaps.min():.3f} m apart < vertex_spacing {config.vertex_spacing} m"
+    return None
+
+
+def distribution_bounds(scenario: Any, task: Any) -> tuple[float, float]:
+    """Bounds (m) on |z_ij| and on end-effector coordinates over every draw of ``scenario``'s distribution
+    (``task``: any draw; the team, so the reaches and base heights, is the same in all): the observation and
+    state spaces are built from them, so they stay fixed while the layout changes."""
+    config, dim = scenario.distribution, scenario.dim
+    reaches = np.asarray(task.reaches)
+    heights = task.base_positions[:, 2]
+    if config.ring_radius is None:
+        bases = task.base_positions  # base yaws may change, the positions do not
+        spans = np.linalg.norm(bases[:, None] - bases[None], axis=-1)
+        horizontal = float(np.max(np.abs(bases[:, :2])))
+    else:
+        radius = config.ring_radius[1]
+        spans = np.hypot(2 * radius, heights[:, None] - heights[None])
+        horizontal = radius
+    z_bound = float(np.max(spans + reaches[:, None] + reaches[None]))
+    coordinate = max(horizontal, float(np.max(np.abs(heights))) if dim == 3 else 0.0)
+    return z_bound, max(coordinate + float(reaches.max()), 1.0)

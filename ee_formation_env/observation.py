@@ -132,12 +132,14 @@ class ObservationBuilder:
     into the spaces' bounds (:meth:`observations`).
     """
 
-    def __init__(self, task: FormationTask, max_joint_velocity: float):
+    def __init__(self, task: FormationTask, max_joint_velocity: float, bounds: tuple[float, float] | None = None):
+        """``bounds``: (|z| bound, end-effector coordinate bound), m, for spaces that must hold over many
+        tasks (a scenario distribution's draws); default: this task's own (module docstring)."""
         formation, graph = task.formation, task.graph
         m, w, n_slots = task.dim, formation.error_width, graph.max_degree
         self.kind = formation.kind
         self.layouts = [ObservationLayout(n_slots, m, w, model.n_joints) for model in task.models]
-        self.spaces, self.state_space = _spaces(task, self.layouts, max_joint_velocity)
+        self.spaces, self.state_space = _spaces(task, self.layouts, max_joint_velocity, bounds)
 
         neighbors = graph.neighbors
         degrees = [len(slots) for slots in neighbors]
@@ -255,16 +257,19 @@ class ObservationBuilder:
         return np.clip(state, self._state_low, self._state_high).astype(np.float32)
 
 
-def _spaces(task: FormationTask, layouts: list[ObservationLayout], max_joint_velocity: float
-            ) -> tuple[list[gymnasium.spaces.Box], gymnasium.spaces.Box]:
+def _spaces(task: FormationTask, layouts: list[ObservationLayout], max_joint_velocity: float,
+            bounds: tuple[float, float] | None = None) -> tuple[list[gymnasium.spaces.Box], gymnasium.spaces.Box]:
     """Each agent's observation space and the state space, with finite bounds (module docstring)."""
     formation, m = task.formation, task.dim
     bases = task.base_positions
     # One bound on |z_ij| for every agent (the largest base distance plus reaches over all edges), so
     # that identical arms get identical spaces and can share one policy.
-    z_bound = max(float(np.max(np.abs(formation.desired))), max(
-        float(np.linalg.norm(bases[tail] - bases[head])) + task.reaches[tail] + task.reaches[head]
-        for tail, head in task.graph.edges))
+    if bounds is not None:
+        z_bound = bounds[0]
+    else:
+        z_bound = max(float(np.max(np.abs(formation.desired))), max(
+            float(np.linalg.norm(bases[tail] - bases[head])) + task.reaches[tail] + task.reaches[head]
+            for tail, head in task.graph.edges))
     if formation.kind == "distance":
         desired_low, desired_high, error_bound = 0.0, z_bound, z_bound**2
     else:
@@ -281,7 +286,7 @@ def _spaces(task: FormationTask, layouts: list[ObservationLayout], max_joint_vel
         high = np.concatenate([np.tile(slot_high, layout.n_slots), q_highs[-1], speeds[-1]]).astype(np.float32)
         spaces.append(gymnasium.spaces.Box(low, high, dtype=np.float32))
 
-    ee_bound = max(float(np.max(np.abs(bases[:, :m]))) + max(task.reaches), 1.0)
+    ee_bound = max(float(np.max(np.abs(bases[:, :m]))) + max(task.reaches), 1.0) if bounds is None else bounds[1]
     n_ee = task.n_agents * m
     state_low = np.concatenate([np.full(n_ee, -ee_bound), *q_lows, *(-v for v in speeds)]).astype(np.float32)
     state_high = np.concatenate([np.full(n_ee, ee_bound), *q_highs, *speeds]).astype(np.float32)

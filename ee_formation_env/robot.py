@@ -77,6 +77,18 @@ class Arm:
     def n_joints(self) -> int:
         return self.model.n_joints
 
+    def place_base(self, position: tuple[float, ...], rpy: tuple[float, ...]) -> None:
+        """Move the fixed base to ``position`` (m) and ``rpy`` (rad), as if loaded there (a sampled
+        scenario's layout). PyBullet places a body by its base link's inertial frame, so the link frame's
+        pose is composed with that frame's offset."""
+        client = self.world.client
+        info = pybullet.getDynamicsInfo(self.body, -1, physicsClientId=client)
+        com_position, com_orientation = pybullet.multiplyTransforms(
+            list(position), pybullet.getQuaternionFromEuler(rpy), info[3], info[4])
+        pybullet.resetBasePositionAndOrientation(self.body, com_position, com_orientation, physicsClientId=client)
+        self.base_position = np.asarray(position, dtype=np.float64)
+        self.base_rotation = rpy_to_matrix(rpy)
+
     def reset_state(self, q: np.ndarray) -> None:
         """Place the chain joints at ``q`` (rad) with zero velocity."""
         for j, value in zip(self.joint_indices, q):
@@ -117,6 +129,12 @@ class ArmSet:
 
     def __len__(self) -> int:
         return len(self.arms)
+
+    def place_bases(self, task: FormationTask) -> None:
+        """Move every arm's base to the pose ``task`` gives it (a sampled scenario's layout; the robots are
+        the same, so nothing is reloaded)."""
+        for arm, config in zip(self.arms, task.scenario.arms):
+            arm.place_base(config.base_position, config.base_rpy)
 
     def reset(self, q: list[np.ndarray]) -> None:
         """Place every arm at its joint positions (rad), at rest."""

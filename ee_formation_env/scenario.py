@@ -43,6 +43,7 @@ from ee_formation_env.inputs import (MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PH
                                      BoundedSafeLoader, excerpt, is_real_number)
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 from ee_formation_env.reward import RewardConfig, parse_reward
+from ee_formation_env.distribution import DistributionConfig, parse_distribution
 from ee_formation_env.sensing import SensingConfig, parse_sensing
 from ee_formation_env.robots import ROBOTS, SPATIAL_INITIAL_Q, RobotSpec  # noqa: F401
 
@@ -123,6 +124,10 @@ class Scenario:
                                         "agents measure of z_ij: Gaussian noise (m), a delay (control steps), a bias "
                                         "(m) and a frame misalignment (rad) per agent; default exact (see "
                                         ":mod:`ee_formation_env.sensing`)", default_factory=SensingConfig)
+    distribution: DistributionConfig = _key(None, "ranges sampled at every reset instead of fixed values: base "
+                                                  "layout, shape, graph generator, initial configurations (see "
+                                                  ":mod:`ee_formation_env.distribution`); default none (fixed)",
+                                            default_factory=DistributionConfig)
     controller_gains: ControllerGains | None = _key(None, "``{kp, kd, ki, alpha}``: tuned gains of the reference "
                                                           "controllers (built-in scenarios carry theirs); null = "
                                                           "derived from the robots, torque limits and rates")
@@ -153,6 +158,8 @@ class Scenario:
             value = getattr(self, spec.name)
             if spec.name == "arms":
                 value = [_arm_to_dict(arm) for arm in value]
+            elif spec.name == "distribution":
+                value = value.to_dict()
             elif spec.name in ("reward", "model_mismatch", "sensing") or (spec.name == "controller_gains" and value is not None):
                 value = {f.name: getattr(value, f.name) for f in fields(value)}
             data[spec.name] = _plain(value)
@@ -220,7 +227,7 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                   **overrides: Any) -> Scenario:
     """Parse a scenario (built-in name, YAML/JSON path, dict or parsed :class:`Scenario`) plus overrides.
 
-    ``reward``, ``model_mismatch`` and ``sensing`` overrides are merged into the scenario's. Raises ``ValueError``
+    ``reward``, ``model_mismatch``, ``sensing`` and ``distribution`` overrides are merged into the scenario's. Raises ``ValueError``
     naming the offending field, or ``TypeError`` for a scenario argument of the wrong type.
     """
     if isinstance(scenario, Scenario):
@@ -257,7 +264,7 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                                                                         if key in SCENARIO_FIELDS else None))
         for key, value in overrides.items())
     for key, value in overrides.items():
-        if key in ("reward", "model_mismatch", "sensing") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
+        if key in ("reward", "model_mismatch", "sensing", "distribution") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
             data[key] = {**data[key], **value}
         else:
             data[key] = value
@@ -358,6 +365,10 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["reward"] = parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
     kwargs["sensing"] = parse_sensing(data.get("sensing"), len(arms), int(dim))
+    kwargs["distribution"] = parse_distribution(data.get("distribution"), int(dim))
+    if kwargs["distribution"].active and kwargs["sensing"].active:
+        raise ValueError("distribution: a scenario distribution cannot be combined with sensing imperfections "
+                         "yet (the sensor's per-agent frames are built for one fixed layout)")
     kwargs["controller_gains"] = _parse_controller_gains(data.get("controller_gains"))
 
     return Scenario(

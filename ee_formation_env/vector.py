@@ -97,8 +97,9 @@ import numpy as np
 from gymnasium.utils import seeding
 
 from ee_formation_env.env import (PHYSICS_FAULTS, Measurement, build_world, measure, physics_fault, reward_array,
-                                  reset_world)
+                                  reset_world, start_problem)
 from ee_formation_env.formation import formation_errors_from_squares
+from ee_formation_env.generators import distribution_bounds, sample_task
 from ee_formation_env.inputs import check_seed, excerpt, numeric_action
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.reward import edge_tolerances
@@ -150,7 +151,22 @@ class VectorFormationEnv:
         self.render_mode = None
         self.possible_agents = self.task.agents
         self.agents = list(self.possible_agents)
-        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity)
+        self._worlds, self._arm_sets = [], []
+        try:
+            for _ in range(K):
+                world, arm_set = build_world(self.task)
+                self._worlds.append(world)
+                self._arm_sets.append(arm_set)
+            self._bounds = None
+            self._sampled = self.scenario.distribution.active
+            if self._sampled:  # the single env's construction draw: an infeasible distribution is refused here
+                self.task = sample_task(self.scenario, np.random.default_rng(0),
+                                        lambda task: start_problem(self._arm_sets[0], task))
+                self._bounds = distribution_bounds(self.scenario, self.task)
+        except BaseException:
+            self.close()
+            raise
+        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds)
         sensing = self.scenario.sensing
         self._sensor = Sensor(sensing, self.task, self._observer, K) if sensing.active else None
         self._sensed: tuple[np.ndarray, np.ndarray] | None = None  # the copies' measured slot z and errors
@@ -164,15 +180,6 @@ class VectorFormationEnv:
         self._batched_action_spaces = {a: _batched(s, K) for a, s in self._action_spaces.items()}
         self.batched_state_space = _batched(self.state_space, K)
 
-        self._worlds, self._arm_sets = [], []
-        try:
-            for _ in range(K):
-                world, arm_set = build_world(self.task)
-                self._worlds.append(world)
-                self._arm_sets.append(arm_set)
-        except BaseException:
-            self.close()
-            raise
         arm_set = self._arm_sets[0]
         # Every copy's arms are the same robots (under model_mismatch, the same perturbation seed): copy 0's
         # models evaluate all K copies in one batched call.
@@ -188,6 +195,10 @@ class VectorFormationEnv:
         self._edge_tolerances = edge_tolerances(self.task.formation.kind,
                                                 np.linalg.norm(self.task.formation.desired_vectors, axis=1),
                                                 self.scenario.reward.position_tolerance)
+        # A scenario distribution: each copy's current draw, its observer and its edge tolerances (K,).
+        self.tasks = [self.task] * K
+        self._observers = [self._observer] * K
+        self._copy_tolerances = [self._edge_tolerances] * K
         self.np_randoms = [seeding.np_random(None)[0] for _ in range(K)]
         n = self.task.n_agents
         self._step_counts = np.zeros(K, dtype=np.int64)
@@ -236,6 +247,11 @@ class VectorFormationEnv:
     def torque_limits(self) -> tuple[np.ndarray, ...]:
         return self.task.torque_limits
 
+    def copy_view(self, k: int) -> "CopyView":
+        """Copy ``k`` as a per-copy consumer (a policy source, a reference controller) sees it: this env, with
+        ``task`` copy k's current one (on a scenario distribution, its current draw)."""
+        return CopyView(self, k)
+
     # ------------------------------------------------------------------------------------------ dict API
     def reset(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
         """Reset every copy (or those of ``options["reset_mask"]``); copy k seeded ``seed + k`` when a seed is
@@ -273,7 +289,8 @@ class VectorFormationEnv:
             self._reset_copies(rows)
         self._needs_reset = False
         measured = self._measurement
-        observations = self._observer.observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq)
+        observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq,
+                                                np.arange(self.num_envs))
         infos = self._info_arrays(measured)
         infos["final_observation"] = observations.copy()
         K, n = self.num_envs, self.task.n_agents
@@ -380,7 +397,10 @@ class VectorFormationEnv:
     def _reset_copies(self, rows: np.ndarray) -> None:
         """Reset the copies ``rows`` with their own generators and re-measure them."""
         for k in rows:
-            reset_world(self._worlds[k], self._arm_sets[k], self.task, self.np_randoms[k])
+            if self._sampled:  # this episode's draw, from the copy's generator (the single env's draw)
+                self._use_task(k, sample_task(self.scenario, self.np_randoms[k],
+                                              lambda task, k=k: start_problem(self._arm_sets[k], task)))
+            reset_world(self._worlds[k], self._arm_sets[k], self.tasks[k], self.np_randoms[k])
         self._step_counts[rows] = 0
         self._clipped_actions[rows] = 0
         self._clipped_step[rows] = 0
@@ -394,6 +414,23 @@ class VectorFormationEnv:
         if self._sensor is not None:  # a fresh sensor: it holds the start displacement through its delay
             self._sensor.reset(part.slot_z, rows)
             self._sense(part.slot_z, rows)
+
+    def _use_task(self, k: int, task: Any) -> None:
+        """Make a drawn task copy ``k``'s current one (the single env's ``_use_task``)."""
+        self.tasks[k] = task
+        self._observers[k] = ObservationBuilder(task, self.scenario.max_joint_velocity, self._bounds)
+        self._copy_tolerances[k] = edge_tolerances(task.formation.kind,
+                                                   np.linalg.norm(task.formation.desired_vectors, axis=1),
+                                                   self.scenario.reward.position_tolerance)
+
+    def _observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,
+                            dq: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The observations (len(rows), O) of the copies ``rows`` from their stacked arrays: one batched pass,
+        or, on a scenario distribution, each copy with its own draw's observer."""
+        if not self._sampled:
+            return self._observer.observation_matrix(slot_z, slot_errors, q_observed, dq)
+        return np.stack([self._observers[k].observation_matrix(slot_z[r], slot_errors[r], q_observed[r], dq[r])
+                         for r, k in enumerate(rows)])
 
     def _sense(self, slot_z: np.ndarray, rows: np.ndarray) -> None:
         """Push the copies ``rows``' true slot displacements ``slot_z`` (len(rows), S, m) through the sensor and
@@ -424,20 +461,27 @@ class VectorFormationEnv:
 
     def _measure_rows(self, rows: np.ndarray) -> Measurement:
         """Read the copies ``rows`` and derive everything in one batched pass (faults per copy)."""
-        return self._derive(*self._read_states(rows))
+        return self._derive(*self._read_states(rows), rows)
 
-    def _derive(self, q: np.ndarray, dq: np.ndarray) -> Measurement:
-        """Everything derived from stacked joint states (k, T), in one batched pass (faults per copy)."""
-        rows = q.shape[0]
+    def _derive(self, q: np.ndarray, dq: np.ndarray, rows: np.ndarray) -> Measurement:
+        """Everything derived from the stacked joint states (len(rows), T) of the copies ``rows``, in one batched
+        pass (faults per copy); on a scenario distribution, each copy with its own draw."""
+        count = q.shape[0]
         limit = self.scenario.max_joint_velocity
-        faults = np.zeros(rows, dtype=np.int64)
-        reasons = np.full(rows, "", dtype=object)
+        faults = np.zeros(count, dtype=np.int64)
+        reasons = np.full(count, "", dtype=object)
         # The single env's test, per copy: NaN fails the comparison, a non-finite q makes its row sum non-finite.
         healthy = (np.abs(dq).max(axis=1) <= limit) & np.isfinite(q.sum(axis=1))
         if not healthy.all():
             for r in np.flatnonzero(~healthy):
                 q[r], dq[r], faults[r], reasons[r] = physics_fault(q[r], dq[r], self._joint_slices, limit)
-        return measure(self.task, self._observer, self._kinematics, self._wrap, q, dq, faults, reasons)
+        if not self._sampled:
+            return measure(self.task, self._observer, self._kinematics, self._wrap, q, dq, faults, reasons)
+        parts = [measure(self.tasks[k], self._observers[k], self._kinematics, self._wrap, q[r], dq[r], faults[r],
+                         reasons[r]) for r, k in enumerate(rows)]
+        return Measurement(**{name: np.array([getattr(part, name) for part in parts],
+                                             dtype=object if name == "fault_reason" else None)
+                              for name in Measurement.__slots__})
 
     def _check_actions(self, actions: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Every copy's actions (K, T) float64 clipped to [-1, 1], and the entries clipped per (copy, agent);
@@ -513,14 +557,18 @@ class VectorFormationEnv:
         self._contacts = np.array(contacts, dtype=np.int64).reshape(self.num_envs, self.task.n_agents)
         self._torques = torques
         shape = (self.num_envs, self.n_joints)
+        every = np.arange(self.num_envs)
         self._measurement = measured = self._derive(np.array(positions).reshape(shape),
-                                                    np.array(velocities).reshape(shape))
+                                                    np.array(velocities).reshape(shape), every)
 
-        observer = self._observer
         if self._sensor is not None:
-            self._sense(measured.slot_z, np.arange(self.num_envs))
-        observations = observer.observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq)
-        rewards = reward_array(measured.edge_squares, self._edge_tolerances, observer, self.scenario.reward)
+            self._sense(measured.slot_z, every)
+        observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq, every)
+        if self._sampled:
+            rewards = np.stack([reward_array(measured.edge_squares[k], self._copy_tolerances[k], self._observers[k],
+                                             self.scenario.reward) for k in every])
+        else:
+            rewards = reward_array(measured.edge_squares, self._edge_tolerances, self._observer, self.scenario.reward)
         infos = self._info_arrays(measured)
         ended = measured.fault != 0
         if self.scenario.terminate_on_contact:
@@ -533,8 +581,8 @@ class VectorFormationEnv:
             self._reset_copies(done)
             part = self._measurement
             slot_z, slot_errors = self._observed_slots()
-            observations[done] = observer.observation_matrix(slot_z[done], slot_errors[done],
-                                                             part.q_observed[done], part.dq[done])
+            observations[done] = self._observation_matrix(slot_z[done], slot_errors[done], part.q_observed[done],
+                                                          part.dq[done], done)
         return BatchedStep(observations, rewards, ended, truncated, infos)
 
     def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:
@@ -568,6 +616,21 @@ class VectorFormationEnv:
                 info[key] = infos[key].copy() if i else infos[key]
             result[agent] = info
         return result
+
+
+class CopyView:
+    """One copy of a batched env (:meth:`VectorFormationEnv.copy_view`): the env's attributes, with ``task`` the
+    copy's current one, read when asked (so a controller built on it follows the copy's draws)."""
+
+    def __init__(self, env: VectorFormationEnv, k: int):
+        self._env, self._k = env, k
+
+    @property
+    def task(self) -> Any:
+        return self._env.tasks[self._k]
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._env, name)
 
 
 def _batched(space: gymnasium.spaces.Box, count: int) -> gymnasium.spaces.Box:

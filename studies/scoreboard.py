@@ -19,6 +19,9 @@ episodes), plus each seed's mean.
 Generalization: a scenario with a test set (:mod:`ee_formation_env.scenario_sets`) also gets ``split: "test"``
 rows, one per test scenario: every reference controller evaluated there, and every learned method's policy,
 trained on the training scenario only, evaluated there unchanged (zero-shot) on the same held-out seeds.
+A scenario distribution (``scenario_sets.DISTRIBUTIONS``) is evaluated on its test set (its draws at the 50
+``TEST_SEEDS``: its row is ``split: "test"``) and on its train set (the draws at ``TRAIN_SEEDS``, ``split:
+"train"``), the reference controllers and every trained policy alike.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import fault_kinds, run_episodes
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario import load_scenario
-from ee_formation_env.scenario_sets import held_out_scenarios
+from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
 
 
 @dataclass(frozen=True)
@@ -218,10 +221,18 @@ class Board:
     def run_dir(self, scenario: str, method: Method, seed: int) -> Path:
         return self.out / "runs" / scenario / method.name / f"seed-{seed}"
 
-    def eval_seeds(self) -> list[int]:
+    def eval_seeds(self, scenario: str | None = None) -> list[int]:
+        """The held-out evaluation seeds: ``episodes`` of them from ``EVAL_SEED_OFFSET``; a scenario
+        distribution's test set (``scenario_sets.TEST_SEEDS``, at most ``episodes`` of them under ``--quick``)."""
         from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 
+        if scenario in DISTRIBUTIONS:
+            return list(TEST_SEEDS[:self.episodes] if self.extra_train_flags else TEST_SEEDS)
         return [EVAL_SEED_OFFSET + k for k in range(self.episodes)]
+
+    def train_seeds(self) -> list[int]:
+        """A distribution's train-set draws (``scenario_sets.TRAIN_SEEDS``; fewer under ``--quick``)."""
+        return list(TRAIN_SEEDS[:self.episodes] if self.extra_train_flags else TRAIN_SEEDS)
 
 
 def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> dict[str, Any]:
@@ -229,19 +240,21 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
     started = time.time()
     seconds = board.episode_seconds or load_scenario(scenario).episode_seconds
     overrides = {"episode_seconds": seconds}
+    seeds = board.eval_seeds(scenario)
+    split = {"split": "test"} if scenario in DISTRIBUTIONS else {}  # a distribution's held-out draws
     if method.learned:
         from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
 
         try:
             episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
         except TrainingFaults as fault:  # a result too: this method does not train on this scenario
-            return {"scenario": scenario, "method": method.name, "seed": seed, "eval_seeds": board.eval_seeds(),
+            return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
                     "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
                     "episodes": [], "failed": str(fault)}
     else:
-        metrics = run_episodes(scenario, method.reference, board.eval_seeds(), overrides=overrides)
+        metrics = run_episodes(scenario, method.reference, seeds, overrides=overrides)
         episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
-    return {"scenario": scenario, "method": method.name, "seed": seed, "eval_seeds": board.eval_seeds(),
+    return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
             "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
             "episodes": [{k: v for k, v in e.items() if k != "trajectory"} for e in episodes]}
 
@@ -257,7 +270,8 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     if method.benchmarl is not None:
         return _benchmarl_cell(board, scenario, method, seed, run_dir)
     if not (run_dir / "comparison.json").is_file():
-        evaluation = ["--eval-episodes", str(board.episodes), "--eval-seconds", str(seconds), "--no-progress",
+        evaluation = ["--eval-episodes", str(len(board.eval_seeds(scenario))), "--eval-seconds", str(seconds),
+                      "--no-progress",
                       *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
         if (run_dir / "config.json").is_file():
             argv = ["--resume", str(run_dir), *evaluation]
@@ -275,32 +289,34 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
 
 
 def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None, test: str,
-                  test_scenario: dict[str, Any], trained: dict[str, Any]) -> dict[str, Any]:
+                  test_scenario: Any, trained: dict[str, Any], seeds: Sequence[int] | None = None,
+                  split: str = "test") -> dict[str, Any]:
     """Evaluate one cell of a test scenario: a reference controller there, or the policy of the training run
-    of (``scenario``, ``method``, ``seed``) (its training cell ``trained``) unchanged there."""
+    of (``scenario``, ``method``, ``seed``) (its training cell ``trained``) unchanged there; on ``seeds``
+    (default: the held-out ones). A distribution's train-set cell is the distribution itself on its
+    ``TRAIN_SEEDS``, ``split="train"``."""
     started = time.time()
     seconds = board.episode_seconds or load_scenario(test_scenario).episode_seconds
-    record = {"scenario": test, "trained_on": scenario, "split": "test", "method": method.name, "seed": seed,
-              "eval_seeds": board.eval_seeds(), "episode_seconds": seconds, "budget": trained["budget"]}
+    seeds = board.eval_seeds() if seeds is None else list(seeds)
+    record = {"scenario": test, "trained_on": scenario, "split": split, "method": method.name, "seed": seed,
+              "eval_seeds": seeds, "episode_seconds": seconds, "budget": trained["budget"]}
     if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
         return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
     if method.benchmarl is not None:
         from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
 
         actors = load_benchmarl_policy(board.run_dir(scenario, method, seed) / "policy")
-        metrics = run_episodes(test_scenario, actors.policy_factory(), board.eval_seeds(),
-                               overrides={"episode_seconds": seconds})
+        metrics = run_episodes(test_scenario, actors.policy_factory(), seeds, overrides={"episode_seconds": seconds})
     elif method.learned:
         from ee_formation_env.baselines.learned.policy import learned_policy_factory
         from ee_formation_env.baselines.metrics import evaluation_env
 
         run_dir = board.run_dir(scenario, method, seed)
         config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-        with evaluation_env(test_scenario, len(board.eval_seeds()), episode_seconds=seconds) as env:
-            metrics = run_episodes(None, learned_policy_factory(run_dir, env, config), board.eval_seeds(), env=env)
+        with evaluation_env(test_scenario, min(len(seeds), 16), episode_seconds=seconds) as env:
+            metrics = run_episodes(None, learned_policy_factory(run_dir, env, config), seeds, env=env)
     else:
-        metrics = run_episodes(test_scenario, method.reference, board.eval_seeds(),
-                               overrides={"episode_seconds": seconds})
+        metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds})
     episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]
     return {**record, "wall_seconds": time.time() - started, "episodes": episodes}
 
@@ -329,7 +345,7 @@ def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_
     spec = method.benchmarl
     if not (run_dir / "evaluation.json").is_file():
         benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if board.extra_train_flags else spec.minutes,
-                           seed, run_dir, board.episodes, episode_seconds=board.episode_seconds,
+                           seed, run_dir, len(board.eval_seeds(scenario)), episode_seconds=board.episode_seconds,
                            settings=benchmarl_runs.SETTINGS[spec.settings])
     record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
     budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
@@ -359,7 +375,15 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
                     records.append(_cached(
                         board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
                         lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained), progress))
+                if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
+                    records.append(_cached(
+                        board.cell_path(scenario, method, seed, TRAIN_SET), f"{label} -> train set",
+                        lambda: run_test_cell(board, scenario, method, seed, scenario, scenario, trained,
+                                              board.train_seeds(), split="train"), progress))
     return records
+
+
+TRAIN_SET = "train-set"  # a distribution's train-set cells' folder (beside its test scenarios')
 
 
 def cached_records(out: Path) -> list[dict[str, Any]]:
@@ -370,8 +394,8 @@ def cached_records(out: Path) -> list[dict[str, Any]]:
     records = [json.loads(path.read_text(encoding="utf-8")) for path in (out / "cells").rglob("*.json")]
     records = [r for r in records if _place(r) in places and r["method"] in methods]
 
-    def order(record: dict[str, Any]) -> tuple[int, int, int]:
-        return (places.index(_place(record)), methods.index(record["method"]),
+    def order(record: dict[str, Any]) -> tuple[int, int, int, int]:
+        return (places.index(_place(record)), record.get("split") == "test", methods.index(record["method"]),
                 -1 if record["seed"] is None else record["seed"])
 
     return sorted(records, key=order)
@@ -384,11 +408,11 @@ def _place(record: dict[str, Any]) -> tuple[str, str]:
 
 def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per (scenario, method): its seeds, budget, wall time and every metric aggregated."""
-    grouped: dict[tuple[tuple[str, str], str], list[dict[str, Any]]] = {}
+    grouped: dict[tuple[tuple[str, str], str, str], list[dict[str, Any]]] = {}
     for record in records:
-        grouped.setdefault((_place(record), record["method"]), []).append(record)
+        grouped.setdefault((_place(record), record.get("split", "train"), record["method"]), []).append(record)
     out = []
-    for ((_, scenario), method), every_cell in grouped.items():
+    for ((_, scenario), _, method), every_cell in grouped.items():
         # split "train": the scenario the method trains on; "test": a held-out scenario (trained_on says which)
         split = {"split": every_cell[0].get("split", "train"),
                  **({"trained_on": every_cell[0]["trained_on"]} if "trained_on" in every_cell[0] else {})}
@@ -425,15 +449,24 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
     """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
     lines: list[str] = []
-    for place in dict.fromkeys(_place(row) for row in board_rows):
+
+    def table(row: dict[str, Any]) -> tuple[tuple[str, str], str]:
+        return _place(row), row["split"]
+
+    for place, split in dict.fromkeys(table(row) for row in board_rows):
         scenario = place[1]
-        title = scenario if place[0] == scenario else (
-            f"{scenario} (test: policies trained on {place[0]}, evaluated here unchanged)")
+        first = next(row for row in board_rows if table(row) == (place, split))
+        if scenario in DISTRIBUTIONS:
+            seeds = first["eval_seeds"]
+            title = f"{scenario}, {split} set (its draws at the {len(seeds)} reset seeds {seeds[0]}-{seeds[-1]})"
+        else:
+            title = scenario if place[0] == scenario else (
+                f"{scenario} (test: policies trained on {place[0]}, evaluated here unchanged)")
         lines += [f"### {title}", "",
                   "| method | seeds | agent steps per seed | " + " | ".join(
                       f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
                   "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
-        for row in (r for r in board_rows if _place(r) == place):
+        for row in (r for r in board_rows if table(r) == (place, split)):
             if not row["metrics"]:
                 lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
                              " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
@@ -448,11 +481,11 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
             budget = f"{max(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}-{max(steps):,}"
             lines.append(f"| {row['method']} | {seeds} | {budget} | " + " | ".join(cells) +
                          f" | {row['wall_seconds']:,.0f} |")
-        faulted = [row for row in board_rows if _place(row) == place and row["faults"]]
+        faulted = [row for row in board_rows if table(row) == (place, split) and row["faults"]]
         for row in faulted:
             kinds = "; ".join(f"{fault['reason']} ({fault['episodes']}x)" for fault in row["faults"][:3])
             lines.append(f"\n- {row['method']}: physics faults: {kinds}")
-        for row in (r for r in board_rows if _place(r) == place and r["failures"]):
+        for row in (r for r in board_rows if table(r) == (place, split) and r["failures"]):
             for failure in row["failures"]:
                 lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
         lines.append("")

@@ -27,10 +27,11 @@ def _expected() -> dict:
 
 def test_registry_is_the_sorted_yaml_files():
     assert BUILTIN_SCENARIOS == tuple(sorted(path.stem for path in BUILTIN_DIR.glob("*.yaml")))
-    assert list(BUILTIN_SCENARIOS) == list(_expected())
+    # The pinned built-ins are all still there (built-ins added since are pinned by their own tests).
+    assert set(_expected()) <= set(BUILTIN_SCENARIOS)
 
 
-@pytest.mark.parametrize("name", sorted(BUILTIN_SCENARIOS))
+@pytest.mark.parametrize("name", sorted(json.loads(FIXTURE.read_text(encoding="utf-8"))))
 def test_yaml_builtin_equals_the_former_python_builtin_exactly(name):
     # json.dumps writes floats with repr and keeps int/float and key order: equal text, identical data.
     assert json.dumps(builtin_scenario(name)) == json.dumps(_expected()[name])

@@ -168,7 +168,7 @@ class BatchedTrainingEnv:
             np.concatenate([scales[agent] for agent in self.possible_agents]), (self.num_envs, 1))
         self.residuals = None
         if mode == "residual":
-            teams = [baselines.make_policies(reference, env) for _ in range(self.num_envs)]
+            teams = [baselines.make_policies(reference, env.copy_view(k)) for k in range(self.num_envs)]
             gate_layouts = dict(zip(self.possible_agents, layouts)) if gate else None
             self.residuals = ResidualRows(teams, self.possible_agents, residual_scale, gate_layouts, scales)
         self._raw: np.ndarray | None = None  # the batched env's last observations (K * N, size)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -169,13 +169,19 @@ class FormationController:
 
     def __init__(self, agent: AgentModel, gains: Gains, a_hat0: np.ndarray | None = None):
         self.agent = agent
-        self.gains = gains.validated(agent.chain.n_joints)
         self.a_hat0 = np.array(agent.chain.nominal_params if a_hat0 is None else a_hat0, dtype=np.float64)
         if self.a_hat0.shape != agent.chain.nominal_params.shape:
             raise ValueError(
                 f"a_hat0: expected {len(agent.chain.nominal_params)} values {list(agent.chain.param_names)}, "
                 f"got {self.a_hat0.shape}"
             )
+        self.set_gains(gains)
+        self.reset()
+
+    def set_gains(self, gains: Gains) -> None:
+        """Use ``gains`` from now on (validated; a batch holding this controller takes them at its next call)."""
+        self.gains = gains = gains.validated(self.agent.chain.n_joints)
+        agent = self.agent
         self._kp = np.asarray(gains.kp, dtype=np.float64)
         self._kd = np.asarray(gains.kd, dtype=np.float64)
         self._ki = np.asarray(gains.ki, dtype=np.float64)
@@ -189,10 +195,15 @@ class FormationController:
         else:
             self._spring_force[:len(forces)] = forces
         self._alone: ControllerBatch | None = None
-        self.reset()
+
+    #: Set by :func:`ee_formation_env.baselines.make_policy` on a scenario distribution: the gains of the env's
+    #: current draw, taken at every reset (each draw has its own layout and shape, so its own gains).
+    gains_source: Callable[[], Gains] | None = None
 
     def reset(self) -> None:
-        """Clear internal state (start of an episode)."""
+        """Clear internal state (start of an episode); take the current draw's gains if they follow the env."""
+        if self.gains_source is not None:
+            self.set_gains(self.gains_source())
         self._previous_e_hat: np.ndarray | None = None  # gradient-rate damping's one state
 
     def options(self) -> tuple:
@@ -365,6 +376,17 @@ class ControllerBatch:
         self.law = type(first)
         self.chain, self.layout, self.kind = first.agent.chain, first.agent.layout, first.agent.formation_kind
         self.control_dt = first.agent.control_dt
+        self._take_gains()
+        self.identity = np.eye(self.chain.n_params)
+        self._states: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}  # gather/scatter cache
+        if isinstance(first, AdaptiveJacobianController):
+            self.param_low = np.stack([c.param_low for c in controllers])
+            self.param_high = np.stack([c.param_high for c in controllers])
+
+    def _take_gains(self) -> None:
+        """Stack the members' gains (taken again when a member's gains change: a scenario distribution's draw)."""
+        controllers = self.members
+        self._gains = [c.gains for c in controllers]
         n = self.chain.n_joints
         self.kp = np.stack([np.broadcast_to(c._kp, (n,)) for c in controllers])  # (k, n)
         self.kd = np.stack([np.broadcast_to(c._kd, (n,)) for c in controllers])  # (k, n), N m s/rad
@@ -376,11 +398,6 @@ class ControllerBatch:
         self.alpha = np.array([c.gains.alpha for c in controllers], dtype=np.float64)
         self.adaptation_gain = np.array([c.gains.adaptation_gain for c in controllers], dtype=np.float64)
         self.rate_gain = np.array([c.gains.rate_gain for c in controllers], dtype=np.float64)  # (k,), s
-        self.identity = np.eye(self.chain.n_params)
-        self._states: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}  # gather/scatter cache
-        if isinstance(first, AdaptiveJacobianController):
-            self.param_low = np.stack([c.param_low for c in controllers])
-            self.param_high = np.stack([c.param_high for c in controllers])
 
     def gather(self, name: str) -> np.ndarray:
         """The members' internal state ``name`` stacked (k, ...): the array :meth:`scatter` last wrote while
@@ -398,6 +415,8 @@ class ControllerBatch:
         self._states[name] = (stacked, rows)
 
     def __call__(self, observations: np.ndarray) -> np.ndarray:
+        if any(member.gains is not gains for member, gains in zip(self.members, self._gains)):
+            self._take_gains()
         parts = self.layout.split(observations)
         return (self.law.batch_torques(self, parts) / self.torque_limits).astype(np.float32)
 
