@@ -108,7 +108,9 @@ def test_env_accepts_a_scenario_object(make_env):
 # ------------------------------------------------------------------------------------------ files and round trips
 @pytest.mark.parametrize("name", sorted(BUILTIN_SCENARIOS))
 def test_to_dict_round_trips(name):
-    scenario = load_scenario(name, episode_seconds=1.5, reward={"team": True}, initial_q_noise=0.01)
+    # A manoeuvre must end within the episode: the short episode gets one that does (inactive without a motion).
+    scenario = load_scenario(name, episode_seconds=1.5, reward={"team": True}, initial_q_noise=0.01,
+                             manoeuvre={"start": 0.0, "duration": 1.5})
     data = scenario.to_dict()
     json.dumps(data)  # plain data
     again = load_scenario(data)
