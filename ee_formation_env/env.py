@@ -79,6 +79,10 @@ class FormationEnv(ParallelEnv):
     the step, N m), ``contacts`` (contact points with other arms), ``physics_fault`` (int code, 0 for none,
     see :data:`PHYSICS_FAULTS`; the full reason is :attr:`physics_fault_reason`), ``sim_time`` (s).
 
+    **Manoeuvre** (scenario ``manoeuvre``, :mod:`ee_formation_env.manoeuvre`): the observations end with the
+    reference motion in each agent's frame; :meth:`reference_centroid`, :meth:`centroid_tracking_error` and
+    :meth:`orientation_tracking_error` measure the tracking (no info key is added).
+
     **Episode end**: truncation after ``episode_seconds``; termination on a physics fault (non-finite
     state or |dq| > ``max_joint_velocity``) or, if ``terminate_on_contact``, on contact between arms.
 

@@ -281,3 +281,15 @@ def test_the_builtin_manoeuvres_stay_within_reach():
             moved = centre + s * translation + (shape - centre) @ turn.T
             distances = np.linalg.norm(moved - task.base_positions[:, :m], axis=1)
             assert np.all(distances < 0.9 * np.asarray(task.reaches)), (name, s, distances)
+
+
+def test_the_feedforward_turns_the_formation_with_the_reference(make_env):
+    # The motion starts once the shape has formed (the orientation error's reference is the shape at t0).
+    env = make_env("planar_square", episode_seconds=5.0, manoeuvre={"start": 2.0, "duration": 3.0, "rotation": 0.3})
+    observations, _ = env.reset(seed=0)
+    team = PolicyTeam(make_policies("gradient", env))
+    team.reset()
+    for _ in range(350):  # to t = 3.5 s: theta* = 0.3 rad
+        observations, *_ = env.step(team(observations))
+    assert env.orientation_tracking_error() < 0.03
+    assert env.centroid_tracking_error() < 0.1  # the centroid's drift while the shape forms, not the turn
