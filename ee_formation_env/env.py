@@ -16,6 +16,7 @@ from ee_formation_env.formation import Formation, FormationGraph, formation_erro
 from ee_formation_env.generators import distribution_bounds, sample_task
 from ee_formation_env.inputs import check_seed, excerpt, numeric_action
 from ee_formation_env.kinematics import SerialChain
+from ee_formation_env.manoeuvre import ReferenceMotion
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout, observation_table
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY, Arm, ArmSet, check_start_contacts
@@ -79,6 +80,10 @@ class FormationEnv(ParallelEnv):
     the step, N m), ``contacts`` (contact points with other arms), ``physics_fault`` (int code, 0 for none,
     see :data:`PHYSICS_FAULTS`; the full reason is :attr:`physics_fault_reason`), ``sim_time`` (s).
 
+    **Manoeuvre** (scenario ``manoeuvre``, :mod:`ee_formation_env.manoeuvre`): the observations end with the
+    reference motion in each agent's frame; :meth:`reference_centroid`, :meth:`centroid_tracking_error` and
+    :meth:`orientation_tracking_error` measure the tracking (no info key is added).
+
     **Episode end**: truncation after ``episode_seconds``; termination on a physics fault (non-finite
     state or |dq| > ``max_joint_velocity``) or, if ``terminate_on_contact``, on contact between arms.
 
@@ -118,7 +123,10 @@ class FormationEnv(ParallelEnv):
                 self.world.close()
                 raise
             self._bounds = distribution_bounds(self.scenario, self.task)
-        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds)
+        # The manoeuvre's reference (manoeuvre.py); without one the observations are the plain task's.
+        self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)
+        self._reference = self._motion if self.scenario.manoeuvre.active else None
+        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds, self._reference)
         sensing = self.scenario.sensing
         self._sensor = Sensor(sensing, self.task, self._observer) if sensing.active else None
         self._observation_spaces = dict(zip(self.possible_agents, self._observer.spaces))
@@ -141,6 +149,7 @@ class FormationEnv(ParallelEnv):
         self._step_count = 0
         self._clipped_actions = np.zeros(self.task.n_agents, dtype=np.int64)
         self._measurement: Measurement | None = None
+        self._start_points = np.zeros((1, self.task.n_agents, self.task.dim))  # at the motion's start (m)
         self._needs_reset = True
 
     # ------------------------------------------------------------------------------------------ the task
@@ -203,6 +212,7 @@ class FormationEnv(ParallelEnv):
         self._clipped_actions = np.zeros(len(self.agents), dtype=np.int64)
         self._needs_reset = False
         self._measurement = measured = self._measure()
+        self._start_points = measured.ee_world[None, :, :self.task.dim].copy()
         observations = self._observations(measured, reset=True)
         infos = self._infos(measured, np.zeros(len(self.arms), dtype=np.int64), [0] * len(self.arms),
                             np.zeros(len(self._torque_limits_flat)))
@@ -217,6 +227,8 @@ class FormationEnv(ParallelEnv):
         self.arm_set.step(torques, self.scenario.frame_skip)
         self._step_count += 1
         self._measurement = measured = self._measure()
+        if self._step_count * self.scenario.control_dt <= self.scenario.manoeuvre.start:
+            self._start_points = measured.ee_world[None, :, :self.task.dim].copy()
         contacts = self.arm_set.contacts_per_arm()
 
         observations = self._observations(measured)
@@ -239,6 +251,22 @@ class FormationEnv(ParallelEnv):
     def end_effector_positions(self) -> np.ndarray:
         """World-frame end-effector positions (N, 3), m, at the last reset/step."""
         return self._last().ee_world.copy()
+
+    def reference_centroid(self) -> np.ndarray:
+        """The manoeuvre's reference centroid c*(t) (dim,), world, m, at the last reset/step (without a
+        manoeuvre: the end-effectors' centroid at reset, a reference at rest)."""
+        self._last()
+        return self._motion.world(self._times(), self._start_points.mean(axis=-2))[0][0]
+
+    def centroid_tracking_error(self) -> float:
+        """|c - c*| (m): the end-effectors' centroid against :meth:`reference_centroid`."""
+        return float(self._motion.centroid_errors(self._times(), self._start_points.mean(axis=-2),
+                                                  self._last().ee_world[None])[0])
+
+    def orientation_tracking_error(self) -> float:
+        """The formation's orientation error (rad) against the manoeuvre's turn theta*(t): the best-fit
+        rotation's angle (:mod:`ee_formation_env.manoeuvre`); 0 before the motion starts."""
+        return float(self._motion.orientation_errors(self._times(), self._start_points, self._last().ee_world[None])[0])
 
     def edge_errors(self) -> np.ndarray:
         """Every edge's error e_k (world frame for displacement formations), at the last reset/step."""
@@ -313,6 +341,9 @@ class FormationEnv(ParallelEnv):
                                                                                     axis=1),
                                                 self.scenario.reward.position_tolerance)
         self._renderer.formation = task.formation
+    def _times(self) -> np.ndarray:
+        """The simulated time (1,), s, of the last reset/step (the manoeuvre's functions take K copies')."""
+        return np.array([self._step_count * self.scenario.control_dt])
 
     def _last(self) -> Measurement:
         """The last measurement (taken now if the env was never reset)."""
@@ -385,7 +416,11 @@ class FormationEnv(ParallelEnv):
                 self._sensor.reset(slot_z[None], [0])
             sensed_z, sensed_errors = self._sensor.sense(slot_z[None], [0], [self.np_random])
             slot_z, slot_errors = sensed_z[0], sensed_errors[0]
-        return self._observer.observations(self.agents, slot_z, slot_errors, measured.q_observed, measured.dq)
+        if self._reference is None:
+            return self._observer.observations(self.agents, slot_z, slot_errors, measured.q_observed, measured.dq)
+        reference = self._reference.observation_block(self._times(), self._start_points.mean(axis=-2))[0]
+        return self._observer.observations(self.agents, slot_z, slot_errors, measured.q_observed, measured.dq,
+                                           reference)
 
     def _measure(self) -> Measurement:
         """Read the joint states and compute everything derived from them (a physics fault included)."""

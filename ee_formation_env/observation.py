@@ -1,13 +1,16 @@
 """Observations: the one definition of their layout, bounds and table, and the env's vectorized builder.
 
-An agent's observation is ``n_slots`` neighbour slots then its own joint state:
+An agent's observation is ``n_slots`` neighbour slots, then its own joint state, then (only with a
+scenario ``manoeuvre``, :mod:`ee_formation_env.manoeuvre`) the reference motion in its own base frame:
 
 {observation_table}
 
-``m`` = scenario ``dim``, ``w`` = 1 (distance) or ``m`` (displacement), ``D`` = the graph's largest degree.
+``m`` = scenario ``dim``, ``w`` = 1 (distance) or ``m`` (displacement), ``D`` = the graph's largest degree,
+``r`` = 1 (``dim`` 2: the turn rate about z) or 3. Without a manoeuvre the reference entries are absent.
 Slots follow the order of the agent's edges in the scenario; padding slots are zero with mask 0. Bounds
 are finite: |z| by base distances plus reaches, ``q`` by the joint limits, ``dq`` by
-``max_joint_velocity`` (faster is a physics fault). Observations are clipped into them.
+``max_joint_velocity`` (faster is a physics fault), the reference by the farthest end-effector from a base
+plus |A|, the peak speed and the peak turn rate. Observations are clipped into them.
 
 Spaces, reward and info for users: see docs/spaces.md.
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -34,6 +38,12 @@ JOINT_ENTRIES = (
     ("q", "n_i", "joint positions (rad; continuous joints wrapped to [-pi, pi))"),
     ("dq", "n_i", "joint velocities (rad/s)"),
 )
+# Only with a scenario ``manoeuvre`` (ee_formation_env.manoeuvre): after the joint entries.
+REFERENCE_ENTRIES = (
+    ("reference_centroid", "m", "c*(t) - b_i, reference centroid relative to the agent's base (m)"),
+    ("reference_velocity", "m", "dc*/dt, reference centroid velocity (m/s)"),
+    ("reference_angular_velocity", "r", "omega*(t), reference turn rate about the centroid (rad/s)"),
+)
 
 
 def observation_table() -> str:
@@ -41,6 +51,7 @@ def observation_table() -> str:
     rows = [(f"slot s, ``{name}``", size, meaning) for name, size, meaning in SLOT_ENTRIES]
     rows.append(("(slot entries repeat)", "", "for s = 0 .. D-1"))
     rows += [(f"``{name}``", size, meaning) for name, size, meaning in JOINT_ENTRIES]
+    rows += [(f"``{name}``", size, f"manoeuvre only: {meaning}") for name, size, meaning in REFERENCE_ENTRIES]
     widths = [max(len(row[c]) for row in rows + [("entries", "size", "meaning (unit)")]) for c in range(3)]
     rule = "  ".join("=" * w for w in widths)
     header = "  ".join(h.ljust(w) for h, w in zip(("entries", "size", "meaning (unit)"), widths)).rstrip()
@@ -62,6 +73,10 @@ class ObservationParts:
     edge_errors: np.ndarray  # (n_slots, w) |z_ij|^2 - d*_ij^2 (m^2) or z_ij - z*_ij (m)
     q: np.ndarray  # (n_joints,) rad
     dq: np.ndarray  # (n_joints,) rad/s
+    # With a manoeuvre only (else None), in the agent's base frame:
+    reference_centroid: np.ndarray | None = None  # (dim,) c*(t) - b_i, m
+    reference_velocity: np.ndarray | None = None  # (dim,) dc*/dt, m/s
+    reference_angular_velocity: np.ndarray | None = None  # (1,) about z (dim 2) or (3,), rad/s
 
 
 @dataclass(frozen=True)
@@ -72,6 +87,7 @@ class ObservationLayout:
     dim: int
     error_width: int
     n_joints: int
+    reference_size: int = 0  # the manoeuvre's entries (2 dim + 1 or 3), 0 without one
 
     @property
     def slot_size(self) -> int:
@@ -79,7 +95,7 @@ class ObservationLayout:
 
     @property
     def size(self) -> int:
-        return self.n_slots * self.slot_size + 2 * self.n_joints
+        return self.n_slots * self.slot_size + 2 * self.n_joints + self.reference_size
 
     @property
     def formation_kind(self) -> str:
@@ -111,14 +127,21 @@ class ObservationLayout:
             raise ValueError(f"observation: expected shape ({self.size},) or (k, {self.size}), got {observation.shape}")
         m, w, n = self.dim, self.error_width, self.n_joints
         lead = observation.shape[:-1]
-        slots = observation[..., :self.n_slots * self.slot_size].reshape(*lead, self.n_slots, self.slot_size)
+        joints = self.n_slots * self.slot_size
+        slots = observation[..., :joints].reshape(*lead, self.n_slots, self.slot_size)
+        reference = {}
+        if self.reference_size:
+            block = observation[..., joints + 2 * n:]
+            reference = {"reference_centroid": block[..., :m], "reference_velocity": block[..., m:2 * m],
+                         "reference_angular_velocity": block[..., 2 * m:]}
         return ObservationParts(
             mask=slots[..., 0],
             relative_positions=slots[..., 1:1 + m],
             desired=slots[..., 1 + m:1 + m + w],
             edge_errors=slots[..., 1 + m + w:],
-            q=observation[..., -2 * n:-n],
-            dq=observation[..., -n:],
+            q=observation[..., joints:joints + n],
+            dq=observation[..., joints + n:joints + 2 * n],
+            **reference,
         )
 
 
@@ -129,17 +152,22 @@ class ObservationBuilder:
     their z_ij and edge errors in their agent's base frame (:meth:`slots_in_own_frames`); then all agents'
     observations are gathered by one index from one source vector
     ``[0, 1, desired (S w), z (S m), e (S w), q_observed (T), dq (T)]`` (S real slots, T joints) and clipped
-    into the spaces' bounds (:meth:`observations`).
+    into the spaces' bounds (:meth:`observations`). With a ``reference``
+    (:class:`~ee_formation_env.manoeuvre.ReferenceMotion`), its per-agent blocks (N r') follow at the end of
+    the source and each agent's block ends its observation.
     """
 
-    def __init__(self, task: FormationTask, max_joint_velocity: float, bounds: tuple[float, float] | None = None):
+    def __init__(self, task: FormationTask, max_joint_velocity: float, bounds: tuple[float, float] | None = None,
+                 reference: Any = None):
         """``bounds``: (|z| bound, end-effector coordinate bound), m, for spaces that must hold over many
         tasks (a scenario distribution's draws); default: this task's own (module docstring)."""
         formation, graph = task.formation, task.graph
         m, w, n_slots = task.dim, formation.error_width, graph.max_degree
         self.kind = formation.kind
-        self.layouts = [ObservationLayout(n_slots, m, w, model.n_joints) for model in task.models]
-        self.spaces, self.state_space = _spaces(task, self.layouts, max_joint_velocity, bounds)
+        self.reference = reference
+        reference_size = 0 if reference is None else reference.size
+        self.layouts = [ObservationLayout(n_slots, m, w, model.n_joints, reference_size) for model in task.models]
+        self.spaces, self.state_space = _spaces(task, self.layouts, max_joint_velocity, bounds, reference)
 
         neighbors = graph.neighbors
         degrees = [len(slots) for slots in neighbors]
@@ -191,6 +219,9 @@ class ObservationBuilder:
                     gather += [0] * layout.slot_size
             gather += [*range(offset_q + joint_bounds[i], offset_q + joint_bounds[i + 1]),
                        *range(offset_dq + joint_bounds[i], offset_dq + joint_bounds[i + 1])]
+            if reference_size:
+                offset_reference = offset_dq + n_total
+                gather += range(offset_reference + i * reference_size, offset_reference + (i + 1) * reference_size)
             obs_bounds.append(len(gather))
         self._gather = np.array(gather, dtype=np.intp)
         self._obs_slices = [slice(a, b) for a, b in zip(obs_bounds[:-1], obs_bounds[1:])]
@@ -225,14 +256,19 @@ class ObservationBuilder:
         return padded
 
     def observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,
-                           dq: np.ndarray) -> np.ndarray:
+                           dq: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
         """Every agent's observation (float32, clipped into its space), concatenated in agent order: (O,), or
         (K, O) from K copies' stacked arrays (slot_z (K, S, m), slot_errors, q_observed and dq (K, T)).
-        Agent i's part is ``observation_slices[i]``."""
+        Agent i's part is ``observation_slices[i]``. ``reference``: the manoeuvre's blocks (N r') or (K, N r')
+        (:meth:`~ee_formation_env.manoeuvre.ReferenceMotion.observation_block`), required with one."""
         lead = q_observed.shape[:-1]
         constants = np.broadcast_to(self._constants, (*lead, len(self._constants)))
-        source = np.concatenate([constants, slot_z.reshape(*lead, -1), slot_errors.reshape(*lead, -1),
-                                 q_observed, dq], axis=-1)
+        parts = [constants, slot_z.reshape(*lead, -1), slot_errors.reshape(*lead, -1), q_observed, dq]
+        if (reference is None) != (self.reference is None):
+            raise ValueError("reference: expected the manoeuvre's reference blocks exactly when the task has one")
+        if reference is not None:
+            parts.append(reference.reshape(*lead, -1))
+        source = np.concatenate(parts, axis=-1)
         observation = source[..., self._gather]
         np.minimum(np.maximum(observation, self._low, out=observation), self._high, out=observation)  # clip
         return observation.astype(np.float32)
@@ -243,10 +279,11 @@ class ObservationBuilder:
         return self._obs_slices
 
     def observations(self, agents: list[str], slot_z: np.ndarray, slot_errors: np.ndarray,
-                     q_observed: np.ndarray, dq: np.ndarray) -> dict[str, np.ndarray]:
+                     q_observed: np.ndarray, dq: np.ndarray, reference: np.ndarray | None = None
+                     ) -> dict[str, np.ndarray]:
         """Every agent's observation (float32, clipped into its space), keyed by ``agents`` (views of one
         :meth:`observation_matrix`; with K copies' arrays, each (K, obs_dim))."""
-        observation = self.observation_matrix(slot_z, slot_errors, q_observed, dq)
+        observation = self.observation_matrix(slot_z, slot_errors, q_observed, dq, reference)
         return {agent: observation[..., part] for agent, part in zip(agents, self._obs_slices)}
 
     def state(self, ee_world: np.ndarray, q_observed: np.ndarray, dq: np.ndarray) -> np.ndarray:
@@ -258,7 +295,8 @@ class ObservationBuilder:
 
 
 def _spaces(task: FormationTask, layouts: list[ObservationLayout], max_joint_velocity: float,
-            bounds: tuple[float, float] | None = None) -> tuple[list[gymnasium.spaces.Box], gymnasium.spaces.Box]:
+            bounds: tuple[float, float] | None = None, reference: Any = None
+            ) -> tuple[list[gymnasium.spaces.Box], gymnasium.spaces.Box]:
     """Each agent's observation space and the state space, with finite bounds (module docstring)."""
     formation, m = task.formation, task.dim
     bases = task.base_positions
@@ -282,8 +320,10 @@ def _spaces(task: FormationTask, layouts: list[ObservationLayout], max_joint_vel
         q_lows.append(np.where(model.continuous, -math.pi, model.lower))
         q_highs.append(np.where(model.continuous, math.pi, model.upper))
         speeds.append(np.full(model.n_joints, max_joint_velocity))
-        low = np.concatenate([np.tile(slot_low, layout.n_slots), q_lows[-1], -speeds[-1]]).astype(np.float32)
-        high = np.concatenate([np.tile(slot_high, layout.n_slots), q_highs[-1], speeds[-1]]).astype(np.float32)
+        extra = () if reference is None else (reference.bound,)  # one bound for every agent (module docstring)
+        low = np.concatenate([np.tile(slot_low, layout.n_slots), q_lows[-1], -speeds[-1],
+                              *(-b for b in extra)]).astype(np.float32)
+        high = np.concatenate([np.tile(slot_high, layout.n_slots), q_highs[-1], speeds[-1], *extra]).astype(np.float32)
         spaces.append(gymnasium.spaces.Box(low, high, dtype=np.float32))
 
     ee_bound = max(float(np.max(np.abs(bases[:, :m]))) + max(task.reaches), 1.0) if bounds is None else bounds[1]

@@ -41,6 +41,7 @@ from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario  # noqa
 from ee_formation_env.formation import FORMATION_KINDS
 from ee_formation_env.inputs import (MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PHYSICS_HZ, MAX_SCENARIO_FILE_BYTES,
                                      BoundedSafeLoader, excerpt, is_real_number)
+from ee_formation_env.manoeuvre import ManoeuvreConfig, parse_manoeuvre
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 from ee_formation_env.reward import RewardConfig, parse_reward
 from ee_formation_env.distribution import DistributionConfig, parse_distribution
@@ -128,6 +129,12 @@ class Scenario:
                                                   "layout, shape, graph generator, initial configurations (see "
                                                   ":mod:`ee_formation_env.distribution`); default none (fixed)",
                                             default_factory=DistributionConfig)
+    manoeuvre: ManoeuvreConfig = _key(None, '``{"start": t0, "duration": T, "translation": A, "rotation": r, '
+                                            '"axis": u}``: the centroid follows c0 + s(t) A and a distance '
+                                            "formation turns by s(t) r about u (dim 3) through it, s(t) out and "
+                                            "back over [t0, t0 + T] (s, s, m, rad); peak speed pi abs(A) / T; "
+                                            "default none (see :mod:`ee_formation_env.manoeuvre`)",
+                                      default_factory=ManoeuvreConfig)
     controller_gains: ControllerGains | None = _key(None, "``{kp, kd, ki, alpha}``: tuned gains of the reference "
                                                           "controllers (built-in scenarios carry theirs); null = "
                                                           "derived from the robots, torque limits and rates")
@@ -162,6 +169,8 @@ class Scenario:
                 value = value.to_dict()
             elif spec.name in ("reward", "model_mismatch", "sensing") or (spec.name == "controller_gains" and value is not None):
                 value = {f.name: getattr(value, f.name) for f in fields(value)}
+            elif spec.name == "manoeuvre":
+                value = value.to_dict()  # None when inactive: a scenario without one reads back the same
             data[spec.name] = _plain(value)
         return data
 
@@ -211,7 +220,7 @@ SCENARIO_FIELDS = {spec.name: spec for spec in fields(Scenario)}
 # graph, rates, torque limits, gravity, damping, contacts).
 GAIN_NEUTRAL_FIELDS = frozenset({"name", "episode_seconds", "initial_q_noise", "terminate_on_contact",
                                  "max_joint_velocity", "singularity_threshold", "reward", "model_mismatch",
-                                 "sensing", "controller_gains"})
+                                 "sensing", "manoeuvre", "controller_gains"})
 __doc__ += "\n" + scenario_keys_table() + "\n"
 
 
@@ -227,7 +236,7 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                   **overrides: Any) -> Scenario:
     """Parse a scenario (built-in name, YAML/JSON path, dict or parsed :class:`Scenario`) plus overrides.
 
-    ``reward``, ``model_mismatch``, ``sensing`` and ``distribution`` overrides are merged into the scenario's. Raises ``ValueError``
+    ``reward``, ``model_mismatch``, ``sensing``, ``distribution`` and ``manoeuvre`` overrides are merged into the scenario's. Raises ``ValueError``
     naming the offending field, or ``TypeError`` for a scenario argument of the wrong type.
     """
     if isinstance(scenario, Scenario):
@@ -264,7 +273,7 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                                                                         if key in SCENARIO_FIELDS else None))
         for key, value in overrides.items())
     for key, value in overrides.items():
-        if key in ("reward", "model_mismatch", "sensing", "distribution") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
+        if key in ("reward", "model_mismatch", "sensing", "distribution", "manoeuvre") and isinstance(value, Mapping) and isinstance(data.get(key), Mapping):
             data[key] = {**data[key], **value}
         else:
             data[key] = value
@@ -365,10 +374,14 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["reward"] = parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
     kwargs["sensing"] = parse_sensing(data.get("sensing"), len(arms), int(dim))
+    kwargs["manoeuvre"] = parse_manoeuvre(data.get("manoeuvre"), int(dim), formation)
     kwargs["distribution"] = parse_distribution(data.get("distribution"), int(dim))
     if kwargs["distribution"].active and kwargs["sensing"].active:
         raise ValueError("distribution: a scenario distribution cannot be combined with sensing imperfections "
                          "yet (the sensor's per-agent frames are built for one fixed layout)")
+    if kwargs["distribution"].active and kwargs["manoeuvre"].active:
+        raise ValueError("distribution: a scenario distribution cannot be combined with a manoeuvre yet (the "
+                         "reference is built for one fixed layout)")
     kwargs["controller_gains"] = _parse_controller_gains(data.get("controller_gains"))
 
     return Scenario(

@@ -101,6 +101,7 @@ from ee_formation_env.env import (PHYSICS_FAULTS, Measurement, build_world, meas
 from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.generators import distribution_bounds, sample_task
 from ee_formation_env.inputs import check_seed, excerpt, numeric_action
+from ee_formation_env.manoeuvre import ReferenceMotion
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.reward import edge_tolerances
 from ee_formation_env.scenario import Scenario, load_scenario
@@ -166,7 +167,9 @@ class VectorFormationEnv:
         except BaseException:
             self.close()
             raise
-        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds)
+        self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)  # the single env's (manoeuvre.py)
+        self._reference = self._motion if self.scenario.manoeuvre.active else None
+        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds, self._reference)
         sensing = self.scenario.sensing
         self._sensor = Sensor(sensing, self.task, self._observer, K) if sensing.active else None
         self._sensed: tuple[np.ndarray, np.ndarray] | None = None  # the copies' measured slot z and errors
@@ -208,6 +211,7 @@ class VectorFormationEnv:
         self._torques = np.zeros((K, self.n_joints))
         self._measurement: Measurement | None = None
         self._last_reasons = np.full(K, "", dtype=object)
+        self._start_points = np.zeros((K, n, self.task.dim))  # each copy's end-effectors at the motion's start
         masks = np.array(self._observer.slot_masks)
         self._edge_masks = np.broadcast_to(masks, (K, *masks.shape))
         self._needs_reset = True
@@ -290,7 +294,7 @@ class VectorFormationEnv:
         self._needs_reset = False
         measured = self._measurement
         observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq,
-                                                np.arange(self.num_envs))
+                                                np.arange(self.num_envs), *self._reference_blocks())
         infos = self._info_arrays(measured)
         infos["final_observation"] = observations.copy()
         K, n = self.num_envs, self.task.n_agents
@@ -323,6 +327,19 @@ class VectorFormationEnv:
         """Every copy's joint velocities (K, T), rad/s, at the last reset/step."""
         return self._last().dq.copy()
 
+    def reference_centroid(self) -> np.ndarray:
+        """Every copy's reference centroid c*(t) (K, dim), world, m (the single env's, per copy)."""
+        self._last()
+        return self._motion.world(self._times(), self._start_points.mean(axis=-2))[0]
+
+    def centroid_tracking_error(self) -> np.ndarray:
+        """Every copy's |c - c*| (K,), m."""
+        return self._motion.centroid_errors(self._times(), self._start_points.mean(axis=-2), self._last().ee_world)
+
+    def orientation_tracking_error(self) -> np.ndarray:
+        """Every copy's orientation error (K,), rad (the single env's ``orientation_tracking_error``)."""
+        return self._motion.orientation_errors(self._times(), self._start_points, self._last().ee_world)
+
     @property
     def physics_fault_reason(self) -> np.ndarray:
         """Each copy's fault at the last step (K,) ("" for none); an autoreset copy's is its ended episode's."""
@@ -354,6 +371,16 @@ class VectorFormationEnv:
             raise RuntimeError("step: call reset() first (the batched env has never been reset)")
         if not all(world.connected for world in self._worlds):
             raise RuntimeError("step: the environment is closed")
+
+    def _times(self) -> np.ndarray:
+        """Each copy's simulated time (K,), s, at its last reset/step."""
+        return self._step_counts * self.scenario.control_dt
+
+    def _reference_blocks(self) -> tuple[np.ndarray, ...]:
+        """``(blocks,)``: every copy's manoeuvre reference blocks (K, N r'), or () without a manoeuvre."""
+        if self._reference is None:
+            return ()
+        return (self._reference.observation_block(self._times(), self._start_points.mean(axis=-2)),)
 
     def _last(self) -> Measurement:
         if self._measurement is None:
@@ -411,6 +438,8 @@ class VectorFormationEnv:
             self._measurement = part
         else:
             self._measurement = _with_rows(self._measurement, rows, part)
+        m = self.task.dim
+        self._start_points[rows] = part.ee_world[..., :m]
         if self._sensor is not None:  # a fresh sensor: it holds the start displacement through its delay
             self._sensor.reset(part.slot_z, rows)
             self._sense(part.slot_z, rows)
@@ -424,11 +453,12 @@ class VectorFormationEnv:
                                                    self.scenario.reward.position_tolerance)
 
     def _observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,
-                            dq: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """The observations (len(rows), O) of the copies ``rows`` from their stacked arrays: one batched pass,
-        or, on a scenario distribution, each copy with its own draw's observer."""
+                            dq: np.ndarray, rows: np.ndarray, *references: np.ndarray) -> np.ndarray:
+        """The observations (len(rows), O) of the copies ``rows`` from their stacked arrays (and a manoeuvre's
+        reference blocks): one batched pass, or, on a scenario distribution (no manoeuvre), each copy with its
+        own draw's observer."""
         if not self._sampled:
-            return self._observer.observation_matrix(slot_z, slot_errors, q_observed, dq)
+            return self._observer.observation_matrix(slot_z, slot_errors, q_observed, dq, *references)
         return np.stack([self._observers[k].observation_matrix(slot_z[r], slot_errors[r], q_observed[r], dq[r])
                          for r, k in enumerate(rows)])
 
@@ -560,10 +590,13 @@ class VectorFormationEnv:
         every = np.arange(self.num_envs)
         self._measurement = measured = self._derive(np.array(positions).reshape(shape),
                                                     np.array(velocities).reshape(shape), every)
+        holding = self._times() <= self.scenario.manoeuvre.start
+        self._start_points[holding] = measured.ee_world[holding, :, :self.task.dim]
 
         if self._sensor is not None:
             self._sense(measured.slot_z, every)
-        observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq, every)
+        observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq, every,
+                                                *self._reference_blocks())
         if self._sampled:
             rewards = np.stack([reward_array(measured.edge_squares[k], self._copy_tolerances[k], self._observers[k],
                                              self.scenario.reward) for k in every])
@@ -581,8 +614,9 @@ class VectorFormationEnv:
             self._reset_copies(done)
             part = self._measurement
             slot_z, slot_errors = self._observed_slots()
+            references = tuple(block[done] for block in self._reference_blocks())
             observations[done] = self._observation_matrix(slot_z[done], slot_errors[done], part.q_observed[done],
-                                                          part.dq[done], done)
+                                                          part.dq[done], done, *references)
         return BatchedStep(observations, rewards, ended, truncated, infos)
 
     def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:

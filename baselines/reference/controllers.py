@@ -30,6 +30,15 @@ agents that share a law, a chain and an observation layout in one set of numpy c
 one and gives bit for bit the same actions and internal states. ``J(q, a)^T e_hat = Z(q, e_hat) a``: the
 torque and law-III's adaptation share one chain evaluation.
 
+Manoeuvre feedforward (only when the observation carries a scenario ``manoeuvre``'s reference block;
+without one every law is exactly the paper's): the damping term becomes ``-K_D (dq - dq*)`` with
+``dq* = J^T (J J^T + lambda^2 I)^-1 v*``, the damped least-squares inverse (``lambda`` =
+:data:`FEEDFORWARD_DAMPING`) of the first ``dim`` rows of the agent's Jacobian ``J(q, a_hat0)`` at its
+initial estimate (the nominal model by default; law-III's running estimate is pulled by the commanded
+motion and is not used: docs/manoeuvres.md), and ``v* = dc*/dt + omega* x (x_i - c*)``, the rigid-body velocity of the
+reference at the agent's own end-effector: ``x_i`` from its nominal forward kinematics, ``c* - b_i``,
+``dc*/dt`` and ``omega*`` from its observation, all in its base frame.
+
 Internal states are integrated once per control step ``dt``: ``eta`` by explicit Euler, ``a_hat`` by the
 linearly implicit Euler step ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq`` (stable for
 every dt, same fixed points).
@@ -49,6 +58,8 @@ from ee_formation_env.formation import agent_gradient
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.observation import ObservationLayout, ObservationParts
 from ee_formation_env.baselines.reference.dynamics import NominalDynamics
+
+FEEDFORWARD_DAMPING = 0.01  # m: lambda of the feedforward's damped least-squares inverse (module docstring)
 
 
 @dataclass(frozen=True)
@@ -243,7 +254,8 @@ class GradientController(FormationController):
         regressors = batch.chain.regressor_batch(parts.q, spring)  # J(q, a)^T spring = Z(q, spring) a
         gravity = np.stack([member.agent.dynamics.gravity_torque(q, member.agent.gravity_in_base)
                             for member, q in zip(batch.members, parts.q)])
-        return -batch.kp * (regressors @ batch.a_hat0[:, :, None])[:, :, 0] - batch.kd * parts.dq + gravity
+        return (-batch.kp * (regressors @ batch.a_hat0[:, :, None])[:, :, 0]
+                - batch.kd * batch.damped_velocities(parts, batch.a_hat0) + gravity)
 
 
 class ApproxJacobianController(FormationController):
@@ -283,7 +295,8 @@ class ApproxJacobianController(FormationController):
             regressors, spring_regressors = both[:len(e_hat)], both[len(e_hat):]
         eta = batch.gather("eta")
         a_hat = cls.adapt(batch, parts, regressors, batch.gather("a_hat"))
-        u = -batch.kp * (spring_regressors @ a_hat[:, :, None])[:, :, 0] - batch.kd * parts.dq + batch.ki * eta
+        u = (-batch.kp * (spring_regressors @ a_hat[:, :, None])[:, :, 0]
+             - batch.kd * batch.damped_velocities(parts, batch.a_hat0) + batch.ki * eta)
         applied = np.clip(u, -batch.torque_limits, batch.torque_limits) if batch.members[0].anti_windup else u
         batch.scatter("eta", eta + batch.control_dt * (-batch.ki * eta + applied))
         batch.scatter("a_hat", a_hat)
@@ -431,6 +444,32 @@ class ControllerBatch:
         padded[:, :e_hat.shape[1]] = e_hat
         return padded
 
+    def damped_velocities(self, parts: ObservationParts, a_hat: np.ndarray) -> np.ndarray:
+        """What the damping term ``-K_D (.)`` acts on (k, n): ``dq`` itself (the same object) without a
+        manoeuvre block, else ``dq - dq*`` (module docstring, "Manoeuvre feedforward")."""
+        if not self.layout.reference_size:
+            return parts.dq
+        return parts.dq - self.reference_joint_velocities(parts, a_hat)
+
+    def reference_joint_velocities(self, parts: ObservationParts, a_hat: np.ndarray) -> np.ndarray:
+        """dq* (k, n), rad/s: the joint velocities that move each agent's end-effector with the reference's
+        rigid-body velocity v* (module docstring), from its own observation and models only."""
+        q, m = parts.q, self.layout.dim
+        k, n = q.shape
+        offsets = self.chain.forward_batch(q)[:, :m] - parts.reference_centroid  # x_i - c*, own frame, m
+        omega = parts.reference_angular_velocity
+        if m == 2:  # omega about z: omega x r = omega (-r_y, r_x)
+            turn = omega * np.stack([-offsets[:, 1], offsets[:, 0]], axis=1)
+        else:
+            turn = np.cross(omega, offsets)
+        velocity = parts.reference_velocity + turn  # v*, m/s
+        # J(q, a)^T e_j = Z(q, e_j) a: the Jacobian's first m rows from the regressor, for any estimate a.
+        units = np.tile(np.eye(m), (k, 1))
+        regressors = self.chain.regressor_batch(np.repeat(q, m, axis=0), units)  # (k m, n, p)
+        rows = (regressors @ np.repeat(a_hat, m, axis=0)[:, :, None]).reshape(k, m, n)  # J, (k, m, n)
+        system = rows @ rows.transpose(0, 2, 1) + FEEDFORWARD_DAMPING ** 2 * np.eye(m)
+        return (rows.transpose(0, 2, 1) @ np.linalg.solve(system, velocity[:, :, None]))[:, :, 0]
+
     def spring_gradients(self, e_hat: np.ndarray) -> np.ndarray:
         """``e_hat + K_R (e_hat - e_hat_prev) / dt`` (k, 3): what the spring term ``-K_P J^T (.)`` acts on
         (module docstring, "Gradient-rate damping"); remembers ``e_hat`` as each member's previous value.
@@ -468,7 +507,8 @@ class ControllerBatch:
 
 def _stacked(parts: ObservationParts) -> ObservationParts:
     """One agent's parts as a batch of one."""
-    return ObservationParts(*(getattr(parts, field.name)[None] for field in fields(ObservationParts)))
+    return ObservationParts(*(None if getattr(parts, field.name) is None else getattr(parts, field.name)[None]
+                              for field in fields(ObservationParts)))
 
 
 class ZeroPolicy:

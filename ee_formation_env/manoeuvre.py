@@ -1,0 +1,234 @@
+"""Formation manoeuvres: a time-varying reference for the formation's centroid and orientation (transport).
+
+Scenario key ``manoeuvre`` = ``{"start": t0, "duration": T, "translation": A, "rotation": r, "axis": u}``:
+
+- ``start`` t0 (s, default 5): the hold time before the motion starts;
+- ``duration`` T (s, default 20): the length of the motion, T > 0 (an episode shorter than t0 + T ends
+  during it);
+- ``translation`` A (m, ``dim`` numbers, default zeros): the out-and-back displacement amplitude;
+- ``rotation`` r (rad, default 0): the amplitude of the out-and-back turn about the centroid; distance
+  formations only (a displacement formation's shape is fixed in the world's orientation);
+- ``axis`` u (``dim`` 3 only; world frame, default [0, 0, 1]): the turn's axis (normalized).
+
+Profile: ``s(t) = (1 - cos(2 pi (t - t0) / T)) / 2`` for t0 <= t <= t0 + T, 0 otherwise (out and back, at rest
+at both ends). Reference centroid ``c*(t) = c0 + s(t) A``, with c0 the centroid of the end-effectors at the motion's
+start (measured by the env at the last control step with t <= t0; until then c* is the current centroid:
+the formation forms where its arms take it, and the transport starts from there); reference orientation: the turn ``theta*(t) = s(t) r`` about u through c*(t). Peak
+speed ``pi |A| / T`` (m/s) and peak turn rate ``pi |r| / T`` (rad/s), both at t0 + T / 4 and t0 + 3T / 4.
+
+With a manoeuvre, every agent's observation ends with the reference in its own base frame
+(:mod:`ee_formation_env.observation`): ``c*(t) - b_i`` (m), ``dc*/dt`` (m/s) and the reference angular
+velocity ``omega* = ds/dt r u`` (rad/s: one number, about z, for ``dim`` 2; a 3-vector for ``dim`` 3).
+Without one (the default, or zero translation and rotation) nothing changes.
+
+Tracking errors (:meth:`ReferenceMotion.orientation_errors`): the centroid error is ``|c(t) - c*(t)|`` (m);
+the orientation error is the angle (rad) of the best-fit rotation (Kabsch) taking the end-effector
+positions about their centroid at the motion's start (the last step with t <= t0), turned by theta*(t),
+onto the current ones about theirs; 0 before the motion starts.
+
+The reference laws' velocity feedforward and its measurements: docs/manoeuvres.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from ee_formation_env.inputs import excerpt
+
+MANOEUVRE_KEYS = ("start", "duration", "translation", "rotation", "axis")
+DEFAULT_START_SECONDS = 5.0
+DEFAULT_DURATION_SECONDS = 20.0
+_BOUND_MARGIN = 1.001  # observation bounds: a little above the largest value the reference can take
+
+
+@dataclass(frozen=True)
+class ManoeuvreConfig:
+    """The reference motion (module docstring); units s, s, m, rad, unit vector."""
+
+    start: float = DEFAULT_START_SECONDS
+    duration: float = DEFAULT_DURATION_SECONDS
+    translation: tuple[float, ...] = ()  # () or zeros: no translation
+    rotation: float = 0.0
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    @property
+    def active(self) -> bool:
+        """Whether the reference moves at all (else the env is exactly the plain hold task)."""
+        return bool(any(a != 0 for a in self.translation) or self.rotation != 0)
+
+    @property
+    def peak_speed(self) -> float:
+        """The reference centroid's peak speed ``pi |A| / T``, m/s."""
+        return math.pi * float(np.linalg.norm(self.translation)) / self.duration if self.translation else 0.0
+
+    @property
+    def peak_angular_speed(self) -> float:
+        """The reference turn's peak rate ``pi |r| / T``, rad/s."""
+        return math.pi * abs(self.rotation) / self.duration
+
+    def profile(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``s(t)`` and ``ds/dt`` (1/s) at times ``t`` (s), any shape."""
+        t = np.asarray(t, dtype=np.float64)
+        phase = 2.0 * math.pi * (t - self.start) / self.duration
+        moving = (t >= self.start) & (t <= self.start + self.duration)
+        s = np.where(moving, 0.5 * (1.0 - np.cos(phase)), 0.0)
+        rate = np.where(moving, (math.pi / self.duration) * np.sin(phase), 0.0)
+        return s, rate
+
+    def to_dict(self) -> dict[str, Any] | None:
+        """Plain data that :func:`parse_manoeuvre` accepts back; None when inactive."""
+        if not self.active:
+            return None
+        data = {"start": self.start, "duration": self.duration, "translation": list(self.translation),
+                "rotation": self.rotation}
+        if self.axis != (0.0, 0.0, 1.0):  # only a spatial formation may name one
+            data["axis"] = list(self.axis)
+        return data
+
+
+def parse_manoeuvre(value: Any, dim: int, formation_kind: str) -> ManoeuvreConfig:
+    """``manoeuvre`` from scenario data, for a ``dim``-dimensional formation of kind ``formation_kind``;
+    ``ValueError`` naming the field on bad input."""
+    if isinstance(value, ManoeuvreConfig):
+        value = value.to_dict()
+    if value is None:
+        return ManoeuvreConfig()
+    if not isinstance(value, Mapping):
+        raise ValueError(f"manoeuvre: expected a dict with keys {list(MANOEUVRE_KEYS)} or null, got {excerpt(value)}")
+    unknown = set(value) - set(MANOEUVRE_KEYS)
+    if unknown:
+        raise ValueError(f"manoeuvre: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: "
+                         f"{list(MANOEUVRE_KEYS)}")
+    start = _number("manoeuvre.start", value.get("start", DEFAULT_START_SECONDS), "a time >= 0 (s)",
+                    lambda x: x >= 0)
+    duration = _number("manoeuvre.duration", value.get("duration", DEFAULT_DURATION_SECONDS), "a time > 0 (s)",
+                       lambda x: x > 0)
+    translation = _vector("manoeuvre.translation", value.get("translation", [0.0] * dim), dim, "m")
+    rotation = _number("manoeuvre.rotation", value.get("rotation", 0.0), "an angle (rad)", lambda x: True)
+    if rotation != 0 and formation_kind != "distance":
+        raise ValueError(f"manoeuvre.rotation: a {formation_kind} formation's shape is fixed in orientation; "
+                         f"only distance formations can turn, got rotation {rotation:g} rad")
+    axis = (0.0, 0.0, 1.0)
+    if "axis" in value:
+        if dim != 3:
+            raise ValueError(f"manoeuvre.axis: only for dim 3 (a planar formation turns about z), got "
+                             f"{excerpt(value['axis'])}")
+        vector = np.asarray(_vector("manoeuvre.axis", value["axis"], 3, "a direction"))
+        norm = float(np.linalg.norm(vector))
+        if not (norm > 1e-9 and math.isfinite(norm)):
+            raise ValueError(f"manoeuvre.axis: expected a nonzero direction, got {excerpt(value['axis'])}")
+        axis = tuple((vector / norm).tolist())
+    config = ManoeuvreConfig(start=start, duration=duration, translation=translation, rotation=rotation, axis=axis)
+    return config if config.active else ManoeuvreConfig()  # one form of "no manoeuvre": equal scenarios compare equal
+
+
+def _number(name: str, value: Any, expected: str, valid: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not (
+            math.isfinite(value) and valid(value)):
+        raise ValueError(f"{name}: expected {expected}, got {excerpt(value)}")
+    return float(value)
+
+
+def _vector(name: str, value: Any, length: int, unit: str) -> tuple[float, ...]:
+    ok = isinstance(value, (list, tuple, np.ndarray)) and len(value) == length and all(
+        not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(v)
+        for v in value)
+    if not ok:
+        raise ValueError(f"{name}: expected {length} finite numbers ({unit}), got {excerpt(value)}")
+    return tuple(float(v) for v in value)
+
+
+def rotation_about(axis: np.ndarray, angles: np.ndarray, dim: int) -> np.ndarray:
+    """Rotations (K, dim, dim) by ``angles`` (K,) rad about ``axis`` (world, unit; about z for ``dim`` 2)."""
+    c, s = np.cos(angles), np.sin(angles)
+    if dim == 2:
+        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    u = np.asarray(axis, dtype=np.float64)
+    skew = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    return (c[:, None, None] * np.eye(3) + s[:, None, None] * skew
+            + (1.0 - c)[:, None, None] * np.outer(u, u))
+
+
+def best_fit_angle(source: np.ndarray, target: np.ndarray) -> float:
+    """The angle (rad, >= 0) of the proper rotation that best takes the centred points ``source`` (N, d)
+    onto the centred points ``target`` (Kabsch)."""
+    a, b = source - source.mean(axis=0), target - target.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    correction = np.ones(len(u))
+    correction[-1] = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rotation = vt.T @ np.diag(correction) @ u.T  # target ~ rotation @ source
+    if rotation.shape == (2, 2):
+        return abs(float(np.arctan2(rotation[1, 0], rotation[0, 0])))
+    return float(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+class ReferenceMotion:
+    """The reference of one task's manoeuvre for K copies: the world signal, each agent's observation block
+    and the tracking errors (module docstring). Every function takes K copies' arrays (a single env is K = 1),
+    so a batched copy's numbers are the single env's bit for bit."""
+
+    def __init__(self, config: ManoeuvreConfig, task: Any):
+        self.config = config
+        m = self.dim = task.dim
+        self.omega_size = 1 if m == 2 else 3
+        self.size = 2 * m + self.omega_size  # per agent: c* - b_i, dc*/dt, omega*
+        self._translation = np.asarray(config.translation or (0.0,) * m, dtype=np.float64)
+        self._axis = np.asarray(config.axis, dtype=np.float64)
+        self._rotations = np.ascontiguousarray(task.base_rotations[:, :m, :m])  # (N, m, m) base -> world
+        self._bases = task.base_positions[:, :m]  # (N, m)
+        # A planar agent's turn rate about its own z: the sign of its base z axis along the world's.
+        self._z_signs = task.base_rotations[:, 2, 2][None, :, None]  # (1, N, 1)
+        self._full_rotations = task.base_rotations  # (N, 3, 3)
+        self.n_agents = task.n_agents
+        self.bound = self._bound(task)
+
+    def _bound(self, task: Any) -> np.ndarray:
+        """One agent's block bound (size,): |c* - b_i| at most the farthest end-effector from b_i plus |A|."""
+        bases, reaches = self._bases, np.asarray(task.reaches)
+        farthest = max(float(np.linalg.norm(bases[j] - bases[i])) + reaches[j]
+                       for i in range(len(bases)) for j in range(len(bases)))
+        position = farthest + float(np.linalg.norm(self._translation))
+        return _BOUND_MARGIN * np.concatenate([np.full(self.dim, position), np.full(self.dim, self.config.peak_speed),
+                                               np.full(self.omega_size, self.config.peak_angular_speed)])
+
+    def world(self, t: np.ndarray, c0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """At times ``t`` (K,) s from reset centroids ``c0`` (K, m): c* (K, m) m, dc*/dt (K, m) m/s,
+        theta* (K,) rad and omega* (K, 3) rad/s (world frame)."""
+        s, rate = self.config.profile(t)
+        centroid = c0 + s[:, None] * self._translation
+        velocity = rate[:, None] * self._translation
+        omega = (rate * self.config.rotation)[:, None] * self._axis
+        return centroid, velocity, s * self.config.rotation, omega
+
+    def observation_block(self, t: np.ndarray, c0: np.ndarray) -> np.ndarray:
+        """Every agent's reference block in its own base frame (K, N * size): c* - b_i, dc*/dt, omega*."""
+        centroid, velocity, _, omega = self.world(t, c0)
+        offsets = centroid[:, None, :] - self._bases  # (K, N, m), world
+        offsets = (offsets[..., None, :] @ self._rotations)[..., 0, :]  # row vector @ R = R^T v: own frame
+        velocities = (velocity[:, None, None, :] @ self._rotations)[..., 0, :]
+        if self.dim == 2:
+            omegas = omega[:, None, 2:3] * self._z_signs
+        else:
+            omegas = (omega[:, None, None, :] @ self._full_rotations)[..., 0, :]
+        block = np.concatenate([offsets, velocities, omegas], axis=-1)
+        return block.reshape(len(block), -1)
+
+    def centroid_errors(self, t: np.ndarray, c0: np.ndarray, ee_world: np.ndarray) -> np.ndarray:
+        """|c - c*| (K,), m, of end-effector positions ``ee_world`` (K, N, 3)."""
+        centroid = self.world(t, c0)[0]
+        return np.linalg.norm(ee_world[..., :self.dim].mean(axis=-2) - centroid, axis=-1)
+
+    def orientation_errors(self, t: np.ndarray, start_points: np.ndarray, ee_world: np.ndarray) -> np.ndarray:
+        """The orientation error (K,), rad (module docstring) from the end-effector positions at the motion's
+        start ``start_points`` (K, N, m) and the current ones ``ee_world`` (K, N, 3)."""
+        theta = self.world(t, np.zeros((len(t), self.dim)))[2]
+        turns = rotation_about(self._axis, theta, self.dim)  # (K, m, m)
+        centred = start_points - start_points.mean(axis=-2, keepdims=True)
+        references = centred @ turns.transpose(0, 2, 1)
+        current = ee_world[..., :self.dim]
+        return np.array([0.0 if t_k <= self.config.start else best_fit_angle(ref, cur)
+                         for t_k, ref, cur in zip(t, references, current)])

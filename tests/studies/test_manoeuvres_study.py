@@ -1,0 +1,38 @@
+"""studies.manoeuvres (the study; the env's manoeuvres are tests/test_manoeuvre.py): a quick run's table,
+records and figure, and the worst-case summary."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from studies import manoeuvres
+
+pytest.importorskip("matplotlib")
+
+
+def test_a_quick_run_writes_its_table_and_figure(tmp_path, capsys):
+    results = manoeuvres.main(["--quick", "--out", str(tmp_path)])
+    assert {(row["task"], row["law"]) for row in results["rows"]} == {
+        (task, law) for task in manoeuvres.TASKS for law in manoeuvres.LAWS}
+    saved = json.loads((tmp_path / "manoeuvres.json").read_text())
+    assert saved["quick"] and saved["seeds"] == list(manoeuvres.SEEDS[:1])
+    assert (tmp_path / "manoeuvre_tracking.png").stat().st_size > 10_000
+    for run in results["runs"]:
+        assert not run["physics_fault"] and run["max_reach_fraction"] < 1.0
+        assert run["max_motion_error"] >= 0 and run["max_centroid_error"] >= run["rms_centroid_error"]
+        if run["task"] == "planar_square_transport":
+            assert run["max_orientation_error"] >= 0 and run["peak_speed"] > 0
+        else:
+            assert run["peak_angular_speed"] > 0
+    assert "| task | law | success |" in capsys.readouterr().out
+
+
+def test_the_summary_keeps_the_worst_seed():
+    base = {"task": "t", "law": "law-I", "success": True, "physics_fault": "", "contact_steps": 0}
+    records = [{**base, **{name: 0.001 for name in manoeuvres.SUMMED}, "seed": 0},
+               {**base, **{name: 0.03 for name in manoeuvres.SUMMED}, "seed": 1, "contact_steps": 2}]
+    (row,) = manoeuvres.summarize(records)
+    assert row["max_centroid_error"] == 0.03 and row["contact_steps"] == 2 and row["runs"] == 2
+    assert not row["centroid_target_met"] and not row["edge_target_met"]
