@@ -39,6 +39,9 @@ key                          default           meaning
 ``singularity_margin``       0.05              m, smallest Jacobian singular value allowed at the initial
                                                configurations (and at a ``"reachable"`` vertex's)
 ``vertex_spacing``           0.1               m, smallest distance between two target vertices
+``reach_margin``             0                 m, each drawn vertex at least this much inside its own arm's
+                                               reach (its distance from the base at most the reach less
+                                               this): targets that need a stretched arm are redrawn
 ``max_tries``                200               draws before a distribution is declared infeasible
 ============================ ================= ==================================================================
 
@@ -82,6 +85,7 @@ class DistributionConfig:
     graph: str = "scenario"
     singularity_margin: float = 0.05  # m
     vertex_spacing: float = 0.1  # m
+    reach_margin: float = 0.0  # m
     max_tries: int = 200
     active: bool = False  # True once given in a scenario
 
@@ -124,7 +128,7 @@ def parse_distribution(value: Any, dim: int) -> DistributionConfig:
         if choice not in choices:
             raise ValueError(f"distribution.{name}: expected one of {list(choices)}, got {excerpt(choice)}")
         parsed[name] = choice
-    for name in ("region_radius", "singularity_margin", "vertex_spacing"):
+    for name in ("region_radius", "singularity_margin", "vertex_spacing", "reach_margin"):
         parsed[name] = _number(name, value.get(name, getattr(defaults, name)), positive=name == "region_radius")
     tries = value.get("max_tries", defaults.max_tries)
     if isinstance(tries, bool) or not isinstance(tries, int) or not 1 <= tries <= MAX_TRIES:

@@ -407,6 +407,11 @@ def _margin_problem(task: Any, config: Any) -> str | None:
     gaps = np.linalg.norm(shape[:, None] - shape[None], axis=-1) + np.diag(np.full(len(shape), np.inf))
     if gaps.min() < config.vertex_spacing:
         return f"shape: two vertices {gaps.min():.3f} m apart < vertex_spacing {config.vertex_spacing} m"
+    distances = np.linalg.norm(shape - task.base_positions[:, :task.dim], axis=1)
+    for i, (distance, reach) in enumerate(zip(distances, task.reaches)):
+        if distance > reach - config.reach_margin:
+            return (f"shape: vertex {i} is {distance:.3f} m from its base, within reach_margin "
+                    f"{config.reach_margin} m of the arm's reach {reach:.3f} m")
     return None
 
 

@@ -67,6 +67,8 @@ def test_each_draw_keeps_the_distribution_margins_and_starts_clear(make_env):
         shape = np.asarray(env.task.scenario.shape)
         gaps = np.linalg.norm(shape[:, None] - shape[None], axis=-1)[np.triu_indices(len(shape), 1)]
         assert gaps.min() >= config.vertex_spacing
+        reach = np.linalg.norm(shape - env.task.base_positions[:, :2], axis=1)
+        assert np.all(reach <= np.asarray(env.task.reaches) - config.reach_margin)
         assert all(info["contacts"] == 0 for info in infos.values())
         radius = np.linalg.norm(env.task.base_positions[:, :2], axis=1)
         assert np.allclose(radius, radius[0]) and config.ring_radius[0] <= radius[0] <= config.ring_radius[1]
@@ -153,6 +155,7 @@ def test_an_infeasible_distribution_is_refused_at_construction(make_env):
     ({"initial_q": "zeros"}, r"distribution\.initial_q: expected one of"),
     ({"max_tries": 0}, r"distribution\.max_tries: expected an integer"),
     ({"region_radius": 0.0}, r"distribution\.region_radius: expected a finite number > 0"),
+    ({"reach_margin": -0.1}, r"distribution\.reach_margin: expected a finite number >= 0"),
     ({"spacing": 1.0}, r"distribution: unknown key\(s\) \['spacing'\]"),
     ([1, 2], r"distribution: expected a dict"),
 ])
