@@ -253,8 +253,9 @@ class FormationEnv(ParallelEnv):
         return self._last().ee_world.copy()
 
     def reference_centroid(self) -> np.ndarray:
-        """The manoeuvre's reference centroid c*(t) (dim,), world, m, at the last reset/step (without a
-        manoeuvre: the end-effectors' centroid at reset, a reference at rest)."""
+        """The manoeuvre's reference centroid c*(t) (dim,), world, m, at the last reset/step: until the motion's
+        start t0 the end-effectors' current centroid, then that of t0 moved along the path (without a
+        manoeuvre, a reference at rest from the default t0)."""
         self._last()
         return self._motion.world(self._times(), self._start_points.mean(axis=-2))[0][0]
 
