@@ -133,3 +133,44 @@ def tiny_benchmarl_config(save_folder: Any) -> Any:
     config.checkpoint_at_end = False
     config.save_folder = str(save_folder)
     return config
+
+
+@pytest.fixture
+def lockstep(make_env, closer) -> Callable[..., int]:
+    """``lockstep(scenario, overrides, steps=25, check=None)``: a batched env of two copies (seeds 5 and 9) and
+    two single envs reset with those seeds, driven by the same random actions through their autoresets
+    (``overrides`` should make episodes short); asserts that every copy's observations (and final
+    observations) and rewards are the single env's bit for bit, calls ``check(batched, singles, k)`` after
+    each step (after a single env's reset where its episode ended) for what a test compares besides, and
+    returns how many episodes ended."""
+
+    def run(scenario: Any, overrides: dict[str, Any], steps: int = 25,
+            check: Callable[[Any, list[Any], int], None] | None = None) -> int:
+        seeds = [5, 9]
+        batched = closer(ee_formation_env.vector_env(scenario, num_envs=2, **overrides))
+        singles = [make_env(scenario, **overrides) for _ in seeds]
+        result = batched.reset_arrays(seed=seeds)
+        agents = batched.possible_agents
+        for k, single in enumerate(singles):
+            observations, _ = single.reset(seed=seeds[k])
+            assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
+        slices = batched.joint_slices
+        rng = np.random.default_rng(1)
+        ends = 0
+        for _ in range(steps):
+            actions = rng.uniform(-0.5, 0.5, (2, batched.n_joints)).astype(np.float32)
+            result = batched.step_arrays(actions)
+            for k, single in enumerate(singles):
+                observations, rewards, *_ = single.step({a: actions[k, part] for a, part in zip(agents, slices)})
+                final = np.concatenate([observations[a] for a in agents])
+                assert result.infos["final_observation"][k].tobytes() == final.tobytes()
+                assert result.rewards[k].tolist() == [rewards[a] for a in agents]
+                if not single.agents:
+                    ends += 1
+                    observations, _ = single.reset()
+                assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
+                if check is not None:
+                    check(batched, singles, k)
+        return ends
+
+    return run

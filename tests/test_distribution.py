@@ -8,7 +8,7 @@ import numpy as np
 import pybullet
 import pytest
 
-from ee_formation_env import load_scenario, vector_env
+from ee_formation_env import load_scenario
 from ee_formation_env.baselines import make_policies
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 from ee_formation_env.baselines.metrics import run_episode, run_episodes
@@ -78,30 +78,13 @@ def test_each_draw_keeps_the_distribution_margins_and_starts_clear(make_env):
     assert np.ptp(radii) > 0.3  # the ring radius really varies
 
 
-def test_batched_copies_draw_as_single_envs_through_autoresets(make_env, closer):
-    seeds = [5, 9]
-    batched = closer(vector_env("planar_random", num_envs=2, **SHORT))
-    singles = [make_env("planar_random", **SHORT) for _ in seeds]
-    result = batched.reset_arrays(seed=seeds)
-    agents = batched.possible_agents
-    for k, single in enumerate(singles):
-        observations, _ = single.reset(seed=seeds[k])
-        assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
-        assert _layout(single) == ([a.base_position for a in batched.tasks[k].scenario.arms],
-                                   [a.base_rpy for a in batched.tasks[k].scenario.arms], batched.tasks[k].scenario.shape)
-    rng = np.random.default_rng(1)
-    ends = 0
-    for _ in range(25):  # 10-step episodes: both copies end and draw again twice
-        actions = rng.uniform(-0.5, 0.5, (2, len(agents) * 2)).astype(np.float32)
-        result = batched.step_arrays(actions)
-        for k, single in enumerate(singles):
-            observations, rewards, *_ = single.step({a: actions[k, 2 * i:2 * i + 2] for i, a in enumerate(agents)})
-            assert result.rewards[k].tolist() == [rewards[a] for a in agents]
-            if not single.agents:
-                ends += 1
-                observations, _ = single.reset()
-            assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
-    assert ends >= 4
+def test_batched_copies_draw_as_single_envs_through_autoresets(lockstep):
+    def same_draw(batched, singles, k):
+        task = batched.tasks[k]
+        assert _layout(singles[k]) == ([a.base_position for a in task.scenario.arms],
+                                       [a.base_rpy for a in task.scenario.arms], task.scenario.shape)
+
+    assert lockstep("planar_random", SHORT, check=same_draw) >= 4  # 10-step episodes: each copy draws again
 
 
 def test_reference_controllers_take_each_draws_gains(make_env):

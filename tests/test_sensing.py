@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ee_formation_env import load_scenario, vector_env
+from ee_formation_env import load_scenario
 from ee_formation_env.sensing import SensingConfig
 
 STEPS = 12
@@ -91,31 +91,9 @@ def test_noise_has_its_standard_deviation_and_follows_the_reset_seed(make_env):
     assert any(noisy[1][0][a].tobytes() != other[1][0][a].tobytes() for a in env.possible_agents)
 
 
-def test_batched_copies_sense_as_single_envs_through_autoresets(make_env, closer):
+def test_batched_copies_sense_as_single_envs_through_autoresets(lockstep):
     sensing = {"noise": 0.01, "delay": 2, "bias": 0.02, "yaw": 0.1}
-    overrides = {"episode_seconds": 0.1, "sensing": sensing}
-    seeds = [5, 9]
-    batched = closer(vector_env("planar_square", num_envs=2, **overrides))
-    singles = [make_env("planar_square", **overrides) for _ in seeds]
-    result = batched.reset_arrays(seed=seeds)
-    agents = batched.possible_agents
-    for k, single in enumerate(singles):
-        observations, _ = single.reset(seed=seeds[k])
-        assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
-    rng = np.random.default_rng(1)
-    ends = 0
-    for _ in range(25):  # 10-step episodes: both copies end and restart twice
-        actions = rng.uniform(-0.5, 0.5, (2, len(agents) * 2)).astype(np.float32)
-        result = batched.step_arrays(actions)
-        for k, single in enumerate(singles):
-            observations, *_ = single.step({a: actions[k, 2 * i:2 * i + 2] for i, a in enumerate(agents)})
-            final = np.concatenate([observations[a] for a in agents])
-            assert result.infos["final_observation"][k].tobytes() == final.tobytes()
-            if not single.agents:
-                ends += 1
-                observations, _ = single.reset()
-            assert result.observations[k].tobytes() == np.concatenate([observations[a] for a in agents]).tobytes()
-    assert ends >= 4
+    assert lockstep("planar_square", {"episode_seconds": 0.1, "sensing": sensing}) >= 4  # 10-step episodes
 
 
 def test_a_scalar_bias_has_its_length_in_a_seeded_direction():
