@@ -2,7 +2,7 @@
 
 - ``train``: train a shared policy and compare it with the reference controllers (the flags of ``train.py``);
 - ``evaluate``: run reference policies on seeded episodes and print the metrics table;
-- ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
+- ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
   from the repository root of a checkout (they are not part of the installed package).
 """
 
@@ -67,6 +67,8 @@ COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {
                          _study("random_scenarios")),
     "sensing": ("the laws against noisy, delayed, biased and misaligned measurements (checkout only)",
                 _study("sensing")),
+    "manoeuvres": ("the laws carrying and turning a formation: shape and tracking errors (checkout only)",
+                   _study("manoeuvres")),
     "scoreboard": ("every built-in scenario x method over training seeds, with intervals (checkout only)",
                    _study("scoreboard")),
 }

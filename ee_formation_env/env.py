@@ -84,6 +84,10 @@ class FormationEnv(ParallelEnv):
     reference motion in each agent's frame; :meth:`reference_centroid`, :meth:`centroid_tracking_error` and
     :meth:`orientation_tracking_error` measure the tracking (no info key is added).
 
+    **Scenario distributions** (scenario key ``distribution``, :mod:`ee_formation_env.distribution`): every
+    ``reset`` draws a validated problem (layout, shape, start) for the same team from the env's generator;
+    ``task`` is the current draw, ``scenario`` the distribution; the spaces hold over every draw.
+
     **Episode end**: truncation after ``episode_seconds``; termination on a physics fault (non-finite
     state or |dq| > ``max_joint_velocity``) or, if ``terminate_on_contact``, on contact between arms.
 

@@ -11,7 +11,10 @@ validation (rigidity, reach, singularities) accepts every scenario built here.
 - :func:`spatial_ring`: ``pera_arm`` arms (7 DOF), ``dim = 3``, with gravity.
 
 The random families of the random-scenario study (and of :data:`ee_formation_env.scenario_sets.RANDOM_FAMILIES`)
-are here too: :func:`planar_scenario` and :func:`spatial_scenario`, one seeded scenario per seed.
+are here too: :func:`planar_scenario` and :func:`spatial_scenario`, one seeded scenario per seed. So is the
+sampling of a scenario distribution (:mod:`ee_formation_env.distribution`): :func:`sample_task` draws and
+validates one problem for the scenario's fixed team, :func:`distribution_bounds` bounds the spaces over all
+of them.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ import pybullet_data
 
 from ee_formation_env.robots import SPATIAL_INITIAL_Q, ROBOTS
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix, singularity_margins
+from ee_formation_env.scenario import load_scenario
+from ee_formation_env.task import build_task
 
 _PLANAR_REACH_USED = 2.0  # m, initial base-to-end-effector distance of a planar arm
 _PLANAR_BASE_SPACING = 3.5  # m between neighbouring bases on the circle (keeps the arms apart)
@@ -272,9 +277,6 @@ def sample_task(scenario: Any, rng: np.random.Generator, accept: Callable[[Any],
     passed the geometric checks (the env's start-contact check in its world): it returns the reason, or None.
     Rejected draws are redrawn; after ``max_tries`` a ``ValueError`` names the distribution and the last reason.
     """
-    from ee_formation_env.scenario import load_scenario  # the format and the task sit above the generators
-    from ee_formation_env.task import build_task
-
     config = scenario.distribution
     reason = ""
     for _ in range(config.max_tries):

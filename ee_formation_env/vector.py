@@ -69,6 +69,10 @@ numpy pass over the K x N agents, with the single env's own functions
 (:func:`ee_formation_env.env.measure`, :func:`~ee_formation_env.env.reward_array`, the
 :class:`~ee_formation_env.observation.ObservationBuilder`) given a leading K axis.
 
+**Scenario distributions**: each copy draws its own problem at each of its resets (the single env's draw for
+its seed, bit for bit; ``tasks[k]`` is copy k's, ``copy_view(k)`` the copy as a per-copy policy source sees
+it), and its measurements, observations and rewards are computed with its own draw, copy by copy.
+
 **Errors**: bad input raises before any copy moves, with the single env's messages (they start with the
 field: ``actions['arm_0']: ...``, ``seed: ...``, ``options['reset_mask']: ...``).
 

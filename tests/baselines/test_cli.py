@@ -15,7 +15,8 @@ def test_help_lists_every_command(capsys):
         main(["--help"])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
-    for name in ("train", "evaluate", "reproduce", "robustness", "random-scenarios", "sensing", "scoreboard"):
+    for name in ("train", "evaluate", "reproduce", "robustness", "random-scenarios", "sensing", "manoeuvres",
+                 "scoreboard"):
         assert name in out and name in COMMANDS
 
 
