@@ -93,8 +93,11 @@ class DistributionConfig:
         """Plain data :func:`parse_distribution` accepts back (None for no distribution)."""
         if not self.active:
             return None
-        return {f.name: list(value) if isinstance(value, tuple) else value
-                for f in fields(self) if f.name != "active" for value in [getattr(self, f.name)]}
+        data = {}
+        for name in DISTRIBUTION_KEYS:
+            value = getattr(self, name)
+            data[name] = list(value) if isinstance(value, tuple) else value
+        return data
 
 
 DISTRIBUTION_KEYS = tuple(f.name for f in fields(DistributionConfig) if f.name != "active")
