@@ -136,6 +136,26 @@ def tiny_benchmarl_config(save_folder: Any) -> Any:
 
 
 @pytest.fixture
+def open_loop(make_env) -> Callable[..., tuple[Any, list[tuple[Any, Any, Any]]]]:
+    """``open_loop(scenario, steps=15, seed=2, **overrides)``: an env (``make_env``'s) reset with ``seed`` and
+    stepped ``steps`` times with seeded random torques (the same whatever the overrides change), and the
+    record ``[(observations, rewards, infos), ...]`` from the reset on (rewards None at the reset)."""
+
+    def run(scenario: Any, steps: int = 15, seed: int = 2, **overrides: Any):
+        env = make_env(scenario, **overrides)
+        observations, infos = env.reset(seed=seed)
+        rng = np.random.default_rng(0)
+        record = [(observations, None, infos)]
+        for _ in range(steps):
+            actions = {a: rng.uniform(-0.3, 0.3, env.action_space(a).shape).astype(np.float32) for a in env.agents}
+            observations, rewards, _, _, infos = env.step(actions)
+            record.append((observations, rewards, infos))
+        return env, record
+
+    return run
+
+
+@pytest.fixture
 def lockstep(make_env, closer) -> Callable[..., int]:
     """``lockstep(scenario, overrides, steps=25, check=None)``: a batched env of two copies (seeds 5 and 9) and
     two single envs reset with those seeds, driven by the same random actions through their autoresets

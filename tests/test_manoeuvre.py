@@ -79,21 +79,9 @@ def test_rotation_refusals(scenario, manoeuvre, message):
     assert parse_manoeuvre({"translation": [0.1, 0.0]}, 2, "displacement").active  # translating is fine
 
 
-def _rollout(make_env, scenario, steps=15, seed=2, **overrides):
-    env = make_env(scenario, **overrides)
-    observations, infos = env.reset(seed=seed)
-    rng = np.random.default_rng(0)
-    record = [(observations, None, infos)]
-    for _ in range(steps):
-        actions = {a: rng.uniform(-0.3, 0.3, env.action_space(a).shape).astype(np.float32) for a in env.agents}
-        observations, rewards, _, _, infos = env.step(actions)
-        record.append((observations, rewards, infos))
-    return env, record
-
-
-def test_an_inactive_manoeuvre_leaves_everything_bit_identical(make_env):
-    plain_env, plain = _rollout(make_env, "planar_square")
-    idle_env, idle = _rollout(make_env, "planar_square", manoeuvre={"start": 0.1, "duration": 0.2})
+def test_an_inactive_manoeuvre_leaves_everything_bit_identical(open_loop):
+    plain_env, plain = open_loop("planar_square")
+    idle_env, idle = open_loop("planar_square", manoeuvre={"start": 0.1, "duration": 0.2})
     for agent in plain_env.possible_agents:
         assert plain_env.observation_space(agent) == idle_env.observation_space(agent)
         assert plain_env.observation_layout(agent) == idle_env.observation_layout(agent)
@@ -106,9 +94,9 @@ def test_an_inactive_manoeuvre_leaves_everything_bit_identical(make_env):
             assert all(np.array_equal(infos_a[agent][k], infos_b[agent][k]) for k in infos_a[agent])
 
 
-def test_an_active_manoeuvre_changes_only_the_reference_block(make_env):
-    plain_env, plain = _rollout(make_env, "planar_square", episode_seconds=1.5)
-    env, moving = _rollout(make_env, "planar_square", episode_seconds=1.5, manoeuvre=MOVE)
+def test_an_active_manoeuvre_changes_only_the_reference_block(open_loop):
+    plain_env, plain = open_loop("planar_square", episode_seconds=1.5)
+    env, moving = open_loop("planar_square", episode_seconds=1.5, manoeuvre=MOVE)
     for (obs_a, rewards_a, infos_a), (obs_b, rewards_b, _) in zip(plain, moving):
         assert rewards_a == rewards_b  # the reward stays the shape's
         for agent in obs_a:

@@ -12,24 +12,16 @@ from ee_formation_env.sensing import SensingConfig
 STEPS = 12
 
 
-def _drive(make_env, scenario, sensing, seed=3, steps=STEPS):
+def _drive(open_loop, scenario, sensing, seed=3, steps=STEPS):
     """Observations, rewards and infos of ``steps`` open-loop steps (the same torques whatever is sensed)."""
-    env = make_env(scenario, sensing=sensing)
-    observations, infos = env.reset(seed=seed)
-    rng = np.random.default_rng(0)
-    record = [(observations, None, infos)]
-    for _ in range(steps):
-        actions = {a: rng.uniform(-0.3, 0.3, env.action_space(a).shape).astype(np.float32) for a in env.agents}
-        observations, rewards, _, _, infos = env.step(actions)
-        record.append((observations, rewards, infos))
-    return env, record
+    return open_loop(scenario, steps=steps, seed=seed, sensing=sensing)
 
 
 @pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement", "spatial_tetrahedron"])
-def test_no_sensing_knob_changes_the_physics_reward_or_infos(make_env, scenario):
+def test_no_sensing_knob_changes_the_physics_reward_or_infos(open_loop, scenario):
     sensing = {"noise": 0.01, "delay": 2, "bias": 0.05, "yaw": 0.2, "seed": 4}
-    _, exact = _drive(make_env, scenario, None)
-    _, sensed = _drive(make_env, scenario, sensing)
+    _, exact = _drive(open_loop, scenario, None)
+    _, sensed = _drive(open_loop, scenario, sensing)
     for (obs_a, rewards_a, infos_a), (obs_b, rewards_b, infos_b) in zip(exact, sensed):
         assert rewards_a == rewards_b
         for agent in infos_a:
@@ -39,9 +31,9 @@ def test_no_sensing_knob_changes_the_physics_reward_or_infos(make_env, scenario)
     assert all(changed)
 
 
-def test_zero_knobs_are_exact(make_env):
-    _, exact = _drive(make_env, "planar_square", None)
-    _, zero = _drive(make_env, "planar_square", {"noise": 0, "delay": 0, "bias": 0, "yaw": 0})
+def test_zero_knobs_are_exact(open_loop):
+    _, exact = _drive(open_loop, "planar_square", None)
+    _, zero = _drive(open_loop, "planar_square", {"noise": 0, "delay": 0, "bias": 0, "yaw": 0})
     assert not load_scenario("planar_square", sensing={"noise": 0}).sensing.active
     for (obs_a, *_), (obs_b, *_) in zip(exact, zero):
         assert all(obs_a[a].tobytes() == obs_b[a].tobytes() for a in obs_a)
@@ -59,11 +51,11 @@ def _z_and_errors(env, observations):
 
 
 @pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement"])
-def test_delay_yaw_and_bias_transform_the_true_displacements(make_env, scenario):
-    exact_env, exact = _drive(make_env, scenario, None)
+def test_delay_yaw_and_bias_transform_the_true_displacements(open_loop, scenario):
+    exact_env, exact = _drive(open_loop, scenario, None)
     yaws = [0.1, -0.2, 0.3, 0.05]
     biases = [[0.01, 0.0], [0.0, -0.02], [0.03, 0.01], [-0.01, -0.01]]
-    env, sensed = _drive(make_env, scenario, {"delay": 3, "yaw": yaws, "bias": biases})
+    env, sensed = _drive(open_loop, scenario, {"delay": 3, "yaw": yaws, "bias": biases})
     for t in range(STEPS + 1):
         true = _z_and_errors(exact_env, exact[max(t - 3, 0)][0])  # the start is held through the delay
         seen = _z_and_errors(env, sensed[t][0])
@@ -78,11 +70,11 @@ def test_delay_yaw_and_bias_transform_the_true_displacements(make_env, scenario)
                 np.testing.assert_allclose(errors, z - desired, atol=2e-6)
 
 
-def test_noise_has_its_standard_deviation_and_follows_the_reset_seed(make_env):
-    _, exact = _drive(make_env, "planar_square", None, steps=40)
-    env, noisy = _drive(make_env, "planar_square", {"noise": 0.02}, steps=40)
-    _, again = _drive(make_env, "planar_square", {"noise": 0.02}, steps=40)
-    _, other = _drive(make_env, "planar_square", {"noise": 0.02}, seed=4, steps=40)
+def test_noise_has_its_standard_deviation_and_follows_the_reset_seed(open_loop):
+    _, exact = _drive(open_loop, "planar_square", None, steps=40)
+    env, noisy = _drive(open_loop, "planar_square", {"noise": 0.02}, steps=40)
+    _, again = _drive(open_loop, "planar_square", {"noise": 0.02}, steps=40)
+    _, other = _drive(open_loop, "planar_square", {"noise": 0.02}, seed=4, steps=40)
     differences = np.concatenate([
         (_z_and_errors(env, b[0])[a][0] - _z_and_errors(env, e[0])[a][0]).ravel()
         for e, b in zip(exact, noisy) for a in env.possible_agents])
