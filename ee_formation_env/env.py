@@ -231,7 +231,8 @@ class FormationEnv(ParallelEnv):
         self.arm_set.step(torques, self.scenario.frame_skip)
         self._step_count += 1
         self._measurement = measured = self._measure()
-        if self._step_count * self.scenario.control_dt <= self.scenario.manoeuvre.start:
+        holding = self._step_count * self.scenario.control_dt <= self.scenario.manoeuvre.start
+        if self._reference is not None and holding:  # the motion's start points, kept while the formation holds
             self._start_points = measured.ee_world[None, :, :self.task.dim].copy()
         contacts = self.arm_set.contacts_per_arm()
 
@@ -259,7 +260,7 @@ class FormationEnv(ParallelEnv):
     def reference_centroid(self) -> np.ndarray:
         """The manoeuvre's reference centroid c*(t) (dim,), world, m, at the last reset/step: until the motion's
         start t0 the end-effectors' current centroid, then that of t0 moved along the path (without a
-        manoeuvre, a reference at rest from the default t0)."""
+        manoeuvre, the centroid at reset: a reference at rest)."""
         self._last()
         return self._motion.world(self._times(), self._start_points.mean(axis=-2))[0][0]
 

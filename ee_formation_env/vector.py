@@ -594,8 +594,9 @@ class VectorFormationEnv:
         every = np.arange(self.num_envs)
         self._measurement = measured = self._derive(np.array(positions).reshape(shape),
                                                     np.array(velocities).reshape(shape), every)
-        holding = self._times() <= self.scenario.manoeuvre.start
-        self._start_points[holding] = measured.ee_world[holding, :, :self.task.dim]
+        if self._reference is not None:  # the motion's start points, kept while the formation holds
+            holding = self._times() <= self.scenario.manoeuvre.start
+            self._start_points[holding] = measured.ee_world[holding, :, :self.task.dim]
 
         if self._sensor is not None:
             self._sense(measured.slot_z, every)
