@@ -183,8 +183,8 @@ def test_ctrl_c_reaches_the_learner_alone():
             factory = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05})
             venv = SharedPolicyVecEnv(factory, 2, n_workers=1, in_process_envs=1)
             venv.reset()
-            print("ready", flush=True)
             try:
+                print("ready", flush=True)  # inside the try: the signal may arrive as soon as the line is read
                 time.sleep(60)
             except KeyboardInterrupt:
                 for _ in range(6):  # what a learner saving its model does not need, but may: the workers live
