@@ -2,8 +2,9 @@
 
 ``python -m studies.scoreboard`` runs each cell (scenario x method x training seed) that is not cached yet,
 then aggregates every cached cell (of this and earlier invocations) into ``results/scoreboard/scoreboard.json`` and a markdown table;
-``--docs`` also writes the committed copy (``docs/results/scoreboard.json``) and the generated tables of
-``docs/scoreboard.md``. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the
+``--docs`` also merges those rows into the committed board (``docs/results/scoreboard.json``: a row
+recomputed here replaces its committed one, the others stay; :func:`merged_rows`) and regenerates the tables
+of ``docs/scoreboard.md`` from it. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the
 command resumes where it stopped, and the board can be filled over several sessions (a learned cell's
 training run under ``<out>/runs/`` resumes from its newest checkpoint). ``--quick``: tiny budgets and a few
 short episodes, into a temporary folder by default; never writes into ``docs/``.
@@ -386,19 +387,41 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
 TRAIN_SET = "train-set"  # a distribution's train-set cells' folder (beside its test scenarios')
 
 
-def cached_records(out: Path) -> list[dict[str, Any]]:
-    """Every complete cell under ``out`` (whichever invocation ran it), in board order: scenarios as the
-    built-ins are listed, each followed by its test scenarios, methods as :data:`METHODS`, then seeds."""
-    places = [(train, name) for train in BUILTIN_SCENARIOS for name in (train, *held_out_scenarios(train))]
+def _board_places() -> list[tuple[str, str]]:
+    """Every (training scenario, evaluated scenario) of the board, in board order: scenarios as the built-ins
+    are listed, each followed by its test scenarios."""
+    return [(train, name) for train in BUILTIN_SCENARIOS for name in (train, *held_out_scenarios(train))]
+
+
+def _board_order(places: Sequence[tuple[str, str]]) -> Callable[[dict[str, Any]], tuple[int, int, int]]:
+    """Sort key of a cell or a row: its place, its split (a distribution's train set first), its method."""
     methods = list(METHODS)
+    return lambda item: (places.index(_place(item)), item.get("split") == "test", methods.index(item["method"]))
+
+
+def cached_records(out: Path) -> list[dict[str, Any]]:
+    """Every complete cell under ``out`` (whichever invocation ran it), in board order (:func:`_board_order`),
+    then seeds."""
+    places = _board_places()
     records = [json.loads(path.read_text(encoding="utf-8")) for path in (out / "cells").rglob("*.json")]
-    records = [r for r in records if _place(r) in places and r["method"] in methods]
+    records = [r for r in records if _place(r) in places and r["method"] in METHODS]
+    order = _board_order(places)
+    return sorted(records, key=lambda r: (*order(r), -1 if r["seed"] is None else r["seed"]))
 
-    def order(record: dict[str, Any]) -> tuple[int, int, int, int]:
-        return (places.index(_place(record)), record.get("split") == "test", methods.index(record["method"]),
-                -1 if record["seed"] is None else record["seed"])
 
-    return sorted(records, key=order)
+def merged_rows(committed: Sequence[dict[str, Any]], fresh: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The board ``--docs`` writes: the ``committed`` rows (``docs/results/scoreboard.json``) with each one that
+    ``fresh`` recomputes, same place, split and method, replaced by its new row, and ``fresh``'s new rows added;
+    in board order. Rows of scenarios or methods the board no longer has are dropped. The cells behind a
+    committed row need not be on this machine, so the board can be filled over sessions on fresh clones."""
+    places = _board_places()
+
+    def key(row: dict[str, Any]) -> tuple[tuple[str, str], str, str]:
+        return _place(row), row["split"], row["method"]
+
+    by_key = {key(row): row for row in committed if _place(row) in places and row["method"] in METHODS}
+    by_key.update((key(row), row) for row in fresh)
+    return sorted(by_key.values(), key=_board_order(places))
 
 
 def _place(record: dict[str, Any]) -> tuple[str, str]:
@@ -533,7 +556,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-test-sets", action="store_true",
                         help="skip the held-out test scenarios (ee_formation_env.scenario_sets): training splits only")
     parser.add_argument("--docs", action="store_true",
-                        help="also write docs/results/scoreboard.json and the tables of docs/scoreboard.md")
+                        help="also merge the rows into docs/results/scoreboard.json (a recomputed row replaces its committed "
+                             "one) and regenerate the tables of docs/scoreboard.md")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.scenarios) - set(BUILTIN_SCENARIOS))
     if unknown:
@@ -555,8 +579,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     fill(board)
     board_rows = rows(cached_records(out))  # every cell ever completed here, not only this invocation's
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
-    if args.docs:
-        write_outputs(board_rows, DOCS_JSON, generated_page=DOCS_PAGE)
+    if args.docs:  # merged into the committed board: its other rows' cells may be on another machine
+        committed = json.loads(DOCS_JSON.read_text(encoding="utf-8"))["rows"] if DOCS_JSON.is_file() else []
+        write_outputs(merged_rows(committed, board_rows), DOCS_JSON, generated_page=DOCS_PAGE)
     print(format_board(board_rows))
     print(f"wrote {out / 'scoreboard.json'} and {out / 'scoreboard.md'}" +
           (f", {DOCS_JSON} and {DOCS_PAGE}" if args.docs else ""))

@@ -156,3 +156,20 @@ def test_benchmarl_methods_are_skipped_without_the_torchrl_extra(tmp_path, capsy
     assert scoreboard.main(argv) == 0
     assert "skipped planar_square / mappo-residual: needs the torchrl extra (benchmarl)" in capsys.readouterr().out
     assert json.loads((tmp_path / "scoreboard.json").read_text())["rows"] == []
+
+
+def test_docs_rows_merge_into_the_committed_board():
+    """A recomputed row replaces its committed one (same place, split, method); the other committed rows stay,
+    new rows are added, all in board order; rows of scenarios the board no longer has are dropped."""
+    committed = scoreboard.rows([_record("planar_square", "gradient", None, 1.0),
+                                 _record("planar_square", "residual-ppo", 0, 2.0),
+                                 _record("planar_square_rotated", "residual-ppo", 0, 3.0, split="test",
+                                         trained_on="planar_square")])
+    committed.append({**committed[0], "scenario": "no_longer_a_builtin"})
+    fresh = scoreboard.rows([_record("planar_square", "residual-ppo", 0, 4.0),
+                             _record("planar_square", "adaptive_jacobian", None, 5.0)])
+    merged = scoreboard.merged_rows(committed, fresh)
+    assert [(row["scenario"], row["method"], row["metrics"]["settling_time_or_limit"]["mean"]) for row in merged] == [
+        ("planar_square", "gradient", 1.0), ("planar_square", "adaptive_jacobian", 5.0),
+        ("planar_square", "residual-ppo", 4.0), ("planar_square_rotated", "residual-ppo", 3.0)]
+    assert scoreboard.merged_rows(merged, []) == merged
