@@ -11,7 +11,8 @@ import pytest
 import ee_formation_env
 from ee_formation_env import load_scenario
 from ee_formation_env.baselines import make_policies
-from ee_formation_env.baselines.reference.controllers import ControllerBatch, PolicyTeam
+from ee_formation_env.baselines.reference.controllers import ControllerBatch, PolicyTeam, turn_rotations
+from ee_formation_env.baselines.reference.gains import HOLD_SHARE, default_gains, formation_stiffness
 from ee_formation_env.manoeuvre import ManoeuvreConfig, ReferenceMotion, best_fit_angle, parse_manoeuvre, rotation_about
 from ee_formation_env.task import build_task
 
@@ -280,3 +281,44 @@ def test_the_reference_starts_from_the_centroid_at_the_motions_start(make_env):
         else:
             s = (1 - math.cos(2 * math.pi * (t - 0.3) / 1.0)) / 2
             np.testing.assert_allclose(env.reference_centroid(), start + s * np.array([0.2, -0.1]), atol=1e-12)
+
+
+def test_the_default_gains_hold_the_reference_on_an_active_manoeuvre_only():
+    """Rule 6 of the gains: K_X = HOLD_SHARE K_P lambda_max(S) with an active manoeuvre, else 0."""
+    for name, parent in (("planar_square_transport", "planar_square"), ("spatial_tetrahedron_rotate",
+                                                                       "spatial_tetrahedron")):
+        task = build_task(load_scenario(name))
+        gains = default_gains(task, 0)
+        assert gains.reference_stiffness == pytest.approx(HOLD_SHARE * gains.kp * formation_stiffness(task))
+        assert gains.reference_stiffness > 0
+        assert default_gains(build_task(load_scenario(parent)), 0).reference_stiffness == 0.0
+        still = build_task(load_scenario(name, manoeuvre={"translation": [0.0] * task.dim, "rotation": 0.0}))
+        assert default_gains(still, 0).reference_stiffness == 0.0
+    with pytest.raises(ValueError, match="gains.reference_stiffness"):
+        default_gains(task, 0).with_updates(reference_stiffness=-1.0).validated(7)
+
+
+def test_turn_rotations_are_the_rotations_of_the_rotation_vectors():
+    vectors = np.array([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0]])
+    angle = np.linalg.norm(vectors[0])
+    expected = rotation_about(vectors[0] / angle, np.array([angle]), 3)[0]
+    np.testing.assert_allclose(turn_rotations(vectors, 3)[0], expected, atol=1e-15)
+    np.testing.assert_array_equal(turn_rotations(vectors, 3)[1], np.eye(3))
+    np.testing.assert_allclose(turn_rotations(np.array([[0.4]]), 2)[0], rotation_about(None, np.array([0.4]), 2)[0])
+
+
+@pytest.mark.parametrize("law, without_bound, with_bound", [("approx_jacobian", 0.2, 0.1), ("gradient", 0.03, 0.02)])
+def test_the_reference_hold_turns_the_tetrahedron(make_env, law, without_bound, with_bound):
+    """At the peak of a 0.5 rad turn (t = 3 s), law-II without the hold is left well behind the reference (its
+    internal model holds the arms where gravity was); with the default hold it follows within 0.1 rad; law-I
+    follows in both, closer with the hold."""
+    errors = []
+    for gains in ({"reference_stiffness": 0.0}, {}):
+        env = make_env("spatial_tetrahedron_rotate", episode_seconds=3.0, manoeuvre={"start": 1.0, "duration": 4.0})
+        observations, _ = env.reset(seed=0)
+        team = PolicyTeam(make_policies(law, env, gains=gains))
+        team.reset()
+        while env.agents:
+            observations, *_ = env.step(team(observations))
+        errors.append(env.orientation_tracking_error())
+    assert errors[0] > without_bound and errors[1] < with_bound and errors[1] < 0.5 * errors[0]

@@ -37,7 +37,12 @@ without one every law is exactly the paper's): the damping term becomes ``-K_D (
 initial estimate (the nominal model by default; law-III's running estimate is pulled by the commanded
 motion and is not used: docs/manoeuvres.md), and ``v* = dc*/dt + omega* x (x_i - c*)``, the rigid-body velocity of the
 reference at the agent's own end-effector: ``x_i`` from its nominal forward kinematics, ``c* - b_i``,
-``dc*/dt`` and ``omega*`` from its observation, all in its base frame.
+``dc*/dt`` and ``omega*`` from its observation, all in its base frame. The reference hold
+(``Gains.reference_stiffness`` = K_X > 0) adds the position level, ``J^T K_X (x_i* - x_i)``: until the reference
+first moves, ``x_i* = x_i`` (the agent keeps ``p_i = x_i - c*`` as its anchor, so the term is zero); from then
+on ``x_i* = c* + R_i p_i``, ``R_i`` the turn the agent integrates from ``omega*`` (trapezoidal rule, one step
+``dt``). The velocity loop alone leaves a distance formation's turn to the damping term, which an unmodelled
+torque along the turn (gravity, under law-II and law-III) overrides: docs/manoeuvres.md.
 
 Internal states are integrated once per control step ``dt``: ``eta`` by explicit Euler, ``a_hat`` by the
 linearly implicit Euler step ``(I + dt Gamma alpha Z^T Z) a_hat+ = a_hat + dt Gamma Z^T dq`` (stable for
@@ -75,7 +80,9 @@ class Gains:
     (module docstring, "Saturated springs"), one number for every edge or one per neighbour slot (the
     agent's edges in scenario order); ``inf`` (default) is the paper's unsaturated law;
     ``rate_gain``: K_R, s, of the gradient-rate damping (module docstring, "Gradient-rate damping"); 0, the
-    default, is the paper's law.
+    default, is the paper's law;
+    ``reference_stiffness``: K_X, N/m, of the manoeuvre's reference hold (module docstring, "Manoeuvre
+    feedforward"); 0, the default, is the velocity feedforward alone. Without a manoeuvre it has no effect.
     """
 
     kp: Any = 5.0
@@ -85,6 +92,7 @@ class Gains:
     spring_force: Any = math.inf
     adaptation_gain: float = 1.0
     rate_gain: float = 0.0
+    reference_stiffness: float = 0.0
 
     def with_updates(self, **changes: Any) -> "Gains":
         allowed = sorted(field.name for field in fields(self))
@@ -109,6 +117,10 @@ class Gains:
         if isinstance(self.rate_gain, bool) or not isinstance(self.rate_gain, (int, float)) \
                 or not (self.rate_gain >= 0 and math.isfinite(self.rate_gain)):
             raise ValueError(f"gains.rate_gain: expected a finite value >= 0 s, got {self.rate_gain!r}")
+        if isinstance(self.reference_stiffness, bool) or not isinstance(self.reference_stiffness, (int, float)) \
+                or not (self.reference_stiffness >= 0 and math.isfinite(self.reference_stiffness)):
+            raise ValueError("gains.reference_stiffness: expected a finite value >= 0 N/m, "
+                             f"got {self.reference_stiffness!r}")
         try:
             forces = np.asarray(self.spring_force, dtype=np.float64)
         except (TypeError, ValueError):
@@ -216,6 +228,12 @@ class FormationController:
         if self.gains_source is not None:
             self.set_gains(self.gains_source())
         self._previous_e_hat: np.ndarray | None = None  # gradient-rate damping's one state
+        # The manoeuvre's reference hold (module docstring), in the agent's base frame:
+        m = self.agent.layout.dim
+        self.reference_anchor = np.zeros(m)  # p_i = x_i - c* when the reference first moved, m
+        self.reference_turn = np.eye(m)  # R_i, the reference turn integrated since then
+        self.reference_rate = np.zeros(1 if m == 2 else 3)  # the previous step's omega*, rad/s
+        self.reference_moving = np.array(False)  # the reference has moved since the reset
 
     def options(self) -> tuple:
         """The law's options; controllers batched together must share them."""
@@ -255,7 +273,7 @@ class GradientController(FormationController):
         gravity = np.stack([member.agent.dynamics.gravity_torque(q, member.agent.gravity_in_base)
                             for member, q in zip(batch.members, parts.q)])
         return (-batch.kp * (regressors @ batch.a_hat0[:, :, None])[:, :, 0]
-                - batch.kd * batch.damped_velocities(parts, batch.a_hat0) + gravity)
+                + batch.damping_torques(parts, batch.a_hat0) + gravity)
 
 
 class ApproxJacobianController(FormationController):
@@ -296,7 +314,7 @@ class ApproxJacobianController(FormationController):
         eta = batch.gather("eta")
         a_hat = cls.adapt(batch, parts, regressors, batch.gather("a_hat"))
         u = (-batch.kp * (spring_regressors @ a_hat[:, :, None])[:, :, 0]
-             - batch.kd * batch.damped_velocities(parts, batch.a_hat0) + batch.ki * eta)
+             + batch.damping_torques(parts, batch.a_hat0) + batch.ki * eta)
         applied = np.clip(u, -batch.torque_limits, batch.torque_limits) if batch.members[0].anti_windup else u
         batch.scatter("eta", eta + batch.control_dt * (-batch.ki * eta + applied))
         batch.scatter("a_hat", a_hat)
@@ -411,6 +429,8 @@ class ControllerBatch:
         self.alpha = np.array([c.gains.alpha for c in controllers], dtype=np.float64)
         self.adaptation_gain = np.array([c.gains.adaptation_gain for c in controllers], dtype=np.float64)
         self.rate_gain = np.array([c.gains.rate_gain for c in controllers], dtype=np.float64)  # (k,), s
+        self.reference_stiffness = np.array([c.gains.reference_stiffness for c in controllers],
+                                            dtype=np.float64)  # (k,), N/m
 
     def gather(self, name: str) -> np.ndarray:
         """The members' internal state ``name`` stacked (k, ...): the array :meth:`scatter` last wrote while
@@ -444,31 +464,71 @@ class ControllerBatch:
         padded[:, :e_hat.shape[1]] = e_hat
         return padded
 
+    def damping_torques(self, parts: ObservationParts, a_hat: np.ndarray) -> np.ndarray:
+        """The damping term (k, n), N m: ``-K_D dq`` without a manoeuvre block; with one ``-K_D (dq - dq*)``,
+        plus the reference hold ``J^T K_X (x_i* - x_i)`` where K_X > 0 (module docstring, "Manoeuvre
+        feedforward"). ``a_hat``: the estimates whose Jacobian and kinematics the feedforward uses."""
+        if not self.layout.reference_size:
+            return -self.kd * parts.dq
+        offsets, rows = self.reference_geometry(parts, a_hat)
+        torques = -self.kd * (parts.dq - self.reference_joint_velocities(parts, offsets, rows))
+        if np.any(self.reference_stiffness):
+            torques = torques + (rows.transpose(0, 2, 1) @ self.reference_hold_forces(parts, offsets)[:, :, None])[:, :, 0]
+        return torques
+
     def damped_velocities(self, parts: ObservationParts, a_hat: np.ndarray) -> np.ndarray:
         """What the damping term ``-K_D (.)`` acts on (k, n): ``dq`` itself (the same object) without a
         manoeuvre block, else ``dq - dq*`` (module docstring, "Manoeuvre feedforward")."""
         if not self.layout.reference_size:
             return parts.dq
-        return parts.dq - self.reference_joint_velocities(parts, a_hat)
+        return parts.dq - self.reference_joint_velocities(parts, *self.reference_geometry(parts, a_hat))
 
-    def reference_joint_velocities(self, parts: ObservationParts, a_hat: np.ndarray) -> np.ndarray:
-        """dq* (k, n), rad/s: the joint velocities that move each agent's end-effector with the reference's
-        rigid-body velocity v* (module docstring), from its own observation and models only."""
+    def reference_geometry(self, parts: ObservationParts, a_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each agent's ``x_i - c*`` (k, m), m, from its nominal forward kinematics and its observation, and the
+        first ``m`` rows of its Jacobian ``J(q, a_hat)`` (k, m, n), all in its own base frame."""
         q, m = parts.q, self.layout.dim
         k, n = q.shape
         offsets = self.chain.forward_batch(q)[:, :m] - parts.reference_centroid  # x_i - c*, own frame, m
+        # J(q, a)^T e_j = Z(q, e_j) a: the Jacobian's first m rows from the regressor, for any estimate a.
+        units = np.tile(np.eye(m), (k, 1))
+        regressors = self.chain.regressor_batch(np.repeat(q, m, axis=0), units)  # (k m, n, p)
+        rows = (regressors @ np.repeat(a_hat, m, axis=0)[:, :, None]).reshape(k, m, n)  # J, (k, m, n)
+        return offsets, rows
+
+    def reference_joint_velocities(self, parts: ObservationParts, offsets: np.ndarray, rows: np.ndarray
+                                   ) -> np.ndarray:
+        """dq* (k, n), rad/s: the joint velocities that move each agent's end-effector with the reference's
+        rigid-body velocity v* (module docstring), from its own observation and models only (``offsets``
+        and ``rows`` from :meth:`reference_geometry`)."""
+        m = self.layout.dim
         omega = parts.reference_angular_velocity
         if m == 2:  # omega about z: omega x r = omega (-r_y, r_x)
             turn = omega * np.stack([-offsets[:, 1], offsets[:, 0]], axis=1)
         else:
             turn = np.cross(omega, offsets)
         velocity = parts.reference_velocity + turn  # v*, m/s
-        # J(q, a)^T e_j = Z(q, e_j) a: the Jacobian's first m rows from the regressor, for any estimate a.
-        units = np.tile(np.eye(m), (k, 1))
-        regressors = self.chain.regressor_batch(np.repeat(q, m, axis=0), units)  # (k m, n, p)
-        rows = (regressors @ np.repeat(a_hat, m, axis=0)[:, :, None]).reshape(k, m, n)  # J, (k, m, n)
         system = rows @ rows.transpose(0, 2, 1) + FEEDFORWARD_DAMPING ** 2 * np.eye(m)
         return (rows.transpose(0, 2, 1) @ np.linalg.solve(system, velocity[:, :, None]))[:, :, 0]
+
+    def reference_hold_forces(self, parts: ObservationParts, offsets: np.ndarray) -> np.ndarray:
+        """``K_X (x_i* - x_i)`` (k, m), N, in each agent's base frame, and one step of the hold's state
+        (module docstring, "Manoeuvre feedforward"): the anchor follows ``x_i - c*`` until the reference first
+        moves; from then on it stays, and the turn integrates ``omega*``."""
+        m = self.layout.dim
+        omega = parts.reference_angular_velocity
+        was_moving, anchor, turn, rate = (self.gather(name) for name in (
+            "reference_moving", "reference_anchor", "reference_turn", "reference_rate"))
+        moving = was_moving | np.any(parts.reference_velocity != 0.0, axis=1) | np.any(omega != 0.0, axis=1)
+        anchor = np.where(moving[:, None], anchor, offsets)
+        step = turn_rotations(0.5 * self.control_dt * (rate + omega), m)
+        turn = np.where(moving[:, None, None], step @ turn, np.eye(m))
+        targets = (turn @ anchor[:, :, None])[:, :, 0]  # x_i* - c*
+        held = self.reference_stiffness > 0.0  # a member without the hold keeps no state, alone or in a batch
+        self.scatter("reference_moving", np.where(held, moving, was_moving))
+        self.scatter("reference_anchor", np.where(held[:, None], anchor, self.gather("reference_anchor")))
+        self.scatter("reference_turn", np.where(held[:, None, None], turn, self.gather("reference_turn")))
+        self.scatter("reference_rate", np.where(held[:, None], omega, rate))
+        return self.reference_stiffness[:, None] * (targets - offsets)
 
     def spring_gradients(self, e_hat: np.ndarray) -> np.ndarray:
         """``e_hat + K_R (e_hat - e_hat_prev) / dt`` (k, 3): what the spring term ``-K_P J^T (.)`` acts on
@@ -503,6 +563,21 @@ class ControllerBatch:
                 return np.clip(edge_errors, -level, level)
             norms = np.linalg.norm(edge_errors, axis=2, keepdims=True)
             return edge_errors * np.minimum(1.0, (force / kp) / np.maximum(norms, 1e-300))
+
+
+def turn_rotations(angles: np.ndarray, dim: int) -> np.ndarray:
+    """Rotations (k, dim, dim) by rotation vectors ``angles`` (rad): (k, 1) about z for ``dim`` 2, (k, 3) for 3
+    (Rodrigues' formula)."""
+    if dim == 2:
+        c, s = np.cos(angles[:, 0]), np.sin(angles[:, 0])
+        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    theta = np.linalg.norm(angles, axis=1)
+    axes = angles / np.where(theta > 0.0, theta, 1.0)[:, None]
+    skew = np.zeros((len(angles), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -axes[:, 2], axes[:, 1], -axes[:, 0]
+    skew = skew - skew.transpose(0, 2, 1)
+    return (np.eye(3) + np.sin(theta)[:, None, None] * skew
+            + (1.0 - np.cos(theta))[:, None, None] * (skew @ skew))
 
 
 def _stacked(parts: ObservationParts) -> ObservationParts:

@@ -23,6 +23,9 @@ configurations (seeded) plus the initial one:
    over one reach, ``alpha`` the decay rate ``Gamma alpha |Z|^2`` to ``ADAPTATION_RATE``.
 5. **Gradient-rate damping** ``K_R = RATE_STEPS dt`` (``Gains.rate_gain``); :func:`mode_decay` is the
    one-mode model behind rules 1, 3 and 5.
+6. **Manoeuvre reference hold**, on a scenario with an active ``manoeuvre`` only, for tuned and derived gains
+   alike: ``K_X = HOLD_SHARE K_P lambda_max(S)`` (``Gains.reference_stiffness``, N/m), a share of the
+   formation's own stiffness at the target, so that where the hold and the shape disagree the shape wins.
 
 The derivation of each rule, the stability limits and the measurements behind the constants: see
 docs/controllers.md ("Gains"); the rule on random scenarios: docs/results.md.
@@ -59,17 +62,29 @@ JOINT_SPEED = 0.5  # rad/s, rule 1: joint speed the formation's torque share rea
 BETA = 0.1  # rule 1: bound on dt rho(H^-1 K_D)
 GRAVITY_BETA = 1.0  # rule 1: the bound where gravity loads the joints (K_I > 0, rule 4)
 RATE_STEPS = 1.5  # rule 5: K_R in control steps
+HOLD_SHARE = 0.25  # rule 6: K_X as a share of the formation's stiffness K_P lambda_max(S)
 
 _TEAM_GAINS: "weakref.WeakKeyDictionary[FormationTask, list[Gains]]" = weakref.WeakKeyDictionary()
 
 
 def default_gains(task: FormationTask, index: int) -> Gains:
     """The scenario's own tuned gains where it carries them (built-ins, unmodified physics), else
-    :func:`derive_gains`."""
+    :func:`derive_gains`; with an active manoeuvre, the reference hold of rule 6 (:func:`reference_stiffness`)."""
     tuned = task.scenario.controller_gains
     if tuned is not None:
-        return Gains(kp=tuned.kp, kd=tuned.kd, ki=tuned.ki, alpha=tuned.alpha)
-    return derive_gains(task, index)
+        gains = Gains(kp=tuned.kp, kd=tuned.kd, ki=tuned.ki, alpha=tuned.alpha)
+    else:
+        gains = derive_gains(task, index)
+    manoeuvre = task.scenario.manoeuvre
+    if manoeuvre is not None and manoeuvre.active:
+        gains = gains.with_updates(reference_stiffness=reference_stiffness(task, gains.kp))
+    return gains
+
+
+def reference_stiffness(task: FormationTask, kp: float) -> float:
+    """Rule 6: the manoeuvre's reference hold ``K_X = HOLD_SHARE K_P lambda_max(S)``, N/m, for formation gain
+    ``kp`` (the largest, if per joint)."""
+    return float(HOLD_SHARE * np.max(kp) * formation_stiffness(task))
 
 
 def derive_gains(task: FormationTask, index: int) -> Gains:

@@ -220,12 +220,16 @@ MIXED_TEAM = {  # two KUKA iiwa and one Franka Panda
 
 
 @pytest.mark.parametrize("policy", ["gradient", "approx_jacobian", "adaptive_jacobian"])
-@pytest.mark.parametrize("scenario", ["planar_square", "spatial_tetrahedron"])
+@pytest.mark.parametrize("scenario", ["planar_square", "spatial_tetrahedron", "planar_square_transport",
+                                      "spatial_tetrahedron_rotate"])
 def test_a_batch_of_controllers_acts_as_each_controller_alone(make_env, policy, scenario):
     """Batched evaluation (PolicyTeam, ControllerBatch) gives every agent bit for bit the action and internal
-    state it gets alone, over steps that move the internal states, with gains that differ per agent."""
-    env = make_env(scenario, episode_seconds=0.2)
-    gains = [default_gains(env.task, i).with_updates(kd=5.0 + i, ki=0.5 * i, rate_gain=0.01 * i)
+    state it gets alone, over steps that move the internal states, with gains that differ per agent (the
+    manoeuvres' reference holds too: the motion starts within the episode, agent 0 has no hold)."""
+    squeezed = {"manoeuvre": {"start": 0.05, "duration": 0.3}} if scenario.endswith(("transport", "rotate")) else {}
+    env = make_env(scenario, episode_seconds=0.2, **squeezed)
+    gains = [default_gains(env.task, i).with_updates(kd=5.0 + i, ki=0.5 * i, rate_gain=0.01 * i,
+                                                     reference_stiffness=50.0 * i)
              for i in range(env.task.n_agents)]  # agent 0 without gradient-rate damping, the others with it
     alone = {a: baselines.make_policy(policy, env, a, gains=g) for a, g in zip(env.possible_agents, gains)}
     batched = {a: baselines.make_policy(policy, env, a, gains=g) for a, g in zip(env.possible_agents, gains)}
@@ -237,7 +241,8 @@ def test_a_batch_of_controllers_acts_as_each_controller_alone(make_env, policy, 
         actions = team(observations)
         for agent in env.agents:
             assert actions[agent].tobytes() == expected[agent].tobytes()
-            for state in ("eta", "a_hat", "boundary_steps", "_previous_e_hat"):
+            for state in ("eta", "a_hat", "boundary_steps", "_previous_e_hat", "reference_anchor",
+                          "reference_turn", "reference_rate", "reference_moving"):
                 assert np.array_equal(getattr(batched[agent], state, 0), getattr(alone[agent], state, 0))
         observations, *_ = env.step(actions)
 
