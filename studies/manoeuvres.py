@@ -1,8 +1,9 @@
-"""Formation manoeuvres: the three laws with the velocity feedforward on the transport and rotation built-ins.
+"""Formation manoeuvres: the three laws with their feedforward on the transport and rotation built-ins.
 
     python -m studies.manoeuvres [--out results/manoeuvres] [--figures-dir docs/figures] [--quick]
 
-For each task of :data:`TASKS`, each law and each of :data:`SEEDS`, one episode of the built-in is rolled by
+For each task of :data:`TASKS`, each law, each feedforward of :data:`FEEDFORWARDS` (the default gains' reference
+hold, and the velocity feedforward alone) and each of :data:`SEEDS`, one episode of the built-in is rolled by
 :func:`ee_formation_env.baselines.metrics.run_episode`, recording after every step the largest edge error
 (m: ``| |z_k| - d_k |`` for distance formations, ``|z_k - z*_k|`` for displacement ones), the centroid
 tracking error ``|c - c*|`` (m) and the orientation tracking error (rad, :mod:`ee_formation_env.manoeuvre`).
@@ -35,6 +36,9 @@ TASKS = ("planar_square_transport", "spatial_tetrahedron_rotate")
 SEEDS = (10_000, 10_001, 10_002)
 EDGE_TARGET = 0.01  # m: every edge within 1 cm after the shape settles
 CENTROID_TARGET = 0.02  # m: centroid within 2 cm of the reference over the motion
+#: The laws' manoeuvre feedforward (baselines.reference.controllers): ``hold``, the default gains (the velocity
+#: feedforward and the reference hold of gains rule 6); ``velocity``, the velocity feedforward alone (K_X = 0).
+FEEDFORWARDS: dict[str, dict[str, float] | None] = {"hold": None, "velocity": {"reference_stiffness": 0.0}}
 QUICK = {"episode_seconds": 2.0, "manoeuvre": {"start": 0.5, "duration": 1.0}}  # a smoke run's squeezed motion
 
 
@@ -42,7 +46,8 @@ def _env(task: str, quick: bool) -> Any:
     return parallel_env(task, **(QUICK if quick else {}))
 
 
-def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bool = False) -> dict[str, Any]:
+def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bool = False,
+            feedforward: str = "hold") -> dict[str, Any]:
     """One episode's record (module docstring); ``keep_series`` adds the per-step series (for the figure)."""
     env = _env(task, quick)
     series: dict[str, list] = {key: [] for key in ("t", "edge", "centroid_error", "orientation_error",
@@ -62,7 +67,8 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
 
     started = time.time()
     try:
-        metrics = run_episode(env, make_policies(LAWS[law], env), seed, on_reset=sample, on_step=sample)
+        policies = make_policies(LAWS[law], env, gains=FEEDFORWARDS[feedforward])
+        metrics = run_episode(env, policies, seed, on_reset=sample, on_step=sample)
         config = env.scenario.manoeuvre
     finally:
         env.close()
@@ -75,7 +81,7 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
     settling = float(metrics.settling_time)
     # Held from the later of the shape's settling and the motion's start: the edges while the formation moves.
     after = t >= max(settling, config.start) if np.isfinite(settling) else np.zeros(len(t), dtype=bool)
-    record = {"task": task, "law": law, "seed": seed, "success": bool(metrics.success), "settling_time": settling,
+    record = {"task": task, "law": law, "feedforward": feedforward, "seed": seed, "success": bool(metrics.success), "settling_time": settling,
               "max_edge_error_after_settling": float(edge[after].max()) if after.any() else float("nan"),
               "max_centroid_error": float(centroid_error[motion].max()),
               "rms_centroid_error": float(np.sqrt(np.mean(centroid_error[motion] ** 2))),
@@ -100,11 +106,11 @@ SUMMED = ("settling_time", "max_edge_error_after_settling", "max_centroid_error"
 
 
 def summarize(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per (task, law): faults and contacts summed, the worst case over seeds of every error."""
+    """One row per (task, law, feedforward): faults and contacts summed, the worst case over seeds of every error."""
     rows = []
-    for task, law in dict.fromkeys((r["task"], r["law"]) for r in records):
-        runs = [r for r in records if (r["task"], r["law"]) == (task, law)]
-        row = {"task": task, "law": law, "runs": len(runs), "success": float(np.mean([r["success"] for r in runs])),
+    for task, law, feedforward in dict.fromkeys((r["task"], r["law"], r["feedforward"]) for r in records):
+        runs = [r for r in records if (r["task"], r["law"], r["feedforward"]) == (task, law, feedforward)]
+        row = {"task": task, "law": law, "feedforward": feedforward, "runs": len(runs), "success": float(np.mean([r["success"] for r in runs])),
                "faults": sum(bool(r["physics_fault"]) for r in runs),
                "contact_steps": sum(r["contact_steps"] for r in runs)}
         row.update({name: float(np.max([r[name] for r in runs])) for name in SUMMED})
@@ -116,12 +122,12 @@ def summarize(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def format_rows(rows: Sequence[dict[str, Any]]) -> str:
     """The table (markdown): worst case over the seeds."""
-    lines = ["| task | law | success | faults / contacts | settling (s) | max edge err after (mm) | "
+    lines = ["| task | law | feedforward | success | faults / contacts | settling (s) | max edge err after (mm) | "
              "max / RMS centroid err (mm) | at motion start (mm) | max / final motion err (mm) | "
              "max / final orientation err (mrad) | reach used |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['task']} | {r['law']} | {r['success']:.0%} | {r['faults']} / {r['contact_steps']} | "
+        lines.append(f"| {r['task']} | {r['law']} | {r['feedforward']} | {r['success']:.0%} | {r['faults']} / {r['contact_steps']} | "
                      f"{r['settling_time']:.2f} | {1e3 * r['max_edge_error_after_settling']:.2f} | "
                      f"{1e3 * r['max_centroid_error']:.1f} / {1e3 * r['rms_centroid_error']:.1f} | "
                      f"{1e3 * r['centroid_error_at_start']:.1f} | "
@@ -133,12 +139,13 @@ def format_rows(rows: Sequence[dict[str, Any]]) -> str:
 
 def plot_tracking(records: Sequence[dict[str, Any]], out: Path) -> Path:
     """Per task (columns): the reference and actual centroid paths, the largest edge error and the tracking
-    errors over time, one line per law (first seed)."""
+    errors over time, one line per law (first seed, the default ``hold`` feedforward)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    records = [r for r in records if r["feedforward"] == "hold"]
     tasks = list(dict.fromkeys(r["task"] for r in records if "series" in r))
     fig, axes = plt.subplots(3, len(tasks), figsize=(6.0 * len(tasks), 10.0), squeeze=False)
     for column, task in enumerate(tasks):
@@ -177,13 +184,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     records = []
     for task in TASKS:
         for law in LAWS:
-            for seed in seeds:
-                record = run_one(task, law, seed, args.quick, keep_series=seed == seeds[0])
-                records.append(record)
-                print(f"{task} {law} seed {seed}: edge after settling {record['max_edge_error_after_settling']:.4f} m, "
-                      f"centroid max {record['max_centroid_error']:.4f} m, motion max {record['max_motion_error']:.4f} m, "
-                      f"orientation max {record['max_orientation_error']:.4f} rad {record['physics_fault']} "
-                      f"({record['wall_s']:.1f} s)", flush=True)
+            for feedforward in FEEDFORWARDS:
+                for seed in seeds:
+                    record = run_one(task, law, seed, args.quick, keep_series=seed == seeds[0], feedforward=feedforward)
+                    records.append(record)
+                    print(f"{task} {law} {feedforward} seed {seed}: edge after settling {record['max_edge_error_after_settling']:.4f} m, "
+                          f"centroid max {record['max_centroid_error']:.4f} m, motion max {record['max_motion_error']:.4f} m, "
+                          f"orientation max {record['max_orientation_error']:.4f} rad {record['physics_fault']} "
+                          f"({record['wall_s']:.1f} s)", flush=True)
     rows = summarize(records)
     print(format_rows(rows))
     args.out.mkdir(parents=True, exist_ok=True)

@@ -14,8 +14,9 @@ pytest.importorskip("matplotlib")
 
 def test_a_quick_run_writes_its_table_and_figure(tmp_path, capsys):
     results = manoeuvres.main(["--quick", "--out", str(tmp_path)])
-    assert {(row["task"], row["law"]) for row in results["rows"]} == {
-        (task, law) for task in manoeuvres.TASKS for law in manoeuvres.LAWS}
+    assert {(row["task"], row["law"], row["feedforward"]) for row in results["rows"]} == {
+        (task, law, feedforward) for task in manoeuvres.TASKS for law in manoeuvres.LAWS
+        for feedforward in manoeuvres.FEEDFORWARDS}
     saved = json.loads((tmp_path / "manoeuvres.json").read_text())
     assert saved["quick"] and saved["seeds"] == list(manoeuvres.SEEDS[:1])
     assert (tmp_path / "manoeuvre_tracking.png").stat().st_size > 10_000
@@ -26,11 +27,11 @@ def test_a_quick_run_writes_its_table_and_figure(tmp_path, capsys):
             assert run["max_orientation_error"] >= 0 and run["peak_speed"] > 0
         else:
             assert run["peak_angular_speed"] > 0
-    assert "| task | law | success |" in capsys.readouterr().out
+    assert "| task | law | feedforward | success |" in capsys.readouterr().out
 
 
 def test_the_summary_keeps_the_worst_seed():
-    base = {"task": "t", "law": "law-I", "success": True, "physics_fault": "", "contact_steps": 0}
+    base = {"task": "t", "law": "law-I", "feedforward": "hold", "success": True, "physics_fault": "", "contact_steps": 0}
     records = [{**base, **{name: 0.001 for name in manoeuvres.SUMMED}, "seed": 0},
                {**base, **{name: 0.03 for name in manoeuvres.SUMMED}, "seed": 1, "contact_steps": 2}]
     (row,) = manoeuvres.summarize(records)
