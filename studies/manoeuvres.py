@@ -1,6 +1,7 @@
 """Formation manoeuvres: the three laws with their feedforward on the transport and rotation built-ins.
 
     python -m studies.manoeuvres [--out results/manoeuvres] [--figures-dir docs/figures] [--quick]
+                                 [--learned results/scoreboard]
 
 For each task of :data:`TASKS`, each law, each feedforward of :data:`FEEDFORWARDS` (the default gains' reference
 hold, and the velocity feedforward alone) and each of :data:`SEEDS`, one episode of the built-in is rolled by
@@ -14,6 +15,11 @@ part the feedforward answers for, without the centroid's drift while the shape f
 residual of that after the motion (at the episode's end), the largest orientation error (rad), faults and
 contact steps, and the farthest an end-effector got from its base over its reach. Outputs:
 ``manoeuvres.json`` and the figure ``manoeuvre_tracking.png``. Results: docs/manoeuvres.md.
+
+``--learned BOARD``: also every trained run of the scoreboard's folder ``BOARD`` on these tasks (its
+``runs/<task>/<method>/seed-<s>`` of the methods of :data:`LEARNED`), each on the same seeds, as rows named
+after the method (worst case over training and evaluation seeds); the reward is the shape's, so their tracking
+is what they inherit from (or lose of) their reference law. The BenchMARL ones need the ``torchrl`` extra.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -42,13 +48,46 @@ FEEDFORWARDS: dict[str, dict[str, float] | None] = {"hold": None, "velocity": {"
 QUICK = {"episode_seconds": 2.0, "manoeuvre": {"start": 0.5, "duration": 1.0}}  # a smoke run's squeezed motion
 
 
+def _residual_ppo(run_dir: Path, env: Any) -> dict[str, Any]:
+    """The policies of a ``train.py`` run (the scoreboard's residual-ppo cells) for ``env``."""
+    from ee_formation_env.baselines.learned.policy import learned_policy_factory
+
+    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    return learned_policy_factory(run_dir, env, config)(env)
+
+
+def _benchmarl(run_dir: Path, env: Any) -> dict[str, Any]:
+    """The policies of a ``studies.benchmarl_runs`` run (its exported actor) for ``env``."""
+    from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
+
+    return load_benchmarl_policy(run_dir / "policy").policy_factory()(env)
+
+
+#: The scoreboard's learned methods this study evaluates (``--learned``): method -> (run folder, env) -> policies.
+LEARNED: dict[str, Callable[[Path, Any], dict[str, Any]]] = {"residual-ppo": _residual_ppo,
+                                                             "mappo-residual": _benchmarl}
+
+
+def learned_runs(board: Path, tasks: Sequence[str] = TASKS) -> list[tuple[str, str, int, Path]]:
+    """(task, method, training seed, run folder) of every complete run under ``board``'s ``runs/``."""
+    found = []
+    for task in tasks:
+        for method in LEARNED:
+            for run_dir in sorted((board / "runs" / task / method).glob("seed-*")):
+                complete = (run_dir / "comparison.json").is_file() or (run_dir / "evaluation.json").is_file()
+                if complete:
+                    found.append((task, method, int(run_dir.name.split("-")[1]), run_dir))
+    return found
+
+
 def _env(task: str, quick: bool) -> Any:
     return parallel_env(task, **(QUICK if quick else {}))
 
 
 def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bool = False,
-            feedforward: str = "hold") -> dict[str, Any]:
-    """One episode's record (module docstring); ``keep_series`` adds the per-step series (for the figure)."""
+            feedforward: str = "hold", run: tuple[int, Path] | None = None) -> dict[str, Any]:
+    """One episode's record (module docstring); ``keep_series`` adds the per-step series (for the figure).
+    ``law``: one of :data:`LAWS`, or with ``run`` = (training seed, run folder) a method of :data:`LEARNED`."""
     env = _env(task, quick)
     series: dict[str, list] = {key: [] for key in ("t", "edge", "centroid_error", "orientation_error",
                                                     "centroid", "reference", "reach")}
@@ -67,7 +106,10 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
 
     started = time.time()
     try:
-        policies = make_policies(LAWS[law], env, gains=FEEDFORWARDS[feedforward])
+        if run is None:
+            policies = make_policies(LAWS[law], env, gains=FEEDFORWARDS[feedforward])
+        else:
+            policies = LEARNED[law](run[1], env)
         metrics = run_episode(env, policies, seed, on_reset=sample, on_step=sample)
         config = env.scenario.manoeuvre
     finally:
@@ -81,7 +123,8 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
     settling = float(metrics.settling_time)
     # Held from the later of the shape's settling and the motion's start: the edges while the formation moves.
     after = t >= max(settling, config.start) if np.isfinite(settling) else np.zeros(len(t), dtype=bool)
-    record = {"task": task, "law": law, "feedforward": feedforward, "seed": seed, "success": bool(metrics.success), "settling_time": settling,
+    record = {"task": task, "law": law, "feedforward": feedforward, "seed": seed,
+              **({} if run is None else {"training_seed": run[0]}), "success": bool(metrics.success), "settling_time": settling,
               "max_edge_error_after_settling": float(edge[after].max()) if after.any() else float("nan"),
               "max_centroid_error": float(centroid_error[motion].max()),
               "rms_centroid_error": float(np.sqrt(np.mean(centroid_error[motion] ** 2))),
@@ -145,7 +188,7 @@ def plot_tracking(records: Sequence[dict[str, Any]], out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    records = [r for r in records if r["feedforward"] == "hold"]
+    records = [r for r in records if r["feedforward"] == "hold" and r["law"] in LAWS]
     tasks = list(dict.fromkeys(r["task"] for r in records if "series" in r))
     fig, axes = plt.subplots(3, len(tasks), figsize=(6.0 * len(tasks), 10.0), squeeze=False)
     for column, task in enumerate(tasks):
@@ -177,9 +220,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m studies.manoeuvres", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("results/manoeuvres"), help="output folder")
     parser.add_argument("--figures-dir", type=Path, default=None, help="also copy the PNG here")
+    parser.add_argument("--learned", type=Path, default=None, metavar="BOARD",
+                        help="also evaluate the scoreboard's trained runs on these tasks found in BOARD (e.g. "
+                             "results/scoreboard)")
     parser.add_argument("--quick", action="store_true", help=f"one seed, {QUICK['episode_seconds']:g} s episodes "
                         "with the motion squeezed into them (a smoke run; never the documented table)")
     args = parser.parse_args(argv)
+    if args.learned is not None and not (args.learned / "runs").is_dir():
+        parser.error(f"--learned: {args.learned} has no runs/ folder (a scoreboard's output folder)")
     seeds = SEEDS[:1] if args.quick else SEEDS
     records = []
     for task in TASKS:
@@ -192,10 +240,18 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                           f"centroid max {record['max_centroid_error']:.4f} m, motion max {record['max_motion_error']:.4f} m, "
                           f"orientation max {record['max_orientation_error']:.4f} rad {record['physics_fault']} "
                           f"({record['wall_s']:.1f} s)", flush=True)
+    for task, method, training_seed, run_dir in ([] if args.learned is None else learned_runs(args.learned)):
+        for seed in seeds:
+            record = run_one(task, method, seed, args.quick, run=(training_seed, run_dir))
+            records.append(record)
+            print(f"{task} {method} (training seed {training_seed}) seed {seed}: edge after settling "
+                  f"{record['max_edge_error_after_settling']:.4f} m, centroid max {record['max_centroid_error']:.4f} m, "
+                  f"orientation max {record['max_orientation_error']:.4f} rad {record['physics_fault']}", flush=True)
     rows = summarize(records)
     print(format_rows(rows))
     args.out.mkdir(parents=True, exist_ok=True)
-    results = {"tasks": list(TASKS), "seeds": list(seeds), "quick": args.quick, "edge_target": EDGE_TARGET,
+    results = {"tasks": list(TASKS), "seeds": list(seeds), "quick": args.quick,
+               "learned": None if args.learned is None else str(args.learned), "edge_target": EDGE_TARGET,
                "centroid_target": CENTROID_TARGET, "rows": rows,
                "runs": [{k: v for k, v in r.items() if k != "series"} for r in records]}
     (args.out / "manoeuvres.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")

@@ -13,10 +13,20 @@ pytest.importorskip("matplotlib")
 
 
 def test_a_quick_run_writes_its_table_and_figure(tmp_path, capsys):
-    results = manoeuvres.main(["--quick", "--out", str(tmp_path)])
+    """With a scoreboard's trained run (a tiny one) the learned method gets its row beside the laws'."""
+    from studies import scoreboard
+
+    board = tmp_path / "board"
+    assert scoreboard.main(["--quick", "--out", str(board), "--scenarios", "planar_square_transport", "--methods",
+                            "residual-ppo", "--seeds", "0", "--episodes", "1", "--no-test-sets"]) == 0
+    assert [(task, method, seed) for task, method, seed, _ in manoeuvres.learned_runs(board)] == [
+        ("planar_square_transport", "residual-ppo", 0)]
+    results = manoeuvres.main(["--quick", "--out", str(tmp_path), "--learned", str(board)])
     assert {(row["task"], row["law"], row["feedforward"]) for row in results["rows"]} == {
         (task, law, feedforward) for task in manoeuvres.TASKS for law in manoeuvres.LAWS
-        for feedforward in manoeuvres.FEEDFORWARDS}
+        for feedforward in manoeuvres.FEEDFORWARDS} | {("planar_square_transport", "residual-ppo", "hold")}
+    (learned,) = [run for run in results["runs"] if run["law"] == "residual-ppo"]
+    assert learned["training_seed"] == 0 and learned["max_centroid_error"] >= 0
     saved = json.loads((tmp_path / "manoeuvres.json").read_text())
     assert saved["quick"] and saved["seeds"] == list(manoeuvres.SEEDS[:1])
     assert (tmp_path / "manoeuvre_tracking.png").stat().st_size > 10_000
@@ -37,3 +47,9 @@ def test_the_summary_keeps_the_worst_seed():
     (row,) = manoeuvres.summarize(records)
     assert row["max_centroid_error"] == 0.03 and row["contact_steps"] == 2 and row["runs"] == 2
     assert not row["centroid_target_met"] and not row["edge_target_met"]
+
+
+def test_learned_needs_a_scoreboard_folder(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        manoeuvres.main(["--quick", "--out", str(tmp_path), "--learned", str(tmp_path / "nothing")])
+    assert "--learned:" in capsys.readouterr().err
