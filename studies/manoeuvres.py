@@ -28,7 +28,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -48,24 +48,8 @@ FEEDFORWARDS: dict[str, dict[str, float] | None] = {"hold": None, "velocity": {"
 QUICK = {"episode_seconds": 2.0, "manoeuvre": {"start": 0.5, "duration": 1.0}}  # a smoke run's squeezed motion
 
 
-def _residual_ppo(run_dir: Path, env: Any) -> dict[str, Any]:
-    """The policies of a ``train.py`` run (the scoreboard's residual-ppo cells) for ``env``."""
-    from ee_formation_env.baselines.learned.policy import learned_policy_factory
-
-    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-    return learned_policy_factory(run_dir, env, config)(env)
-
-
-def _benchmarl(run_dir: Path, env: Any) -> dict[str, Any]:
-    """The policies of a ``studies.benchmarl_runs`` run (its exported actor) for ``env``."""
-    from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
-
-    return load_benchmarl_policy(run_dir / "policy").policy_factory()(env)
-
-
-#: The scoreboard's learned methods this study evaluates (``--learned``): method -> (run folder, env) -> policies.
-LEARNED: dict[str, Callable[[Path, Any], dict[str, Any]]] = {"residual-ppo": _residual_ppo,
-                                                             "mappo-residual": _benchmarl}
+#: The scoreboard's learned methods this study evaluates (``--learned``; loaded by studies.scoreboard.trained_policies).
+LEARNED = ("residual-ppo", "mappo-residual")
 
 
 def learned_runs(board: Path, tasks: Sequence[str] = TASKS) -> list[tuple[str, str, int, Path]]:
@@ -109,7 +93,9 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
         if run is None:
             policies = make_policies(LAWS[law], env, gains=FEEDFORWARDS[feedforward])
         else:
-            policies = LEARNED[law](run[1], env)
+            from studies.scoreboard import METHODS, trained_policies
+
+            policies = trained_policies(METHODS[law], run[1], env)(env)
         metrics = run_episode(env, policies, seed, on_reset=sample, on_step=sample)
         config = env.scenario.manoeuvre
     finally:

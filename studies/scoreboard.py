@@ -303,23 +303,33 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
               "eval_seeds": seeds, "episode_seconds": seconds, "budget": trained["budget"]}
     if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
         return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
+    run_dir = board.run_dir(scenario, method, seed)
     if method.benchmarl is not None:
-        from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
-
-        actors = load_benchmarl_policy(board.run_dir(scenario, method, seed) / "policy")
-        metrics = run_episodes(test_scenario, actors.policy_factory(), seeds, overrides={"episode_seconds": seconds})
+        metrics = run_episodes(test_scenario, trained_policies(method, run_dir), seeds,
+                               overrides={"episode_seconds": seconds})
     elif method.learned:
-        from ee_formation_env.baselines.learned.policy import learned_policy_factory
         from ee_formation_env.baselines.metrics import evaluation_env
 
-        run_dir = board.run_dir(scenario, method, seed)
-        config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
         with evaluation_env(test_scenario, min(len(seeds), 16), episode_seconds=seconds) as env:
-            metrics = run_episodes(None, learned_policy_factory(run_dir, env, config), seeds, env=env)
+            metrics = run_episodes(None, trained_policies(method, run_dir, env), seeds, env=env)
     else:
         metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds})
     episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]
     return {**record, "wall_seconds": time.time() - started, "episodes": episodes}
+
+
+def trained_policies(method: Method, run_dir: Path, env: Any = None) -> Callable[[Any], dict[str, Any]]:
+    """``copy_env -> per-agent policies`` of a learned method's trained run in ``run_dir``: a BenchMARL run's
+    exported actor, or a ``train.py`` run's model (whose observation layouts and action scales are read from
+    ``env``, a single or batched env of the scenario it acts on)."""
+    if method.benchmarl is not None:
+        from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
+
+        return load_benchmarl_policy(run_dir / "policy").policy_factory()
+    from ee_formation_env.baselines.learned.policy import learned_policy_factory
+
+    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    return learned_policy_factory(run_dir, env, config)
 
 
 def _cached(path: Path, label: str, compute: Callable[[], dict[str, Any]], progress: Callable[[str], None]

@@ -61,6 +61,7 @@ import numpy as np
 
 from ee_formation_env.formation import agent_gradient
 from ee_formation_env.kinematics import SerialChain
+from ee_formation_env.manoeuvre import rotation_about
 from ee_formation_env.observation import ObservationLayout, ObservationParts
 from ee_formation_env.baselines.reference.dynamics import NominalDynamics
 
@@ -516,17 +517,17 @@ class ControllerBatch:
         moves; from then on it stays, and the turn integrates ``omega*``."""
         m = self.layout.dim
         omega = parts.reference_angular_velocity
-        was_moving, anchor, turn, rate = (self.gather(name) for name in (
+        was_moving, was_anchor, was_turn, rate = (self.gather(name) for name in (
             "reference_moving", "reference_anchor", "reference_turn", "reference_rate"))
         moving = was_moving | np.any(parts.reference_velocity != 0.0, axis=1) | np.any(omega != 0.0, axis=1)
-        anchor = np.where(moving[:, None], anchor, offsets)
+        anchor = np.where(moving[:, None], was_anchor, offsets)
         step = turn_rotations(0.5 * self.control_dt * (rate + omega), m)
-        turn = np.where(moving[:, None, None], step @ turn, np.eye(m))
+        turn = np.where(moving[:, None, None], step @ was_turn, np.eye(m))
         targets = (turn @ anchor[:, :, None])[:, :, 0]  # x_i* - c*
         held = self.reference_stiffness > 0.0  # a member without the hold keeps no state, alone or in a batch
         self.scatter("reference_moving", np.where(held, moving, was_moving))
-        self.scatter("reference_anchor", np.where(held[:, None], anchor, self.gather("reference_anchor")))
-        self.scatter("reference_turn", np.where(held[:, None, None], turn, self.gather("reference_turn")))
+        self.scatter("reference_anchor", np.where(held[:, None], anchor, was_anchor))
+        self.scatter("reference_turn", np.where(held[:, None, None], turn, was_turn))
         self.scatter("reference_rate", np.where(held[:, None], omega, rate))
         return self.reference_stiffness[:, None] * (targets - offsets)
 
@@ -569,8 +570,7 @@ def turn_rotations(angles: np.ndarray, dim: int) -> np.ndarray:
     """Rotations (k, dim, dim) by rotation vectors ``angles`` (rad): (k, 1) about z for ``dim`` 2, (k, 3) for 3
     (Rodrigues' formula)."""
     if dim == 2:
-        c, s = np.cos(angles[:, 0]), np.sin(angles[:, 0])
-        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        return rotation_about(None, angles[:, 0], 2)
     theta = np.linalg.norm(angles, axis=1)
     axes = angles / np.where(theta > 0.0, theta, 1.0)[:, None]
     skew = np.zeros((len(angles), 3, 3))
