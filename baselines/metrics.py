@@ -22,7 +22,7 @@ import numpy as np
 
 from ee_formation_env.baselines.reference.controllers import FormationController, PolicyTeam, RandomPolicy, ZeroPolicy
 from ee_formation_env.env import FormationEnv
-from ee_formation_env.vector import VectorFormationEnv
+from ee_formation_env.vector import BatchedStep, VectorFormationEnv
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
 
 
@@ -71,15 +71,16 @@ class Step(NamedTuple):
     infos: Mapping[str, Mapping[str, Any]]
 
 
-def formation_tolerance(env: FormationEnv, position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> float:
-    """Formation-error threshold (formation units) equivalent to an edge accuracy ``position_tolerance`` (m).
+def formation_tolerance(formation: Any, position_tolerance: float = DEFAULT_POSITION_TOLERANCE) -> float:
+    """Formation-error threshold (formation units) equivalent to an edge accuracy ``position_tolerance`` (m), of
+    a :class:`~ee_formation_env.formation.Formation` (or of anything with a ``formation``: an env, a task).
 
     The formation error is the RMS of ``|e_k|``; the threshold is the RMS of the per-edge tolerances of the
     reward (:func:`ee_formation_env.reward.edge_tolerances`): ``2 rms(d*) delta`` (m^2) for distance
     formations (``e = |z|^2 - d^2 ~ 2 d delta``), ``delta`` (m) for displacement formations. So every edge
     within its tolerance (the reward's in-tolerance term on every agent) implies success's threshold.
     """
-    formation = env.formation
+    formation = getattr(formation, "formation", formation)
     lengths = np.linalg.norm(formation.desired_vectors, axis=1)
     return float(np.sqrt(np.mean(edge_tolerances(formation.kind, lengths, position_tolerance) ** 2)))
 
@@ -113,7 +114,8 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
                 record: bool = False, on_step: Callable[[FormationEnv], None] | None = None,
                 on_reset: Callable[[FormationEnv], None] | None = None,
                 on_transition: Callable[[FormationEnv, Step], bool | None] | None = None) -> EpisodeMetrics:
-    """Roll one episode from ``reset(seed=seed)`` to its end with one policy per agent: the one episode loop.
+    """Roll one episode of the parallel env ``env`` from ``reset(seed=seed)`` to its end with one policy per
+    agent: the episode loop of :func:`run_episodes` on the env's one copy (``env.batch``).
 
     ``record=True`` keeps time series (``t``, ``formation_error``, ``edge_errors`` per edge, ``ee`` world
     positions, ``q``, ``dq``, ``torque``) in ``metrics.trajectory``; ``on_step(env)`` is called after
@@ -123,80 +125,60 @@ def run_episode(env: FormationEnv, policies: Mapping[str, Policy], seed: int,
     episode there (the metrics then cover the steps run; success still needs the hold). Success and
     settling time: :func:`settle` on the formation error after each step.
     """
-    team = PolicyTeam(policies)  # like controllers evaluated together: the same actions, fewer calls
-    observations, infos = env.reset(seed=seed)
-    team.reset()
-    if on_reset is not None:
-        on_reset(env)
-    agents = list(env.possible_agents)
-    dt = env.scenario.control_dt
-    tolerance = formation_tolerance(env, position_tolerance)
-    start_centroid = env.end_effector_positions().mean(axis=0)
-    errors, energy, peak, clipped, entries, contact_steps = [], 0.0, 0.0, 0, 0, 0
-    returns = dict.fromkeys(agents, 0.0)
-    min_margin = min(info["singularity_margin"] for info in infos.values())
-    series: dict[str, list] = {key: [] for key in ("t", "formation_error", "edge_errors", "ee", "q", "dq", "torque")}
-    fault = ""
-    if record:
-        _record(series, env, infos, 0.0, [np.zeros(len(limits)) for limits in env.torque_limits])
-    steps = 0
-    while env.agents:
-        actions = team(observations)
-        observations, rewards, terminations, truncations, infos = env.step(actions)
-        torques = [infos[agent]["applied_torque"] for agent in agents]
-        energy += sum(float(tau @ tau) for tau in torques) * dt
-        peak = max(peak, max(float(np.max(np.abs(tau))) for tau in torques))
-        # Entries the env clips: outside [-1, 1] (its torque_saturation is this count over the arm's joints).
-        clipped += sum(int(np.count_nonzero(np.abs(np.asarray(actions[agent], dtype=np.float64)) > 1.0))
-                       for agent in agents)
-        entries += sum(len(tau) for tau in torques)
-        contact_steps += int(any(infos[agent]["contacts"] > 0 for agent in agents))
-        min_margin = min(min_margin, min(infos[agent]["singularity_margin"] for agent in agents))
-        for agent in agents:
-            returns[agent] += rewards[agent]
-        first = infos[agents[0]]
-        errors.append(first["formation_error"])
-        if first["physics_fault"] and not fault:
-            fault = env.physics_fault_reason
-        if record:
-            _record(series, env, infos, first["sim_time"], torques)
-        if on_step is not None:
-            on_step(env)
-        steps += 1
-        if on_transition is not None and on_transition(env, Step(steps, actions, observations, rewards, terminations,
-                                                                 truncations, infos)):
-            break
-
-    error_series = np.asarray(errors)
-    success, settling_time = settle(error_series, tolerance, dt, hold_seconds, faulted=bool(fault))
-    metrics = EpisodeMetrics(
-        success=success,
-        final_formation_error=float(error_series[-1]),
-        settling_time=settling_time,
-        control_energy=energy,
-        peak_torque=peak,
-        saturation_fraction=clipped / max(entries, 1),
-        min_singularity_margin=float(min_margin),
-        contact_steps=contact_steps,
-        centroid_drift=float(np.linalg.norm(env.end_effector_positions().mean(axis=0) - start_centroid)),
-        mean_return=float(np.mean(list(returns.values()))),
-        sim_time=len(error_series) * dt,
-        physics_fault=fault,
-    )
-    if record:
-        metrics.trajectory = {key: np.asarray(values) for key, values in series.items()}
-    return metrics
+    if not isinstance(env, FormationEnv):
+        raise TypeError(f"env: expected the parallel env (ee_formation_env.parallel_env), got {type(env).__name__}; "
+                        "a wrapper's own step would be bypassed")
+    hooks = _EpisodeHooks(env, record, on_step, on_reset, on_transition)
+    return _run_round(env.batch, _BatchedTeams(env.batch, [policies]), [seed], position_tolerance, hold_seconds,
+                      hooks)[0]
 
 
-def _record(series: dict[str, list], env: FormationEnv, infos: Mapping[str, Mapping[str, Any]], t: float,
-            torques: Sequence[np.ndarray]) -> None:
-    series["t"].append(t)
-    series["formation_error"].append(next(iter(infos.values()))["formation_error"])
-    series["edge_errors"].append(env.edge_errors().copy())
-    series["ee"].append(env.end_effector_positions().copy())
-    series["q"].append(np.concatenate(env.joint_positions()))
-    series["dq"].append(np.concatenate(env.joint_velocities()))
-    series["torque"].append(np.concatenate(torques))
+class _EpisodeHooks:
+    """What :func:`run_episode` adds to the loop for its one copy: the callers' hooks and the recorded series."""
+
+    def __init__(self, env: FormationEnv, record: bool, on_step: Callable | None, on_reset: Callable | None,
+                 on_transition: Callable | None):
+        self.env, self.record = env, record
+        self.on_step, self.on_reset, self.on_transition = on_step, on_reset, on_transition
+        self.series: dict[str, list] = {key: [] for key in ("t", "formation_error", "edge_errors", "ee", "q", "dq",
+                                                           "torque")}
+
+    def after_reset(self, infos: Mapping[str, np.ndarray]) -> None:
+        if self.on_reset is not None:
+            self.on_reset(self.env)
+        if self.record:
+            self._record(0.0, infos["formation_error"][0], np.zeros(self.env.batch.n_joints))
+
+    def after_step(self, index: int, actions: np.ndarray, result: BatchedStep) -> bool:
+        """Record, call the hooks; True when ``on_transition`` stops the episode."""
+        infos = result.infos
+        if self.record:
+            self._record(float(infos["sim_time"][0]), infos["formation_error"][0], infos["applied_torque"][0])
+        if self.on_step is not None:
+            self.on_step(self.env)
+        if self.on_transition is None:
+            return False
+        env = self.env
+        agents = env.possible_agents
+        action_dict = {agent: actions[0, joints] for agent, joints in zip(agents, env.batch.joint_slices)}
+        ended, truncated = bool(result.terminations[0]), bool(result.truncations[0])
+        step = Step(index, action_dict, env.agent_observations(result.observations),
+                    dict(zip(agents, result.rewards[0].tolist())), dict.fromkeys(agents, ended),
+                    dict.fromkeys(agents, truncated), env.agent_infos(infos))
+        return bool(self.on_transition(env, step))
+
+    def _record(self, t: float, formation_error: float, torque: np.ndarray) -> None:
+        env, series = self.env, self.series
+        series["t"].append(t)
+        series["formation_error"].append(float(formation_error))
+        series["edge_errors"].append(env.edge_errors())
+        series["ee"].append(env.end_effector_positions())
+        series["q"].append(env.batch.joint_positions()[0])
+        series["dq"].append(env.batch.joint_velocities()[0])
+        series["torque"].append(np.array(torque))
+
+    def trajectory(self) -> dict[str, np.ndarray] | None:
+        return {key: np.asarray(values) for key, values in self.series.items()} if self.record else None
 
 
 SUMMARY_FIELDS = ("final_formation_error", "settling_time", "control_energy", "peak_torque", "saturation_fraction",
@@ -493,10 +475,12 @@ def _policy_source(policy: PolicySource) -> Callable[[Any], Mapping[str, Policy]
     return policy
 
 
-def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[int], position_tolerance: float,
-               hold_seconds: float) -> list[EpisodeMetrics]:
-    """One episode per seed (at most K of them) on the copies 0.. of ``env``, copy k reset with ``seeds[k]``;
-    the copies beyond them run too (seeded after the last) and are ignored."""
+def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[int], position_tolerance: float,
+               hold_seconds: float, hooks: _EpisodeHooks | None = None) -> list[EpisodeMetrics]:
+    """The episode loop: one episode per seed (at most K of them) on the copies 0.. of ``env``, copy k reset with
+    ``seeds[k]``; the copies beyond them run too (seeded after the last) and are ignored. ``env`` autoresets
+    (an :class:`EvaluationVectorEnv`, which keeps each ended copy's final end-effectors) or, with one copy, does
+    not (a parallel env's ``batch``, with :func:`run_episode`'s ``hooks``)."""
     K, N = env.num_envs, env.task.n_agents
     wanted = len(seeds)
     copy_seeds = list(seeds) + [max(seeds) + 1 + j for j in range(K - wanted)]
@@ -504,8 +488,10 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
     margins = result.infos["singularity_margin"].copy()  # (K, N) at each copy's reset
     observations = result.observations
     teams.reset()
+    if hooks is not None:
+        hooks.after_reset(result.infos)
     dt = env.scenario.control_dt
-    tolerances = [_formation_tolerance(env.tasks[k].formation, position_tolerance) for k in range(wanted)]
+    tolerances = [formation_tolerance(env.tasks[k], position_tolerance) for k in range(wanted)]
     start = env.end_effector_positions()
     start_centroids = [start[k].mean(axis=0) for k in range(wanted)]
     joint_slices = env.joint_slices
@@ -520,6 +506,7 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
     min_margin = margins.min(axis=1)
     faults = [""] * wanted
     end_centroids: list[np.ndarray | None] = [None] * wanted
+    steps = 0
     while active.any():
         actions = teams(observations)
         result = env.step_arrays(actions)
@@ -547,12 +534,16 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
         formation_error = infos["formation_error"]
         fault_flags, reasons = infos["physics_fault"], infos["physics_fault_reason"]
         ended = result.terminations | result.truncations
+        steps += 1
+        if hooks is not None and hooks.after_step(steps, actions, result):
+            ended = np.ones(K, dtype=bool)  # the one copy stops here
         for k in rows:
             errors[k].append(float(formation_error[k]))
             if fault_flags[k] and not faults[k]:
                 faults[k] = str(reasons[k])
             if ended[k]:
-                end_centroids[k] = env.ended_end_effectors[k].mean(axis=0)
+                final = env.ended_end_effectors[k] if env.autoreset else env.end_effector_positions()[k]
+                end_centroids[k] = final.mean(axis=0)
                 active[k] = False
     metrics = []
     for k in range(wanted):
@@ -571,11 +562,6 @@ def _run_round(env: EvaluationVectorEnv, teams: _BatchedTeams, seeds: Sequence[i
             mean_return=float(np.mean(list(returns[k]))),
             sim_time=len(series) * dt,
             physics_fault=faults[k],
+            trajectory=None if hooks is None else hooks.trajectory(),
         ))
     return metrics
-
-
-def _formation_tolerance(formation: Any, position_tolerance: float) -> float:
-    """:func:`formation_tolerance` from the formation itself."""
-    lengths = np.linalg.norm(formation.desired_vectors, axis=1)
-    return float(np.sqrt(np.mean(edge_tolerances(formation.kind, lengths, position_tolerance) ** 2)))

@@ -147,16 +147,6 @@ class ArmSet:
         commands = [arm.torque_command(values[joints]) for arm, joints in zip(self.arms, self.joint_slices)]
         self.world.step_with_torques(commands, physics_steps)
 
-    def read_states(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every arm's joint positions (rad) and velocities (rad/s), as flat vectors (arm i's: ``joint_slices[i]``)."""
-        positions: list[float] = []
-        velocities: list[float] = []
-        for arm in self.arms:
-            q, dq = arm.read_state_lists()
-            positions += q
-            velocities += dq
-        return np.array(positions), np.array(velocities)
-
     def contacts_per_arm(self) -> list[int]:
         """Contact points of each arm with other arms (contacts with itself do not count)."""
         counts = [0] * len(self.arms)
@@ -229,3 +219,48 @@ def check_start_contacts(arm_set: ArmSet) -> None:
                     f"arms: arm_{a} and arm_{b} are in contact at their initial configurations (initial_q, "
                     f"penetration {max(depth, 0.0):.3f} m); move their bases apart, bend them away from each other, "
                     "or set arm_collisions: false")
+
+
+def build_world(task: FormationTask, render_mode: str | None = None) -> tuple[PhysicsWorld, ArmSet]:
+    """One PyBullet client holding the task's arms at their initial configurations (start contacts refused
+    while ``arm_collisions`` is on), its state saved for :func:`reset_world`: one copy of the env."""
+    scenario = task.scenario
+    world = PhysicsWorld(scenario.physics_hz, scenario.gravity, render_mode)
+    try:  # a refusal after connecting (a URDF PyBullet rejects, arms in contact) leaves no client behind
+        arm_set = ArmSet(world, task)
+        arm_set.reset(list(task.initial_q))
+        if scenario.arm_collisions:
+            check_start_contacts(arm_set)
+    except BaseException:
+        world.close()
+        raise
+    world.save_snapshot()
+    return world, arm_set
+
+
+def start_problem(arm_set: ArmSet, task: FormationTask) -> str | None:
+    """Place ``arm_set``'s arms as ``task`` (a scenario distribution's draw) has them, at its initial
+    configurations; why they cannot start there (arms in contact, while ``arm_collisions`` is on), or None."""
+    arm_set.place_bases(task)
+    arm_set.reset(list(task.initial_q))
+    if task.scenario.arm_collisions:
+        try:
+            check_start_contacts(arm_set)
+        except ValueError as error:
+            return str(error)
+    return None
+
+
+def reset_world(world: PhysicsWorld, arm_set: ArmSet, task: FormationTask, rng: np.random.Generator) -> None:
+    """Restore the saved world, then place the arms at the scenario's initial joint positions plus uniform
+    noise of half-width ``initial_q_noise`` drawn from ``rng`` (clipped to the joint limits), at rest. A task
+    whose bases are not the saved ones (a scenario distribution's draw) has its bases moved there first."""
+    world.restore_snapshot()
+    if any(arm.config is not config for arm, config in zip(arm_set.arms, task.scenario.arms)):
+        arm_set.place_bases(task)
+    noise = task.scenario.initial_q_noise
+    starts = []
+    for arm, q0 in zip(arm_set.arms, task.initial_q):
+        q = q0 + rng.uniform(-noise, noise, size=q0.shape) if noise > 0 else q0.copy()
+        starts.append(np.clip(q, arm.model.lower, arm.model.upper))
+    arm_set.reset(starts)

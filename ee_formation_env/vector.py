@@ -1,4 +1,8 @@
-"""The batched env: K copies of one scenario stepped by one call (``ee_formation_env.vector_env``).
+"""The env's one implementation: K copies of one scenario stepped by one call (``ee_formation_env.vector_env``).
+
+The PettingZoo parallel env (:class:`ee_formation_env.env.FormationEnv`) is this env at K = 1 without
+autoreset, seen through per-agent dicts; every action check, step, reset, measurement, observation, reward and
+info is computed here, on a leading K axis.
 
 Quick use::
 
@@ -15,80 +19,67 @@ Quick use::
 **Conventions** (Gymnasium's vector conventions for seeds, VMAS's for per-agent batches):
 
 - ``reset(seed=s)`` seeds copy ``k`` with ``s + k`` (``reset(seed=[s_0, ..., s_K-1])``: copy k with ``s_k``,
-  None for its own generator): copy ``k`` then reproduces
-  ``parallel_env(scenario).reset(seed=s + k)`` step for step under the same actions, bit for bit
-  (``tests/test_vector.py``). ``reset()`` without a seed continues every copy's own generator, as the single
-  env's unseeded reset does.
+  None for its own generator): copy ``k`` then reproduces ``parallel_env(scenario).reset(seed=s + k)`` step
+  for step under the same actions, bit for bit. ``reset()`` without a seed continues every copy's own
+  generator.
 - Observations: dict agent -> ``(K, obs_dim)`` float32. Actions: dict agent -> ``(K, act_dim)`` (numeric,
-  finite; clipped to [-1, 1] as in the single env). Rewards: agent -> ``(K,)`` float64; terminations and
-  truncations: agent -> ``(K,)`` bool (equal for every agent of a copy). Infos: agent -> dict of the single
-  env's keys, each an array with a leading K axis (``formation_error`` (K,), ``edge_errors`` (K, D) or
-  (K, D, m), ``edge_mask`` (K, D), ``singularity_margin``, ``torque_saturation``, ``clipped_actions``,
-  ``contacts``, ``physics_fault`` (K,), ``applied_torque`` (K, n_i), ``sim_time`` (K,)), plus
-  ``physics_fault_reason`` (K,) (the copy's fault in words, "" if none) and ``final_observation``
-  (K, obs_dim) (below).
-- Spaces: ``observation_space(agent)`` / ``action_space(agent)`` and ``state_space`` are the single copy's
-  (what a policy sees); ``batched_observation_space(agent)``, ``batched_action_space(agent)`` and
-  ``batched_state_space`` are the same with a leading K axis. ``state()`` is ``(K, state_dim)``.
-- Agents never leave: ``agents`` is always ``possible_agents``, every copy restarts when it ends.
+  finite; clipped to [-1, 1]). Rewards: agent -> ``(K,)`` float64; terminations and truncations: agent ->
+  ``(K,)`` bool (equal for every agent of a copy). Infos: agent -> dict of the parallel env's keys, each an
+  array with a leading K axis (``formation_error`` (K,), ``edge_errors`` (K, D) or (K, D, m), ``edge_mask``
+  (K, D), ``singularity_margin``, ``torque_saturation``, ``clipped_actions``, ``contacts``,
+  ``physics_fault`` (K,), ``applied_torque`` (K, n_i), ``sim_time`` (K,)), plus ``physics_fault_reason``
+  (K,) (the copy's fault in words, "" if none) and, with autoreset, ``final_observation`` (K, obs_dim).
+- Spaces: ``observation_space(agent)`` / ``action_space(agent)`` and ``state_space`` are one copy's (what a
+  policy sees); ``batched_observation_space(agent)``, ``batched_action_space(agent)`` and
+  ``batched_state_space`` have a leading K axis. ``state()`` is ``(K, state_dim)``.
+- Agents never leave: ``agents`` is always ``possible_agents``.
 
-**Autoreset: Gymnasium 1.x's SAME_STEP mode** (``metadata["autoreset_mode"]``). When copy ``k`` terminates
-or truncates in a step, that step returns its rewards, terminations/truncations and infos (those of the
-final transition), while its row of the returned observations is already the first observation of its
-next episode; the observation it ended in is ``infos[agent]["final_observation"][k]`` (for copies that did
-not end, that row equals the returned observation). The new episode is drawn from the copy's own generator
-(the same draw as the single env's ``reset(seed=None)`` after that episode): a copy seeded ``s + k``
-replays, episode after episode, what one single env reset with ``s + k`` and then reset without a seed
-gives. ``state()`` after the step is the new episode's.
+**Autoreset** (``autoreset_mode``, in ``metadata["autoreset_mode"]``): Gymnasium 1.x's ``SAME_STEP`` (the
+default) or ``DISABLED``. With ``SAME_STEP``, when copy ``k`` terminates or truncates in a step, that step
+returns its rewards, terminations/truncations and infos (those of the final transition), while its row of
+the returned observations is already the first observation of its next episode; the observation it ended in
+is ``infos[agent]["final_observation"][k]``. The new episode is drawn from the copy's own generator (the draw
+of an unseeded ``reset``). With ``DISABLED``, an ended copy stays as it ended, and stepping again before
+resetting it (``reset(options={"reset_mask": mask})``) is refused.
 
-**Partial reset**: ``reset(seed=None, options={"reset_mask": mask})`` resets only the copies where the
-(K,) bool ``mask`` is True (seeded ``seed + k`` when a seed is given, else from their own generators);
-the others keep their state, step counts and generators. It returns every copy's observations; infos of
-the copies left alone describe their last step.
+**Partial reset**: ``reset(seed=None, options={"reset_mask": mask})`` resets only the copies where the (K,)
+bool ``mask`` is True (seeded ``seed + k`` when a seed is given, else from their own generators); the others
+keep their state, step counts and generators. It returns every copy's observations.
 
-**Array API** for batched learners (TorchRL, SB3 VecEnvs, batched evaluation): :meth:`step_arrays` takes
-every copy's actions as one array, (K, T) (T = all joints, agents in order) or (K * N, n) / (K, N, n) when
-every arm has n joints, and returns a :class:`BatchedStep` of stacked arrays without dicts:
-observations (K, O) (agent i's part: ``observation_slices[i]``), rewards (K, N), terminations and
-truncations (K,), infos of (K, N, ...) per-agent and (K,) per-copy arrays. The dict API wraps it.
-:meth:`reset_arrays` is the same for resets.
+**Array API** for batched learners (TorchRL, SB3 VecEnvs, batched evaluation): :meth:`step_arrays` takes every
+copy's actions as one array, (K, T) (T = all joints, agents in order) or (K * N, n) / (K, N, n) when every
+arm has n joints, and returns a :class:`BatchedStep` of stacked arrays: observations (K, O) (agent i's part:
+``observation_slices[i]``), rewards (K, N), terminations and truncations (K,), infos of (K, N, ...)
+per-agent and (K,) per-copy arrays. The dict API wraps it; :meth:`reset_arrays` is the same for resets.
 
-**Physics layout: one PyBullet client per copy**, each the single env's own world (same bodies, same
-saved state, same solver settings), so each copy's physics is the single env's bit for bit by
-construction (an ended copy's world is restored from its own snapshot, contact caches included). It was
-measured against the other layout, all K formations in one client placed 10 m apart (their bodies never
-meet in the broadphase, so they never collide), by ``python -m benchmarks.run --sections vector``: at
-K >= 16 the K clients stepped in turn are the faster floor (planar_square 59k vs 56k formation physics
-steps/s at K = 16, 64k vs 31k at K = 64; spatial_tetrahedron 19k vs 15k and 19k vs 2.8k), since one
-``stepSimulation`` over one big world costs more than linearly in its bodies. The price is memory: about
-30 MB per copy (one client each) against 1-8 MB per formation sharing a client (``docs/performance.md``,
-"Batched env"). The PyBullet calls (torques, ``stepSimulation``,
-joint-state reads, contacts) are per client, as PyBullet has no batched query; everything else
-(kinematics, singularity margins, edges, observations, rewards, infos, fault and action checks) is one
-numpy pass over the K x N agents, with the single env's own functions
-(:func:`ee_formation_env.env.measure`, :func:`~ee_formation_env.env.reward_array`, the
-:class:`~ee_formation_env.observation.ObservationBuilder`) given a leading K axis.
+**Physics layout**: one PyBullet client per copy, each the parallel env's own world, so each copy's physics
+is bit for bit one env's by construction. PyBullet has no batched query, so torques, ``stepSimulation``,
+joint-state reads and contacts are per client; everything else is one numpy pass over the K x N agents. The
+layout's measurements (against all copies in one client) are on the performance page (``docs/performance.md``,
+"Batched env").
 
-**Scenario distributions**: each copy draws its own problem at each of its resets (the single env's draw for
-its seed, bit for bit; ``tasks[k]`` is copy k's, ``copy_view(k)`` the copy as a per-copy policy source sees
-it), and its measurements, observations and rewards are computed with its own draw, copy by copy.
+**Scenario distributions**: each copy draws its own problem at each of its resets (``tasks[k]`` is copy k's,
+``copy_view(k)`` the copy as a per-copy policy source sees it).
 
-**Errors**: bad input raises before any copy moves, with the single env's messages (they start with the
-field: ``actions['arm_0']: ...``, ``seed: ...``, ``options['reset_mask']: ...``).
+**Rendering**: with ``num_envs=1`` only (``render_mode`` ``"human"`` or ``"rgb_array"``): :meth:`render`
+draws the one copy (the parallel env's ``render``).
 
-**Rendering**: none (``render_mode`` is not supported); render a copy with a single env reset with its
-seed.
+**Errors**: bad input raises before any copy moves (``actions['arm_0']: ...``, ``seed: ...``,
+``options['reset_mask']: ...``).
 
 Arguments of ``ee_formation_env.vector_env``:
 
-============== ============================================================================================
-argument       meaning
-============== ============================================================================================
-``scenario``   a built-in name, a YAML/JSON path, a dict or a :class:`~ee_formation_env.scenario.Scenario`
-``num_envs``   K >= 1, the number of copies (each one PyBullet client, about 30 MB resident)
-``max_cycles`` truncate episodes after this many env steps (as :func:`ee_formation_env.parallel_env`)
-``**overrides`` top-level scenario keys replaced (as :func:`ee_formation_env.parallel_env`)
-============== ============================================================================================
+================== ========================================================================================
+argument           meaning
+================== ========================================================================================
+``scenario``       a built-in name, a YAML/JSON path, a dict or a :class:`~ee_formation_env.scenario.Scenario`
+``num_envs``       K >= 1, the number of copies (each one PyBullet client, about 30 MB resident)
+``max_cycles``     truncate episodes after this many env steps (as :func:`ee_formation_env.parallel_env`)
+``autoreset_mode`` ``gymnasium.vector.AutoresetMode.SAME_STEP`` (default) or ``DISABLED``
+``render_mode``    None, ``"human"`` or ``"rgb_array"`` (``num_envs=1`` only); ``render_width``,
+                   ``render_height`` (pixels, 16 to 4096) and ``real_time`` as for the parallel env
+``**overrides``    top-level scenario keys replaced (as :func:`ee_formation_env.parallel_env`)
+================== ========================================================================================
 """
 
 from __future__ import annotations
@@ -100,19 +91,28 @@ import gymnasium
 import numpy as np
 from gymnasium.utils import seeding
 
-from ee_formation_env.env import (PHYSICS_FAULTS, Measurement, build_world, measure, physics_fault, reward_array,
-                                  reset_world, start_problem)
+from ee_formation_env.actions import ActionCheck
 from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.generators import distribution_bounds, sample_task
-from ee_formation_env.inputs import check_seed, excerpt, numeric_action
+from ee_formation_env.inputs import check_seed, excerpt
 from ee_formation_env.manoeuvre import ReferenceMotion
+from ee_formation_env.measurement import PHYSICS_FAULTS, Measurement, measure, physics_faults, reward_array
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
+from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.reward import edge_tolerances
+from ee_formation_env.robot import build_world, reset_world, start_problem
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.sensing import Sensor
 from ee_formation_env.task import build_task
 
 __all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS"]
+
+AutoresetMode = gymnasium.vector.AutoresetMode
+RENDER_MODES = ("human", "rgb_array")
+
+# ONE_COPY_FAST_PATH: with one copy (the parallel env), the arithmetic runs on the copy's own arrays, without
+# the leading axis, and the results get it back: the same functions, about 20 us per step cheaper than numpy on
+# a leading axis of 1 (docs/performance.md, "Batched env").
 
 # Info keys with one value per agent (K, N, ...) in the array API; the others are per copy (K,).
 PER_AGENT_INFO = ("edge_errors", "edge_mask", "singularity_margin", "torque_saturation", "clipped_actions",
@@ -126,7 +126,7 @@ class BatchedStep(NamedTuple):
     ``observations`` (K, O) float32, agents concatenated (agent i's: ``env.observation_slices[i]``);
     ``rewards`` (K, N) float64; ``terminations``, ``truncations`` (K,) bool; ``infos``: per-agent keys
     (:data:`PER_AGENT_INFO`) (K, N, ...), per-copy keys (:data:`PER_COPY_INFO`) (K,), ``applied_torque``
-    (K, T) N m and ``final_observation`` (K, O) (SAME_STEP autoreset: the observation each copy ended in).
+    (K, T) N m and, with autoreset, ``final_observation`` (K, O) (the observation each copy ended in).
     """
 
     observations: np.ndarray
@@ -140,38 +140,49 @@ class VectorFormationEnv:
     """K copies of one formation scenario, stepped by one call (module docstring: conventions, autoreset,
     layout). Build it with :func:`ee_formation_env.vector_env`."""
 
-    metadata = {"name": "ee_formation_vector_v0", "render_modes": [], "is_parallelizable": True,
-                "autoreset_mode": gymnasium.vector.AutoresetMode.SAME_STEP}
+    metadata = {"name": "ee_formation_vector_v0", "render_modes": list(RENDER_MODES), "render_fps": 30,
+                "is_parallelizable": True, "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "planar_square",
-                 num_envs: int = 1, **overrides: Any):
+                 num_envs: int = 1, autoreset_mode: AutoresetMode = AutoresetMode.SAME_STEP,
+                 render_mode: str | None = None, render_width: int = 480, render_height: int = 360,
+                 real_time: bool = False, **overrides: Any):
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs: expected an integer >= 1 (copies of the scenario), got {excerpt(num_envs)}")
-        if overrides.get("render_mode") is not None:
-            raise ValueError("render_mode: the batched env does not render; render one copy with parallel_env")
-        overrides.pop("render_mode", None)
+        if autoreset_mode not in (AutoresetMode.SAME_STEP, AutoresetMode.DISABLED):
+            raise ValueError(f"autoreset_mode: expected AutoresetMode.SAME_STEP or AutoresetMode.DISABLED, got "
+                             f"{excerpt(autoreset_mode)}")
+        if render_mode not in (None, *RENDER_MODES):
+            raise ValueError(f"render_mode: expected None or one of {list(RENDER_MODES)}, got {render_mode!r}")
+        if render_mode is not None and num_envs != 1:
+            raise ValueError("render_mode: the batched env renders only with num_envs=1; render one copy with "
+                             "parallel_env")
+        render_width, render_height, real_time = validate_render_options(render_width, render_height, real_time)
         self.num_envs = K = int(num_envs)
+        self.metadata = {**type(self).metadata, "autoreset_mode": autoreset_mode}
+        self.autoreset = autoreset_mode == AutoresetMode.SAME_STEP
         self.scenario = load_scenario(scenario, **overrides)
         self.task = build_task(self.scenario)  # validates: raises before any physics starts
-        self.render_mode = None
+        self.render_mode = render_mode
         self.possible_agents = self.task.agents
         self.agents = list(self.possible_agents)
         self._worlds, self._arm_sets = [], []
         try:
             for _ in range(K):
-                world, arm_set = build_world(self.task)
+                world, arm_set = build_world(self.task, render_mode)
                 self._worlds.append(world)
                 self._arm_sets.append(arm_set)
             self._bounds = None
             self._sampled = self.scenario.distribution.active
-            if self._sampled:  # the single env's construction draw: an infeasible distribution is refused here
+            if self._sampled:  # one draw now: an infeasible distribution is refused here
                 self.task = sample_task(self.scenario, np.random.default_rng(0),
                                         lambda task: start_problem(self._arm_sets[0], task))
                 self._bounds = distribution_bounds(self.scenario, self.task)
         except BaseException:
             self.close()
             raise
-        self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)  # the single env's (manoeuvre.py)
+        # The manoeuvre's reference (manoeuvre.py); without one the observations are the plain task's.
+        self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)
         self._reference = self._motion if self.scenario.manoeuvre.active else None
         self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds, self._reference)
         sensing = self.scenario.sensing
@@ -181,7 +192,7 @@ class VectorFormationEnv:
         self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (model.n_joints,), dtype=np.float32)
                                for agent, model in zip(self.possible_agents, self.task.models)}
         self.state_space = self._observer.state_space
-        self.observation_spaces = dict(self._observation_spaces)
+        self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
         self.action_spaces = dict(self._action_spaces)
         self._batched_observation_spaces = {a: _batched(s, K) for a, s in self._observation_spaces.items()}
         self._batched_action_spaces = {a: _batched(s, K) for a, s in self._action_spaces.items()}
@@ -191,21 +202,18 @@ class VectorFormationEnv:
         # Every copy's arms are the same robots (under model_mismatch, the same perturbation seed): copy 0's
         # models evaluate all K copies in one batched call.
         self._kinematics = arm_set.kinematics
-        self._joint_slices, self._joint_starts, self._joint_counts = (arm_set.joint_slices, arm_set.joint_starts,
-                                                                      arm_set.joint_counts)
+        self._joint_slices, self._joint_counts = arm_set.joint_slices, arm_set.joint_counts
+        self.actions_check = ActionCheck(self.possible_agents, self._joint_slices)
         self.n_joints = arm_set.n_joints
-        sizes = {arm.n_joints for arm in arm_set.arms}
-        self.uniform_joints = sizes.pop() if len(sizes) == 1 else None  # n when every arm has n joints
+        self.uniform_joints = self.actions_check.uniform_joints  # n when every arm has n joints
         continuous = arm_set.continuous
+        # Continuous joints are observed wrapped to [-pi, pi): None (no joint), True (every joint) or a mask.
         self._wrap = None if not continuous.any() else True if continuous.all() else continuous
         self._torque_limits_flat = np.concatenate(self.task.torque_limits)
-        self._edge_tolerances = edge_tolerances(self.task.formation.kind,
-                                                np.linalg.norm(self.task.formation.desired_vectors, axis=1),
-                                                self.scenario.reward.position_tolerance)
-        # A scenario distribution: each copy's current draw, its observer and its edge tolerances (K,).
+        # A scenario distribution: each copy's current draw, its observer and its edge tolerances.
         self.tasks = [self.task] * K
         self._observers = [self._observer] * K
-        self._copy_tolerances = [self._edge_tolerances] * K
+        self._copy_tolerances = [_edge_tolerances(self.task)] * K
         self.np_randoms = [seeding.np_random(None)[0] for _ in range(K)]
         n = self.task.n_agents
         self._step_counts = np.zeros(K, dtype=np.int64)
@@ -215,9 +223,13 @@ class VectorFormationEnv:
         self._torques = np.zeros((K, self.n_joints))
         self._measurement: Measurement | None = None
         self._last_reasons = np.full(K, "", dtype=object)
+        self._ended = np.zeros(K, dtype=bool)  # without autoreset: the copies whose episode has ended
         self._start_points = np.zeros((K, n, self.task.dim))  # each copy's end-effectors at the motion's start
         masks = np.array(self._observer.slot_masks)
         self._edge_masks = np.broadcast_to(masks, (K, *masks.shape))
+        self._renderer = None if render_mode is None else SceneRenderer(
+            self._worlds[0], self.task.formation, self.task.dim, render_width, render_height, real_time)
+        self._every = np.arange(K)
         self._needs_reset = True
 
     # ------------------------------------------------------------------------------------------ spaces
@@ -237,9 +249,9 @@ class VectorFormationEnv:
         """``agent``'s actions of all K copies: the single space with a leading K axis."""
         return self._batched_action_spaces[agent]
 
-    def observation_layout(self, agent: str) -> ObservationLayout:
-        """How ``agent``'s observation is laid out (one copy's; the single env's ``observation_layout``)."""
-        return self._observer.layouts[self.task.agent_index(agent)]
+    def observation_layout(self, agent: str, copy: int = 0) -> ObservationLayout:
+        """How ``agent``'s observation is laid out in copy ``copy`` (its current draw's layout)."""
+        return self._observers[copy].layouts[self.task.agent_index(agent)]
 
     @property
     def observation_slices(self) -> list[slice]:
@@ -253,7 +265,13 @@ class VectorFormationEnv:
 
     @property
     def torque_limits(self) -> tuple[np.ndarray, ...]:
+        """Per-arm, per-joint torque limits, N m."""
         return self.task.torque_limits
+
+    @property
+    def connected(self) -> bool:
+        """Whether every copy's physics client is connected (False after :meth:`close`)."""
+        return bool(self._worlds) and all(world.connected for world in self._worlds)
 
     def copy_view(self, k: int) -> "CopyView":
         """Copy ``k`` as a per-copy consumer (a policy source, a reference controller) sees it: this env, with
@@ -269,11 +287,11 @@ class VectorFormationEnv:
         return self._observation_dict(result.observations), self._info_dicts(result.infos)
 
     def step(self, actions: Mapping[str, np.ndarray]):
-        """Apply agent -> (K, act_dim) actions to every copy for ``frame_skip`` physics steps; copies that end
-        restart at once (SAME_STEP autoreset, module docstring)."""
-        self._check_running()
-        normalized, clipped = self._check_actions(actions)
-        result = self._step(normalized, clipped)
+        """Apply agent -> (K, act_dim) actions to every copy for ``frame_skip`` physics steps (ended copies
+        restart at once with SAME_STEP autoreset, module docstring)."""
+        self.check_running()
+        normalized = self.actions_check.agent_dict(actions, self.num_envs)
+        result = self.step_checked(normalized, self.actions_check.clip(normalized))
         rewards = result.rewards.T.copy()
         terminations, truncations = result.terminations, result.truncations
         return (self._observation_dict(result.observations),
@@ -288,7 +306,7 @@ class VectorFormationEnv:
         """:meth:`reset` as stacked arrays (rewards zero, no termination)."""
         seeds = self._copy_seeds(seed)
         rows = self._reset_rows(options)
-        if not self._worlds or not all(world.connected for world in self._worlds):
+        if not self.connected:
             raise RuntimeError("reset: the environment is closed")
         for k in rows:
             if seeds[k] is not None:
@@ -300,28 +318,99 @@ class VectorFormationEnv:
         observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq,
                                                 np.arange(self.num_envs), *self._reference_blocks())
         infos = self._info_arrays(measured)
-        infos["final_observation"] = observations.copy()
+        if self.autoreset:
+            infos["final_observation"] = observations.copy()
         K, n = self.num_envs, self.task.n_agents
         return BatchedStep(observations, np.zeros((K, n)), np.zeros(K, dtype=bool), np.zeros(K, dtype=bool), infos)
 
     def step_arrays(self, actions: np.ndarray) -> BatchedStep:
         """One step of every copy from one array of actions: (K, T) (all joints, agents in order), or, when
         every arm has n joints, (K * N, n) or (K, N, n). Checked (numeric, finite) before any copy moves."""
-        self._check_running()
-        normalized = self.checked_action_array(actions)
-        clipped = np.add.reduceat(np.abs(normalized) > 1.0, self._joint_starts, axis=1, dtype=np.int64)
-        np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)
-        return self._step(normalized, clipped)
+        self.check_running()
+        normalized = self.actions_check.flat_array(actions, self.num_envs)
+        return self.step_checked(normalized, self.actions_check.clip(normalized))
+
+    def checked_action_array(self, actions: Any) -> np.ndarray:
+        """A fresh float64 (K, T) copy of the array API's actions, or a ``ValueError`` starting ``actions:``
+        (what :meth:`step_arrays` checks; for wrappers that transform actions before stepping)."""
+        return self.actions_check.flat_array(actions, self.num_envs)
+
+    def step_checked(self, normalized: np.ndarray, clipped: np.ndarray) -> BatchedStep:
+        """Step every copy with checked, clipped actions (K, T) (:class:`~ee_formation_env.actions.ActionCheck`),
+        ``clipped`` the entries clipped per (copy, agent); ended copies restart with SAME_STEP autoreset."""
+        torques = normalized * self._torque_limits_flat  # (K, T), N m
+        frame_skip = self.scenario.frame_skip
+        contacts, positions, velocities = [], [], []
+        # Each copy is read right after it steps, while its client's state is still in the CPU caches.
+        for arm_set, row in zip(self._arm_sets, torques):
+            arm_set.step(row, frame_skip)
+            for arm in arm_set.arms:
+                q, dq = arm.read_state_lists()
+                positions += q
+                velocities += dq
+            contacts.append(arm_set.contacts_per_arm())
+        self._step_counts += 1
+        self._clipped_actions += clipped
+        self._clipped_step = clipped
+        self._contacts = np.array(contacts, dtype=np.int64).reshape(self.num_envs, self.task.n_agents)
+        self._torques = torques
+        shape = (self.num_envs, self.n_joints)
+        every = self._every
+        self._measurement = measured = self._derive(np.array(positions).reshape(shape),
+                                                    np.array(velocities).reshape(shape), every)
+        if self._reference is not None:  # the motion's start points, kept while the formation holds
+            holding = self._times() <= self.scenario.manoeuvre.start
+            self._start_points[holding] = measured.ee_world[holding, :, :self.task.dim]
+
+        if self._sensor is not None:
+            self._sense(measured.slot_z, every)
+        observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq, every,
+                                                *self._reference_blocks())
+        if self._sampled:
+            rewards = np.concatenate([reward_array(measured.edge_squares[k:k + 1], self._copy_tolerances[k],
+                                                   self._observers[k], self.scenario.reward) for k in every])
+        elif self.num_envs == 1:  # one copy: on its own arrays (ONE_COPY_FAST_PATH)
+            rewards = reward_array(measured.edge_squares[0], self._copy_tolerances[0], self._observer,
+                                   self.scenario.reward)[None]
+        else:
+            rewards = reward_array(measured.edge_squares, self._copy_tolerances[0], self._observer,
+                                   self.scenario.reward)
+        infos = self._info_arrays(measured)
+        ended = measured.fault != 0
+        if self.scenario.terminate_on_contact:
+            ended = ended | (self._contacts > 0).any(axis=1)
+        truncated = ~ended & (self._step_counts >= self.scenario.max_steps)
+        self._last_reasons = measured.fault_reason
+        done_mask = ended | truncated
+        any_done = done_mask.any()
+        if not self.autoreset:
+            if any_done:
+                self._ended |= done_mask
+        else:
+            infos["final_observation"] = observations.copy()
+            if any_done:
+                done = np.flatnonzero(done_mask)
+                self._reset_copies(done)
+                part = self._measurement
+                slot_z, slot_errors = self._observed_slots()
+                references = tuple(block[done] for block in self._reference_blocks())
+                observations[done] = self._observation_matrix(slot_z[done], slot_errors[done],
+                                                              part.q_observed[done], part.dq[done], done, *references)
+        return BatchedStep(observations, rewards, ended, truncated, infos)
 
     # ------------------------------------------------------------------------------------------ state
     def state(self) -> np.ndarray:
-        """Every copy's global state (K, state_dim): end-effector positions, q, dq (as the single env's)."""
+        """Every copy's global state (K, state_dim): end-effector positions (world, m), q, dq."""
         measured = self._last()
         return self._observer.state(measured.ee_world, measured.q_observed, measured.dq)
 
     def end_effector_positions(self) -> np.ndarray:
         """World-frame end-effector positions (K, N, 3), m, at the last reset/step."""
         return self._last().ee_world.copy()
+
+    def edge_errors(self) -> np.ndarray:
+        """Every copy's edge errors e_k (K, E) m^2 or (K, E, dim) m (world frame), at the last reset/step."""
+        return self._last().edge_errors.copy()
 
     def joint_positions(self) -> np.ndarray:
         """Every copy's joint positions (K, T), rad (unwrapped), at the last reset/step."""
@@ -332,22 +421,44 @@ class VectorFormationEnv:
         return self._last().dq.copy()
 
     def reference_centroid(self) -> np.ndarray:
-        """Every copy's reference centroid c*(t) (K, dim), world, m (the single env's, per copy)."""
+        """Every copy's manoeuvre reference centroid c*(t) (K, dim), world, m, at the last reset/step: until the
+        motion's start t0 the end-effectors' current centroid, then that of t0 moved along the path (without a
+        manoeuvre, the centroid at reset: a reference at rest)."""
         self._last()
         return self._motion.world(self._times(), self._start_points.mean(axis=-2))[0]
 
     def centroid_tracking_error(self) -> np.ndarray:
-        """Every copy's |c - c*| (K,), m."""
+        """Every copy's |c - c*| (K,), m: the end-effectors' centroid against :meth:`reference_centroid`."""
         return self._motion.centroid_errors(self._times(), self._start_points.mean(axis=-2), self._last().ee_world)
 
     def orientation_tracking_error(self) -> np.ndarray:
-        """Every copy's orientation error (K,), rad (the single env's ``orientation_tracking_error``)."""
+        """Every copy's orientation error (K,), rad, against the manoeuvre's turn theta*(t): the best-fit
+        rotation's angle (:mod:`ee_formation_env.manoeuvre`); 0 before the motion starts."""
         return self._motion.orientation_errors(self._times(), self._start_points, self._last().ee_world)
 
     @property
     def physics_fault_reason(self) -> np.ndarray:
         """Each copy's fault at the last step (K,) ("" for none); an autoreset copy's is its ended episode's."""
         return np.array(self._last_reasons, dtype=object)
+
+    def render(self) -> np.ndarray | None:
+        """The one copy (``num_envs=1``). ``rgb_array``: an RGB frame (render_height, render_width, 3) uint8 of
+        every arm, the current formation's edges in red and the target formation (placed at the best fit) as a
+        light blue ghost. ``human``: the PyBullet GUI with the same camera and lines; returns None. Without a
+        display, a ``human`` env simulates headless (warning once) and this does nothing. See ``rendering.py``."""
+        renderer = self._renderer
+        if renderer is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode to parallel_env")
+            return None
+        ee = self._last().ee_world[0]
+        renderer.formation = self.tasks[0].formation
+        step_count = int(self._step_counts[0])
+        if renderer.camera is None or step_count == 0:  # one camera per episode: no shaking
+            renderer.frame([arm.body for arm in self._arm_sets[0].arms], ee)
+        if self.render_mode == "human":
+            renderer.render_human(ee, step_count * self.scenario.control_dt)
+            return None
+        return renderer.render_rgb(ee)
 
     def close(self) -> None:
         """Disconnect every copy's physics client; safe to call more than once."""
@@ -361,20 +472,30 @@ class VectorFormationEnv:
         self.close()
 
     def __del__(self) -> None:
-        self.close()
+        self.close()  # PhysicsWorld.close stays safe at interpreter exit
 
+    # Copies (pickle, deepcopy, subprocess workers) rebuild the env from its scenario in new worlds.
     def __getstate__(self) -> dict[str, Any]:
-        return {"scenario": self.scenario, "num_envs": self.num_envs}
+        renderer = self._renderer
+        render = {} if renderer is None else {"render_mode": self.render_mode, "render_width": renderer.width,
+                                              "render_height": renderer.height, "real_time": renderer.real_time}
+        return {"scenario": self.scenario, "num_envs": self.num_envs,
+                "autoreset_mode": self.metadata["autoreset_mode"], **render}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["scenario"], num_envs=state["num_envs"])
+        self.__init__(state.pop("scenario"), **state)
 
     # ------------------------------------------------------------------------------------------ internals
-    def _check_running(self) -> None:
-        if self._needs_reset:
-            raise RuntimeError("step: call reset() first (the batched env has never been reset)")
-        if not all(world.connected for world in self._worlds):
+    def check_running(self) -> None:
+        """Refuse a step of a closed env, of one never reset, or (without autoreset) of ended copies."""
+        if not self.connected:
             raise RuntimeError("step: the environment is closed")
+        if self._needs_reset:
+            raise RuntimeError("step: call reset() first (the env has never been reset)")
+        if self._ended.any():
+            raise RuntimeError(f"step: call reset() first (the episode has ended in copies "
+                               f"{np.flatnonzero(self._ended).tolist()}: reset them, e.g. with "
+                               "options={'reset_mask': mask})")
 
     def _times(self) -> np.ndarray:
         """Each copy's simulated time (K,), s, at its last reset/step."""
@@ -387,6 +508,7 @@ class VectorFormationEnv:
         return (self._reference.observation_block(self._times(), self._start_points.mean(axis=-2)),)
 
     def _last(self) -> Measurement:
+        """The last measurement (taken now if the env was never reset)."""
         if self._measurement is None:
             self._measurement = self._measure_rows(np.arange(self.num_envs))
         return self._measurement
@@ -428,7 +550,7 @@ class VectorFormationEnv:
     def _reset_copies(self, rows: np.ndarray) -> None:
         """Reset the copies ``rows`` with their own generators and re-measure them."""
         for k in rows:
-            if self._sampled:  # this episode's draw, from the copy's generator (the single env's draw)
+            if self._sampled:  # this episode's draw, from the copy's generator
                 self._use_task(k, sample_task(self.scenario, self.np_randoms[k],
                                               lambda task, k=k: start_problem(self._arm_sets[k], task)))
             reset_world(self._worlds[k], self._arm_sets[k], self.tasks[k], self.np_randoms[k])
@@ -437,24 +559,23 @@ class VectorFormationEnv:
         self._clipped_step[rows] = 0
         self._contacts[rows] = 0
         self._torques[rows] = 0.0
+        self._ended[rows] = False
         part = self._measure_rows(rows)
         if self._measurement is None or len(rows) == self.num_envs:
             self._measurement = part
         else:
-            self._measurement = _with_rows(self._measurement, rows, part)
-        m = self.task.dim
-        self._start_points[rows] = part.ee_world[..., :m]
+            self._measurement = self._measurement.with_rows(rows, part)
+        self._start_points[rows] = part.ee_world[..., :self.task.dim]
         if self._sensor is not None:  # a fresh sensor: it holds the start displacement through its delay
             self._sensor.reset(part.slot_z, rows)
             self._sense(part.slot_z, rows)
 
     def _use_task(self, k: int, task: Any) -> None:
-        """Make a drawn task copy ``k``'s current one (the single env's ``_use_task``)."""
+        """Make a drawn task copy ``k``'s current one: its observer (same spaces: the distribution's bounds) and
+        edge tolerances."""
         self.tasks[k] = task
         self._observers[k] = ObservationBuilder(task, self.scenario.max_joint_velocity, self._bounds)
-        self._copy_tolerances[k] = edge_tolerances(task.formation.kind,
-                                                   np.linalg.norm(task.formation.desired_vectors, axis=1),
-                                                   self.scenario.reward.position_tolerance)
+        self._copy_tolerances[k] = _edge_tolerances(task)
 
     def _observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,
                             dq: np.ndarray, rows: np.ndarray, *references: np.ndarray) -> np.ndarray:
@@ -462,9 +583,13 @@ class VectorFormationEnv:
         reference blocks): one batched pass, or, on a scenario distribution (no manoeuvre), each copy with its
         own draw's observer."""
         if not self._sampled:
+            if len(rows) == 1:  # one copy: on its own arrays (ONE_COPY_FAST_PATH)
+                return self._observer.observation_matrix(slot_z[0], slot_errors[0], q_observed[0], dq[0],
+                                                         *(block[0] for block in references))[None]
             return self._observer.observation_matrix(slot_z, slot_errors, q_observed, dq, *references)
-        return np.stack([self._observers[k].observation_matrix(slot_z[r], slot_errors[r], q_observed[r], dq[r])
-                         for r, k in enumerate(rows)])
+        return np.concatenate([self._observers[k].observation_matrix(slot_z[r:r + 1], slot_errors[r:r + 1],
+                                                                     q_observed[r:r + 1], dq[r:r + 1])
+                               for r, k in enumerate(rows)])
 
     def _sense(self, slot_z: np.ndarray, rows: np.ndarray) -> None:
         """Push the copies ``rows``' true slot displacements ``slot_z`` (len(rows), S, m) through the sensor and
@@ -481,8 +606,8 @@ class VectorFormationEnv:
             return self._measurement.slot_z, self._measurement.slot_errors
         return self._sensed
 
-    def _read_states(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The joint states (len(rows), T) of the copies ``rows``: one PyBullet read per arm, one array."""
+    def _measure_rows(self, rows: np.ndarray) -> Measurement:
+        """Read the joint states of the copies ``rows`` (one PyBullet read per arm) and derive everything."""
         positions: list[float] = []
         velocities: list[float] = []
         for k in rows:
@@ -491,138 +616,20 @@ class VectorFormationEnv:
                 positions += q
                 velocities += dq
         shape = (len(rows), self.n_joints)
-        return np.array(positions).reshape(shape), np.array(velocities).reshape(shape)
-
-    def _measure_rows(self, rows: np.ndarray) -> Measurement:
-        """Read the copies ``rows`` and derive everything in one batched pass (faults per copy)."""
-        return self._derive(*self._read_states(rows), rows)
+        return self._derive(np.array(positions).reshape(shape), np.array(velocities).reshape(shape), rows)
 
     def _derive(self, q: np.ndarray, dq: np.ndarray, rows: np.ndarray) -> Measurement:
         """Everything derived from the stacked joint states (len(rows), T) of the copies ``rows``, in one batched
         pass (faults per copy); on a scenario distribution, each copy with its own draw."""
-        count = q.shape[0]
-        limit = self.scenario.max_joint_velocity
-        faults = np.zeros(count, dtype=np.int64)
-        reasons = np.full(count, "", dtype=object)
-        # The single env's test, per copy: NaN fails the comparison, a non-finite q makes its row sum non-finite.
-        healthy = (np.abs(dq).max(axis=1) <= limit) & np.isfinite(q.sum(axis=1))
-        if not healthy.all():
-            for r in np.flatnonzero(~healthy):
-                q[r], dq[r], faults[r], reasons[r] = physics_fault(q[r], dq[r], self._joint_slices, limit)
+        faults, reasons = physics_faults(q, dq, self._joint_slices, self.scenario.max_joint_velocity)
         if not self._sampled:
+            if len(rows) == 1:  # one copy: on its own arrays (ONE_COPY_FAST_PATH)
+                return measure(self.task, self._observer, self._kinematics, self._wrap, q[0], dq[0], faults,
+                               reasons, one_copy=True)
             return measure(self.task, self._observer, self._kinematics, self._wrap, q, dq, faults, reasons)
-        parts = [measure(self.tasks[k], self._observers[k], self._kinematics, self._wrap, q[r], dq[r], faults[r],
-                         reasons[r]) for r, k in enumerate(rows)]
-        return Measurement(**{name: np.array([getattr(part, name) for part in parts],
-                                             dtype=object if name == "fault_reason" else None)
-                              for name in Measurement.__slots__})
-
-    def _check_actions(self, actions: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Every copy's actions (K, T) float64 clipped to [-1, 1], and the entries clipped per (copy, agent);
-        the single env's errors otherwise (shapes with the leading K axis)."""
-        if not isinstance(actions, Mapping):
-            raise TypeError(f"actions: expected a dict agent -> array, got {type(actions).__name__}")
-        if actions.keys() != self._action_spaces.keys():
-            missing = [a for a in self.possible_agents if a not in actions]
-            unknown = [a for a in actions if a not in self.possible_agents]
-            raise ValueError(f"actions: missing agents {missing}, unknown agents {unknown}; expected keys "
-                             f"{self.possible_agents}")
-        K = self.num_envs
-        parts = [actions[agent] for agent in self.possible_agents]
-        normalized = None
-        if all(getattr(part, "shape", None) == (K, *space.shape) for part, space in
-               zip(parts, self._action_spaces.values())):
-            try:
-                normalized = np.concatenate(parts, axis=1, dtype=np.float64)
-            except (TypeError, ValueError):
-                normalized = None
-        if normalized is None:
-            normalized = np.concatenate([self._action_array(agent, part) for agent, part in
-                                         zip(self.possible_agents, parts)], axis=1)
-        if not np.isfinite(normalized).all():
-            for agent, joints in zip(self.possible_agents, self._joint_slices):
-                bad = ~np.isfinite(normalized[:, joints]).all(axis=1)
-                if bad.any():
-                    raise ValueError(f"actions[{agent!r}]: expected finite values of shape "
-                                     f"{(K, *self._action_spaces[agent].shape)}, got non-finite values in copies "
-                                     f"{np.flatnonzero(bad).tolist()}: {normalized[bad][:, joints].tolist()[:3]}")
-        clipped = np.add.reduceat(np.abs(normalized) > 1.0, self._joint_starts, axis=1, dtype=np.int64)
-        np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)
-        return normalized, clipped
-
-    def _action_array(self, agent: str, action: Any) -> np.ndarray:
-        return numeric_action(agent, action, (self.num_envs, *self._action_spaces[agent].shape))
-
-    def checked_action_array(self, actions: Any) -> np.ndarray:
-        """A fresh float64 (K, T) copy of the array API's actions, or a ``ValueError`` starting ``actions:``."""
-        K, T, n = self.num_envs, self.n_joints, self.uniform_joints
-        shapes = [(K, T)] + ([(K * self.task.n_agents, n), (K, self.task.n_agents, n)] if n else [])
-        try:
-            raw = np.asarray(actions)
-            if raw.dtype.kind not in "biuf":
-                raise ValueError
-        except (TypeError, ValueError):
-            raise ValueError(f"actions: expected a numeric array of shape {' or '.join(map(str, shapes))}, got "
-                             f"{type(actions).__name__} {excerpt(actions)}") from None
-        if raw.shape not in shapes:
-            raise ValueError(f"actions: expected shape {' or '.join(map(str, shapes))}, got {raw.shape}")
-        normalized = raw.reshape(K, T).astype(np.float64)  # always a copy: clipped in place
-        if not np.isfinite(normalized).all():
-            bad = np.flatnonzero(~np.isfinite(normalized).all(axis=1)).tolist()
-            raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad}")
-        return normalized
-
-    def _step(self, normalized: np.ndarray, clipped: np.ndarray) -> BatchedStep:
-        """Step every copy with checked, clipped actions (K, T); the SAME_STEP autoreset of ended copies."""
-        torques = normalized * self._torque_limits_flat  # (K, T), N m
-        frame_skip = self.scenario.frame_skip
-        contacts, positions, velocities = [], [], []
-        # Each copy is read right after it steps, while its client's state is still in the CPU caches.
-        for arm_set, row in zip(self._arm_sets, torques):
-            arm_set.step(row, frame_skip)
-            for arm in arm_set.arms:
-                q, dq = arm.read_state_lists()
-                positions += q
-                velocities += dq
-            contacts.append(arm_set.contacts_per_arm())
-        self._step_counts += 1
-        self._clipped_actions += clipped
-        self._clipped_step = clipped
-        self._contacts = np.array(contacts, dtype=np.int64).reshape(self.num_envs, self.task.n_agents)
-        self._torques = torques
-        shape = (self.num_envs, self.n_joints)
-        every = np.arange(self.num_envs)
-        self._measurement = measured = self._derive(np.array(positions).reshape(shape),
-                                                    np.array(velocities).reshape(shape), every)
-        if self._reference is not None:  # the motion's start points, kept while the formation holds
-            holding = self._times() <= self.scenario.manoeuvre.start
-            self._start_points[holding] = measured.ee_world[holding, :, :self.task.dim]
-
-        if self._sensor is not None:
-            self._sense(measured.slot_z, every)
-        observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq, every,
-                                                *self._reference_blocks())
-        if self._sampled:
-            rewards = np.stack([reward_array(measured.edge_squares[k], self._copy_tolerances[k], self._observers[k],
-                                             self.scenario.reward) for k in every])
-        else:
-            rewards = reward_array(measured.edge_squares, self._edge_tolerances, self._observer, self.scenario.reward)
-        infos = self._info_arrays(measured)
-        ended = measured.fault != 0
-        if self.scenario.terminate_on_contact:
-            ended = ended | (self._contacts > 0).any(axis=1)
-        truncated = ~ended & (self._step_counts >= self.scenario.max_steps)
-        infos["final_observation"] = observations.copy()
-        self._last_reasons = measured.fault_reason
-        done = np.flatnonzero(ended | truncated)
-        if len(done):
-            self._reset_copies(done)
-            part = self._measurement
-            slot_z, slot_errors = self._observed_slots()
-            references = tuple(block[done] for block in self._reference_blocks())
-            observations[done] = self._observation_matrix(slot_z[done], slot_errors[done], part.q_observed[done],
-                                                          part.dq[done], done, *references)
-        return BatchedStep(observations, rewards, ended, truncated, infos)
+        return Measurement.stacked([measure(self.tasks[k], self._observers[k], self._kinematics, self._wrap,
+                                            q[r:r + 1], dq[r:r + 1], faults[r:r + 1], reasons[r:r + 1])
+                                    for r, k in enumerate(rows)])
 
     def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:
         """The infos of every (copy, agent) as stacked arrays (the array API's form)."""
@@ -650,7 +657,8 @@ class VectorFormationEnv:
         for i, (agent, joints, part) in enumerate(zip(self.possible_agents, self._joint_slices, self.observation_slices)):
             info = {key: values[i] for key, values in per_agent.items()}
             info["applied_torque"] = infos["applied_torque"][:, joints]
-            info["final_observation"] = infos["final_observation"][:, part]
+            if "final_observation" in infos:
+                info["final_observation"] = infos["final_observation"][:, part]
             for key in PER_COPY_INFO:
                 info[key] = infos[key].copy() if i else infos[key]
             result[agent] = info
@@ -672,17 +680,13 @@ class CopyView:
         return getattr(self._env, name)
 
 
+def _edge_tolerances(task: Any) -> np.ndarray:
+    """The reward's per-edge tolerances of ``task`` (formation units)."""
+    return edge_tolerances(task.formation.kind, np.linalg.norm(task.formation.desired_vectors, axis=1),
+                           task.scenario.reward.position_tolerance)
+
+
 def _batched(space: gymnasium.spaces.Box, count: int) -> gymnasium.spaces.Box:
     """``space`` with a leading axis of ``count``."""
     return gymnasium.spaces.Box(np.broadcast_to(space.low, (count, *space.shape)),
                                 np.broadcast_to(space.high, (count, *space.shape)), dtype=space.dtype)
-
-
-def _with_rows(full: Measurement, rows: np.ndarray, part: Measurement) -> Measurement:
-    """``full`` with the copies ``rows`` replaced by ``part``'s (fresh arrays; ``full`` is not changed)."""
-    values = {}
-    for name in Measurement.__slots__:
-        array = np.array(getattr(full, name), dtype=object if name == "fault_reason" else None)
-        array[rows] = getattr(part, name)
-        values[name] = array
-    return Measurement(**values)

@@ -1,0 +1,94 @@
+"""The one check of the env's actions: per-agent dicts (one copy's ``(n_i,)`` or K copies' ``(K, n_i)``), flat
+arrays of the array API, and one agent's action; each refused before any copy moves, with an error naming the
+field (``actions['arm_0']: ...``, ``actions: ...``)."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ee_formation_env.inputs import excerpt, numeric_action
+
+
+class ActionCheck:
+    """The actions of the agents ``agents`` whose joints are ``joint_slices`` of one flat (T,) vector."""
+
+    def __init__(self, agents: Sequence[str], joint_slices: Sequence[slice]):
+        self.agents = list(agents)
+        self.shapes = {agent: (joints.stop - joints.start,) for agent, joints in zip(agents, joint_slices)}
+        self.joint_slices = list(joint_slices)
+        self.joint_starts = np.array([joints.start for joints in joint_slices], dtype=np.intp)
+        self.n_joints = joint_slices[-1].stop
+        sizes = set(self.shapes.values())
+        self.uniform_joints = sizes.pop()[0] if len(sizes) == 1 else None  # n when every arm has n joints
+
+    def agent_dict(self, actions: Any, copies: int | None) -> np.ndarray:
+        """Every agent's action from a dict agent -> array, as one fresh float64 (K, T) array: of one copy
+        ((n_i,) each, ``copies`` None, K = 1) or of ``copies`` copies ((copies, n_i) each). The errors name the
+        first bad agent in agent order."""
+        if not isinstance(actions, Mapping):
+            raise TypeError(f"actions: expected a dict agent -> array, got {type(actions).__name__}")
+        if actions.keys() != self.shapes.keys():
+            missing = [a for a in self.agents if a not in actions]
+            unknown = [a for a in actions if a not in self.shapes]
+            raise ValueError(f"actions: missing agents {missing}, unknown agents {unknown}; expected keys {self.agents}")
+        lead = () if copies is None else (copies,)
+        parts = [actions[agent] for agent in self.agents]
+        normalized = None
+        # The common case in one call: numpy arrays of the right shapes; anything else gets the detailed check.
+        if all(getattr(part, "shape", None) == (*lead, *self.shapes[agent]) for agent, part in zip(self.agents, parts)):
+            try:
+                normalized = np.concatenate(parts, axis=-1, dtype=np.float64)
+            except (TypeError, ValueError):
+                normalized = None
+        if normalized is None or not np.isfinite(normalized).all():
+            # The first bad agent's error (bad type, shape or values), in agent order.
+            normalized = np.concatenate([self._checked(agent, part, lead) for agent, part in zip(self.agents, parts)],
+                                        axis=-1)
+        return normalized.reshape(-1, self.n_joints)
+
+    def agent_action(self, agent: str, action: Any) -> None:
+        """Check one agent's action as a one-copy dict's entry is checked; changes nothing."""
+        if agent not in self.shapes:
+            raise ValueError(f"actions: unknown agent {excerpt(agent)}; expected one of {self.agents}")
+        self._checked(agent, action, ())
+
+    def flat_array(self, actions: Any, copies: int) -> np.ndarray:
+        """A fresh float64 (K, T) copy of the array API's actions: (K, T), or, when every arm has n joints,
+        (K * N, n) or (K, N, n); a ``ValueError`` starting ``actions:`` otherwise."""
+        K, T, n, N = copies, self.n_joints, self.uniform_joints, len(self.agents)
+        shapes = [(K, T)] + ([(K * N, n), (K, N, n)] if n else [])
+        try:
+            raw = np.asarray(actions)
+            if raw.dtype.kind not in "biuf":
+                raise ValueError
+        except (TypeError, ValueError):
+            raise ValueError(f"actions: expected a numeric array of shape {' or '.join(map(str, shapes))}, got "
+                             f"{type(actions).__name__} {excerpt(actions)}") from None
+        if raw.shape not in shapes:
+            raise ValueError(f"actions: expected shape {' or '.join(map(str, shapes))}, got {raw.shape}")
+        normalized = raw.reshape(K, T).astype(np.float64)  # always a copy: clipped in place
+        if not np.isfinite(normalized).all():
+            bad = np.flatnonzero(~np.isfinite(normalized).all(axis=1)).tolist()
+            raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad}")
+        return normalized
+
+    def clip(self, normalized: np.ndarray) -> np.ndarray:
+        """Clip checked (K, T) actions to [-1, 1] in place; the entries clipped per (copy, agent) (K, N)."""
+        clipped = np.add.reduceat(np.abs(normalized) > 1.0, self.joint_starts, axis=1, dtype=np.int64)
+        np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)  # np.clip, without its overhead
+        return clipped
+
+    def _checked(self, agent: str, action: Any, lead: tuple[int, ...]) -> np.ndarray:
+        """``agent``'s action as a float64 array of shape ``lead + (n_i,)``, or its error."""
+        shape = (*lead, *self.shapes[agent])
+        array = numeric_action(agent, action, shape)
+        finite = np.isfinite(array)
+        if finite.all():
+            return array
+        if not lead:
+            raise ValueError(f"actions[{agent!r}]: expected finite values of shape {shape}, got {array.tolist()}")
+        bad = ~finite.all(axis=1)
+        raise ValueError(f"actions[{agent!r}]: expected finite values of shape {shape}, got non-finite values in "
+                         f"copies {np.flatnonzero(bad).tolist()}: {array[bad].tolist()[:3]}")
