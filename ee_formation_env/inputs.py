@@ -16,7 +16,7 @@ the input. The bounds are documented in ``docs/scenarios.md`` ("Limits"):
 from __future__ import annotations
 
 import reprlib
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import yaml
@@ -126,3 +126,39 @@ def numeric_action(agent: str, action: Any, shape: tuple[int, ...]) -> np.ndarra
     if array.shape != shape:
         raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {array.shape}")
     return array
+
+
+def copy_seeds(seed: Any, copies: int) -> list[int | None]:
+    """Each of ``copies`` copies' seed from a batched ``reset``'s ``seed``: None, an integer s (copy k: s + k) or
+    one seed per copy (Gymnasium's vector convention)."""
+    if isinstance(seed, (list, tuple, np.ndarray)):
+        if len(seed) != copies:
+            raise ValueError(f"seed: expected None, an integer or a sequence of {copies} seeds (one per copy), "
+                             f"got {len(seed)} seeds")
+        seeds = []
+        for k, value in enumerate(seed):
+            try:
+                seeds.append(check_seed(value))
+            except (TypeError, ValueError) as error:
+                raise type(error)(f"seed[{k}]{str(error)[len('seed'):]}") from None
+        return seeds
+    first = check_seed(seed)
+    return [None if first is None else first + k for k in range(copies)]
+
+
+def reset_rows(options: Any, copies: int, first_reset: bool) -> np.ndarray:
+    """The copies a batched ``reset`` resets: all, or ``options["reset_mask"]``'s (a (copies,) bool array; the
+    first reset must reset every copy)."""
+    if options is None or "reset_mask" not in options:
+        return np.arange(copies)
+    if not isinstance(options, Mapping):
+        raise TypeError(f"options: expected a dict, got {type(options).__name__}")
+    mask = options["reset_mask"]
+    array = np.asarray(mask)
+    if array.dtype != bool or array.shape != (copies,):
+        raise ValueError(f"options['reset_mask']: expected a bool array of shape ({copies},), got "
+                         f"{array.dtype} {array.shape} {excerpt(mask)}")
+    if first_reset and not array.all():
+        raise RuntimeError("options['reset_mask']: the first reset must reset every copy (call reset() "
+                           "without a mask first)")
+    return np.flatnonzero(array)

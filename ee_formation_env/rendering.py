@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -167,6 +167,21 @@ class SceneRenderer:
             window = frame_points(points, yaw, pitch, aspect, fov_deg)
             self.world.point_gui_camera(window.target, window.distance, window.yaw, window.pitch)
         return self.camera
+
+    def render_copy(self, mode: str, arms: Sequence[Any], end_effectors: np.ndarray, formation: Formation,
+                    step_count: int, control_dt: float) -> np.ndarray | None:
+        """Render one env copy at its last reset/step: ``rgb_array``, an RGB frame (height, width, 3) uint8 of
+        every arm, the current formation's edges in red and the target ``formation`` (placed at the best fit)
+        as a light blue ghost; ``human``, the PyBullet GUI with the same camera and lines (None). Without a
+        display, a ``human`` env simulates headless (warning once) and this does nothing. One camera per
+        episode (framed at its first step): no shaking."""
+        self.formation = formation
+        if self.camera is None or step_count == 0:
+            self.frame([arm.body for arm in arms], end_effectors)
+        if mode == "human":
+            self.render_human(end_effectors, step_count * control_dt)
+            return None
+        return self.render_rgb(end_effectors)
 
     def render_rgb(self, end_effectors: np.ndarray) -> np.ndarray:
         """An RGB frame (height, width, 3) uint8 with the ghost and the current formation drawn."""

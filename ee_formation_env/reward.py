@@ -119,3 +119,11 @@ def rewards_from_ratios(mean_ratios: np.ndarray, all_within: np.ndarray, config:
     if config.team:
         rewards = np.broadcast_to(rewards.mean(axis=-1, keepdims=True), rewards.shape).copy()
     return rewards
+
+
+def task_edge_tolerances(task: Any) -> np.ndarray:
+    """The per-edge tolerances (:func:`edge_tolerances`) of a task's formation, at its scenario's
+    ``reward.position_tolerance``."""
+    formation = task.formation
+    return edge_tolerances(formation.kind, np.linalg.norm(formation.desired_vectors, axis=1),
+                           task.scenario.reward.position_tolerance)

@@ -12,60 +12,41 @@ Quick use::
     env = ee_formation_env.vector_env("planar_square", num_envs=16)
     observations, infos = env.reset(seed=0)            # copy k is seeded with 0 + k
     actions = {agent: np.zeros((16, 2), np.float32) for agent in env.possible_agents}
-    observations, rewards, terminations, truncations, infos = env.step(actions)
-    observations["arm_0"].shape                         # (16, obs_dim), float32
-    rewards["arm_0"].shape, terminations["arm_0"].shape  # (16,), (16,)
+    observations, rewards, terminations, truncations, infos = env.step(actions)  # arm_0's: (16, obs_dim), (16,), ...
 
-**Conventions** (Gymnasium's vector conventions for seeds, VMAS's for per-agent batches):
+**Conventions** (Gymnasium's vector conventions for seeds, VMAS's for per-agent batches): ``reset(seed=s)``
+seeds copy ``k`` with ``s + k`` (or ``seed=[s_0, ..., s_K-1]``, None for a copy's own generator), and copy
+``k`` then reproduces ``parallel_env(scenario).reset(seed=s + k)`` step for step, bit for bit; an unseeded
+``reset()`` continues every copy's generator. Observations: agent -> ``(K, obs_dim)`` float32; actions: agent
+-> ``(K, act_dim)`` (numeric, finite; clipped to [-1, 1]); rewards: agent -> ``(K,)`` float64; terminations
+and truncations: agent -> ``(K,)`` bool; infos: agent -> the parallel env's keys with a leading K axis, plus
+``physics_fault_reason`` (K,) and, with autoreset, ``final_observation`` (K, obs_dim)
+(:mod:`ee_formation_env.infos`). ``observation_space(agent)``, ``action_space(agent)`` and ``state_space`` are
+one copy's; ``batched_*`` have the K axis; ``state()`` is ``(K, state_dim)``. ``agents`` is always
+``possible_agents``.
 
-- ``reset(seed=s)`` seeds copy ``k`` with ``s + k`` (``reset(seed=[s_0, ..., s_K-1])``: copy k with ``s_k``,
-  None for its own generator): copy ``k`` then reproduces ``parallel_env(scenario).reset(seed=s + k)`` step
-  for step under the same actions, bit for bit. ``reset()`` without a seed continues every copy's own
-  generator.
-- Observations: dict agent -> ``(K, obs_dim)`` float32. Actions: dict agent -> ``(K, act_dim)`` (numeric,
-  finite; clipped to [-1, 1]). Rewards: agent -> ``(K,)`` float64; terminations and truncations: agent ->
-  ``(K,)`` bool (equal for every agent of a copy). Infos: agent -> dict of the parallel env's keys, each an
-  array with a leading K axis (``formation_error`` (K,), ``edge_errors`` (K, D) or (K, D, m), ``edge_mask``
-  (K, D), ``singularity_margin``, ``torque_saturation``, ``clipped_actions``, ``contacts``,
-  ``physics_fault`` (K,), ``applied_torque`` (K, n_i), ``sim_time`` (K,)), plus ``physics_fault_reason``
-  (K,) (the copy's fault in words, "" if none) and, with autoreset, ``final_observation`` (K, obs_dim).
-- Spaces: ``observation_space(agent)`` / ``action_space(agent)`` and ``state_space`` are one copy's (what a
-  policy sees); ``batched_observation_space(agent)``, ``batched_action_space(agent)`` and
-  ``batched_state_space`` have a leading K axis. ``state()`` is ``(K, state_dim)``.
-- Agents never leave: ``agents`` is always ``possible_agents``.
+**Autoreset** (``autoreset_mode``, also in ``metadata``): Gymnasium 1.x's ``SAME_STEP`` (default): a copy that
+ends in a step returns that step's rewards, terminations/truncations and infos, while its row of the
+observations is already its next episode's first (drawn from its own generator); the observation it ended
+in is ``infos[agent]["final_observation"][k]``. ``DISABLED``: an ended copy stays as it ended, and a step
+before it is reset (``reset(options={"reset_mask": mask})``) is refused.
 
-**Autoreset** (``autoreset_mode``, in ``metadata["autoreset_mode"]``): Gymnasium 1.x's ``SAME_STEP`` (the
-default) or ``DISABLED``. With ``SAME_STEP``, when copy ``k`` terminates or truncates in a step, that step
-returns its rewards, terminations/truncations and infos (those of the final transition), while its row of
-the returned observations is already the first observation of its next episode; the observation it ended in
-is ``infos[agent]["final_observation"][k]``. The new episode is drawn from the copy's own generator (the draw
-of an unseeded ``reset``). With ``DISABLED``, an ended copy stays as it ended, and stepping again before
-resetting it (``reset(options={"reset_mask": mask})``) is refused.
+**Partial reset**: ``reset(seed=None, options={"reset_mask": mask})`` resets the copies where the (K,) bool
+``mask`` is True (seeded ``seed + k`` when given); the others keep their state, step counts and generators.
 
-**Partial reset**: ``reset(seed=None, options={"reset_mask": mask})`` resets only the copies where the (K,)
-bool ``mask`` is True (seeded ``seed + k`` when a seed is given, else from their own generators); the others
-keep their state, step counts and generators. It returns every copy's observations.
-
-**Array API** for batched learners (TorchRL, SB3 VecEnvs, batched evaluation): :meth:`step_arrays` takes every
-copy's actions as one array, (K, T) (T = all joints, agents in order) or (K * N, n) / (K, N, n) when every
-arm has n joints, and returns a :class:`BatchedStep` of stacked arrays: observations (K, O) (agent i's part:
-``observation_slices[i]``), rewards (K, N), terminations and truncations (K,), infos of (K, N, ...)
-per-agent and (K,) per-copy arrays. The dict API wraps it; :meth:`reset_arrays` is the same for resets.
+**Array API** for batched learners (TorchRL, SB3, batched evaluation): :meth:`step_arrays` takes all actions as
+one array, (K, T) (agents' joints in order) or (K * N, n) / (K, N, n) when every arm has n joints, and returns
+a :class:`BatchedStep` of stacked arrays (observations (K, O), agent i's part ``observation_slices[i]``;
+rewards (K, N); terminations, truncations (K,); infos (K, N, ...) per agent, (K,) per copy);
+:meth:`reset_arrays` is its reset. The dict API wraps it.
 
 **Physics layout**: one PyBullet client per copy, each the parallel env's own world, so each copy's physics
-is bit for bit one env's by construction. PyBullet has no batched query, so torques, ``stepSimulation``,
-joint-state reads and contacts are per client; everything else is one numpy pass over the K x N agents. The
-layout's measurements (against all copies in one client) are on the performance page (``docs/performance.md``,
-"Batched env").
+is one env's by construction; torques, ``stepSimulation``, state reads and contacts are per client, the rest
+is one numpy pass over the K x N agents (measurements: ``docs/performance.md``, "Batched env").
 
-**Scenario distributions**: each copy draws its own problem at each of its resets (``tasks[k]`` is copy k's,
-``copy_view(k)`` the copy as a per-copy policy source sees it).
-
-**Rendering**: with ``num_envs=1`` only (``render_mode`` ``"human"`` or ``"rgb_array"``): :meth:`render`
-draws the one copy (the parallel env's ``render``).
-
-**Errors**: bad input raises before any copy moves (``actions['arm_0']: ...``, ``seed: ...``,
-``options['reset_mask']: ...``).
+**Scenario distributions**: each copy draws its own problem at each of its resets (``tasks[k]``;
+``copy_view(k)`` is the copy as a per-copy policy source sees it). **Rendering**: with ``num_envs=1`` only.
+**Errors**: bad input raises before any copy moves (``actions['arm_0']: ...``, ``seed: ...``).
 
 Arguments of ``ee_formation_env.vector_env``:
 
@@ -90,22 +71,24 @@ from typing import Any, Mapping, NamedTuple, Sequence
 import gymnasium
 import numpy as np
 from gymnasium.utils import seeding
+from gymnasium.vector.utils import batch_space
 
 from ee_formation_env.actions import ActionCheck
 from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.generators import distribution_bounds, sample_task
-from ee_formation_env.inputs import check_seed, excerpt
+from ee_formation_env.infos import PER_AGENT_INFO, PER_COPY_INFO, copies_info_dicts
+from ee_formation_env.inputs import copy_seeds, excerpt, reset_rows
 from ee_formation_env.manoeuvre import ReferenceMotion
 from ee_formation_env.measurement import PHYSICS_FAULTS, Measurement, measure, physics_faults, reward_array
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
-from ee_formation_env.reward import edge_tolerances
+from ee_formation_env.reward import task_edge_tolerances
 from ee_formation_env.robot import build_world, reset_world, start_problem
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.sensing import Sensor
 from ee_formation_env.task import build_task
 
-__all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS"]
+__all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS", "PER_AGENT_INFO", "PER_COPY_INFO"]
 
 AutoresetMode = gymnasium.vector.AutoresetMode
 RENDER_MODES = ("human", "rgb_array")
@@ -113,12 +96,6 @@ RENDER_MODES = ("human", "rgb_array")
 # ONE_COPY_FAST_PATH: with one copy (the parallel env), the arithmetic runs on the copy's own arrays, without
 # the leading axis, and the results get it back: the same functions, about 20 us per step cheaper than numpy on
 # a leading axis of 1 (docs/performance.md, "Batched env").
-
-# Info keys with one value per agent (K, N, ...) in the array API; the others are per copy (K,).
-PER_AGENT_INFO = ("edge_errors", "edge_mask", "singularity_margin", "torque_saturation", "clipped_actions",
-                  "contacts")
-PER_COPY_INFO = ("formation_error", "physics_fault", "physics_fault_reason", "sim_time")
-
 
 class BatchedStep(NamedTuple):
     """One batched step (or reset) as stacked arrays: what :meth:`VectorFormationEnv.step_arrays` returns.
@@ -194,9 +171,9 @@ class VectorFormationEnv:
         self.state_space = self._observer.state_space
         self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
         self.action_spaces = dict(self._action_spaces)
-        self._batched_observation_spaces = {a: _batched(s, K) for a, s in self._observation_spaces.items()}
-        self._batched_action_spaces = {a: _batched(s, K) for a, s in self._action_spaces.items()}
-        self.batched_state_space = _batched(self.state_space, K)
+        self._batched_observation_spaces = {a: batch_space(s, K) for a, s in self._observation_spaces.items()}
+        self._batched_action_spaces = {a: batch_space(s, K) for a, s in self._action_spaces.items()}
+        self.batched_state_space = batch_space(self.state_space, K)
 
         arm_set = self._arm_sets[0]
         # Every copy's arms are the same robots (under model_mismatch, the same perturbation seed): copy 0's
@@ -213,7 +190,7 @@ class VectorFormationEnv:
         # A scenario distribution: each copy's current draw, its observer and its edge tolerances.
         self.tasks = [self.task] * K
         self._observers = [self._observer] * K
-        self._copy_tolerances = [_edge_tolerances(self.task)] * K
+        self._copy_tolerances = [task_edge_tolerances(self.task)] * K
         self.np_randoms = [seeding.np_random(None)[0] for _ in range(K)]
         n = self.task.n_agents
         self._step_counts = np.zeros(K, dtype=np.int64)
@@ -233,20 +210,16 @@ class VectorFormationEnv:
         self._needs_reset = True
 
     # ------------------------------------------------------------------------------------------ spaces
-    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
-        """One copy's observation space of ``agent`` (what a policy sees)."""
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:  # one copy's: what a policy sees
         return self._observation_spaces[agent]
 
-    def action_space(self, agent: str) -> gymnasium.spaces.Box:
-        """One copy's action space of ``agent``."""
+    def action_space(self, agent: str) -> gymnasium.spaces.Box:  # one copy's
         return self._action_spaces[agent]
 
-    def batched_observation_space(self, agent: str) -> gymnasium.spaces.Box:
-        """``agent``'s observations of all K copies: the single space with a leading K axis."""
+    def batched_observation_space(self, agent: str) -> gymnasium.spaces.Box:  # all K copies': a leading K axis
         return self._batched_observation_spaces[agent]
 
-    def batched_action_space(self, agent: str) -> gymnasium.spaces.Box:
-        """``agent``'s actions of all K copies: the single space with a leading K axis."""
+    def batched_action_space(self, agent: str) -> gymnasium.spaces.Box:  # all K copies': a leading K axis
         return self._batched_action_spaces[agent]
 
     def observation_layout(self, agent: str, copy: int = 0) -> ObservationLayout:
@@ -304,8 +277,8 @@ class VectorFormationEnv:
     def reset_arrays(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None
                      ) -> BatchedStep:
         """:meth:`reset` as stacked arrays (rewards zero, no termination)."""
-        seeds = self._copy_seeds(seed)
-        rows = self._reset_rows(options)
+        seeds = copy_seeds(seed, self.num_envs)
+        rows = reset_rows(options, self.num_envs, self._needs_reset)
         if not self.connected:
             raise RuntimeError("reset: the environment is closed")
         for k in rows:
@@ -421,9 +394,8 @@ class VectorFormationEnv:
         return self._last().dq.copy()
 
     def reference_centroid(self) -> np.ndarray:
-        """Every copy's manoeuvre reference centroid c*(t) (K, dim), world, m, at the last reset/step: until the
-        motion's start t0 the end-effectors' current centroid, then that of t0 moved along the path (without a
-        manoeuvre, the centroid at reset: a reference at rest)."""
+        """Every copy's manoeuvre reference centroid c*(t) (K, dim), world, m, at the last reset/step (the
+        parallel env's :meth:`~ee_formation_env.env.FormationEnv.reference_centroid`, per copy)."""
         self._last()
         return self._motion.world(self._times(), self._start_points.mean(axis=-2))[0]
 
@@ -432,8 +404,7 @@ class VectorFormationEnv:
         return self._motion.centroid_errors(self._times(), self._start_points.mean(axis=-2), self._last().ee_world)
 
     def orientation_tracking_error(self) -> np.ndarray:
-        """Every copy's orientation error (K,), rad, against the manoeuvre's turn theta*(t): the best-fit
-        rotation's angle (:mod:`ee_formation_env.manoeuvre`); 0 before the motion starts."""
+        """Every copy's orientation error (K,), rad, against the manoeuvre's turn theta*(t) (0 before it starts)."""
         return self._motion.orientation_errors(self._times(), self._start_points, self._last().ee_world)
 
     @property
@@ -442,23 +413,14 @@ class VectorFormationEnv:
         return np.array(self._last_reasons, dtype=object)
 
     def render(self) -> np.ndarray | None:
-        """The one copy (``num_envs=1``). ``rgb_array``: an RGB frame (render_height, render_width, 3) uint8 of
-        every arm, the current formation's edges in red and the target formation (placed at the best fit) as a
-        light blue ghost. ``human``: the PyBullet GUI with the same camera and lines; returns None. Without a
-        display, a ``human`` env simulates headless (warning once) and this does nothing. See ``rendering.py``."""
-        renderer = self._renderer
-        if renderer is None:
+        """The one copy (``num_envs=1``): an RGB frame (``rgb_array``) or the GUI updated (``human``, returns
+        None); :meth:`ee_formation_env.rendering.SceneRenderer.render_copy`."""
+        if self._renderer is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode to parallel_env")
             return None
-        ee = self._last().ee_world[0]
-        renderer.formation = self.tasks[0].formation
-        step_count = int(self._step_counts[0])
-        if renderer.camera is None or step_count == 0:  # one camera per episode: no shaking
-            renderer.frame([arm.body for arm in self._arm_sets[0].arms], ee)
-        if self.render_mode == "human":
-            renderer.render_human(ee, step_count * self.scenario.control_dt)
-            return None
-        return renderer.render_rgb(ee)
+        return self._renderer.render_copy(self.render_mode, self._arm_sets[0].arms, self._last().ee_world[0],
+                                          self.tasks[0].formation, int(self._step_counts[0]),
+                                          self.scenario.control_dt)
 
     def close(self) -> None:
         """Disconnect every copy's physics client; safe to call more than once."""
@@ -513,40 +475,6 @@ class VectorFormationEnv:
             self._measurement = self._measure_rows(np.arange(self.num_envs))
         return self._measurement
 
-    def _copy_seeds(self, seed: Any) -> list[int | None]:
-        """Each copy's seed (K,) from ``reset``'s ``seed``: None, an integer s (copy k: s + k) or K seeds."""
-        K = self.num_envs
-        if isinstance(seed, (list, tuple, np.ndarray)):
-            if len(seed) != K:
-                raise ValueError(f"seed: expected None, an integer or a sequence of {K} seeds (one per copy), "
-                                 f"got {len(seed)} seeds")
-            seeds = []
-            for k, value in enumerate(seed):
-                try:
-                    seeds.append(check_seed(value))
-                except (TypeError, ValueError) as error:
-                    raise type(error)(f"seed[{k}]{str(error)[len('seed'):]}") from None
-            return seeds
-        first = check_seed(seed)
-        return [None if first is None else first + k for k in range(K)]
-
-    def _reset_rows(self, options: Any) -> np.ndarray:
-        """The copies to reset: all, or ``options["reset_mask"]``'s; checked before anything changes."""
-        K = self.num_envs
-        if options is None or "reset_mask" not in options:
-            return np.arange(K)
-        if not isinstance(options, Mapping):
-            raise TypeError(f"options: expected a dict, got {type(options).__name__}")
-        mask = options["reset_mask"]
-        array = np.asarray(mask)
-        if array.dtype != bool or array.shape != (K,):
-            raise ValueError(f"options['reset_mask']: expected a bool array of shape ({K},), got "
-                             f"{array.dtype} {array.shape} {excerpt(mask)}")
-        if self._needs_reset and not array.all():
-            raise RuntimeError("options['reset_mask']: the first reset must reset every copy (call reset() "
-                               "without a mask first)")
-        return np.flatnonzero(array)
-
     def _reset_copies(self, rows: np.ndarray) -> None:
         """Reset the copies ``rows`` with their own generators and re-measure them."""
         for k in rows:
@@ -575,7 +503,7 @@ class VectorFormationEnv:
         edge tolerances."""
         self.tasks[k] = task
         self._observers[k] = ObservationBuilder(task, self.scenario.max_joint_velocity, self._bounds)
-        self._copy_tolerances[k] = _edge_tolerances(task)
+        self._copy_tolerances[k] = task_edge_tolerances(task)
 
     def _observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,
                             dq: np.ndarray, rows: np.ndarray, *references: np.ndarray) -> np.ndarray:
@@ -652,17 +580,7 @@ class VectorFormationEnv:
 
     def _info_dicts(self, infos: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
         """agent -> dict of (K, ...) arrays, from the stacked infos."""
-        per_agent = {key: infos[key].swapaxes(0, 1) for key in PER_AGENT_INFO}  # agent-major views
-        result = {}
-        for i, (agent, joints, part) in enumerate(zip(self.possible_agents, self._joint_slices, self.observation_slices)):
-            info = {key: values[i] for key, values in per_agent.items()}
-            info["applied_torque"] = infos["applied_torque"][:, joints]
-            if "final_observation" in infos:
-                info["final_observation"] = infos["final_observation"][:, part]
-            for key in PER_COPY_INFO:
-                info[key] = infos[key].copy() if i else infos[key]
-            result[agent] = info
-        return result
+        return copies_info_dicts(infos, self.possible_agents, self._joint_slices, self.observation_slices)
 
 
 class CopyView:
@@ -678,15 +596,3 @@ class CopyView:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._env, name)
-
-
-def _edge_tolerances(task: Any) -> np.ndarray:
-    """The reward's per-edge tolerances of ``task`` (formation units)."""
-    return edge_tolerances(task.formation.kind, np.linalg.norm(task.formation.desired_vectors, axis=1),
-                           task.scenario.reward.position_tolerance)
-
-
-def _batched(space: gymnasium.spaces.Box, count: int) -> gymnasium.spaces.Box:
-    """``space`` with a leading axis of ``count``."""
-    return gymnasium.spaces.Box(np.broadcast_to(space.low, (count, *space.shape)),
-                                np.broadcast_to(space.high, (count, *space.shape)), dtype=space.dtype)

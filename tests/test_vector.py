@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
+import gymnasium
 import numpy as np
 import pytest
 
@@ -329,3 +330,56 @@ def test_gymnasium_make_vec_is_k_centralized_envs(closer):
                 s_obs, s_info = single.reset()
             assert np.array_equal(observations[k], s_obs) and infos["formation_error"][k] == s_info["formation_error"]
     assert ends == 2 * count
+
+
+# ------------------------------------------------------------------------------------------ the one implementation
+def test_the_parallel_env_is_the_batched_env_at_one_copy_without_autoreset(closer):
+    env = closer(ee_formation_env.parallel_env("planar_square", episode_seconds=0.05))
+    assert isinstance(env.batch, ee_formation_env.vector.VectorFormationEnv)
+    assert env.batch.num_envs == 1 and env.batch.metadata["autoreset_mode"].name == "DISABLED"
+    observations, _ = env.reset(seed=4)
+    zeros = {agent: np.zeros(2, np.float32) for agent in env.agents}
+    while env.agents:
+        observations, *_ = env.step(zeros)
+    # no autoreset: the ended copy keeps its final state, and the view says the episode is over
+    assert np.array_equal(env.batch.joint_positions()[0], np.concatenate(env.joint_positions()))
+    with pytest.raises(RuntimeError, match=r"^step: call reset\(\) first \(the episode has ended"):
+        env.step(zeros)
+    env.close()
+    assert env.agents == []
+    with pytest.raises(RuntimeError, match=r"^step: the environment is closed"):
+        env.step(zeros)
+
+
+def test_without_autoreset_an_ended_copy_is_refused_until_its_masked_reset(closer):
+    disabled = gymnasium.vector.AutoresetMode.DISABLED
+    batched = closer(ee_formation_env.vector_env("planar_square", num_envs=2, autoreset_mode=disabled,
+                                                 episode_seconds=0.05))
+    batched.reset(seed=0)
+    zeros = np.zeros((2, 8))
+    result = batched.step_arrays(zeros)
+    while not result.truncations.all():
+        result = batched.step_arrays(zeros)
+    assert "final_observation" not in result.infos  # nothing was replaced: the returned row is the final one
+    with pytest.raises(RuntimeError, match=r"episode has ended in copies \[0, 1\]"):
+        batched.step_arrays(zeros)
+    batched.reset(seed=7, options={"reset_mask": np.array([False, True])})
+    with pytest.raises(RuntimeError, match=r"episode has ended in copies \[0\]"):
+        batched.step_arrays(zeros)
+    batched.reset(options={"reset_mask": np.array([True, False])})
+    batched.step_arrays(zeros)  # both running again
+
+
+def test_the_batched_env_renders_one_copy_and_refuses_rendering_several(closer):
+    single = closer(ee_formation_env.vector_env("planar_square", num_envs=1, render_mode="rgb_array",
+                                                render_width=64, render_height=48))
+    single.reset(seed=0)
+    frame = single.render()
+    assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8
+    with pytest.raises(ValueError, match=r"^render_mode: the batched env renders only with num_envs=1"):
+        ee_formation_env.vector_env("planar_square", num_envs=2, render_mode="rgb_array")
+    with pytest.raises(ValueError, match=r"^autoreset_mode: "):
+        ee_formation_env.vector_env("planar_square", num_envs=2, autoreset_mode="next")
+    for name in ("num_envs", "autoreset_mode"):
+        with pytest.raises(ValueError, match=rf"^{name}: not an argument of the parallel env"):
+            ee_formation_env.parallel_env("planar_square", **{name: 2})

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from ee_formation_env.baselines.metrics import fault_kind, fault_kinds, fault_notes
 
 
@@ -26,3 +28,17 @@ def test_fault_notes_name_every_faulted_policy_only():
     (note,) = fault_notes(rows)
     assert note == ("- random: 3 of 10 episodes ended in a physics fault: arm_2: joint speed 51.0 rad/s exceeds "
                     "max_joint_velocity 50.0 rad/s (3x)")
+
+
+def test_run_episode_refuses_a_wrapper_whose_step_it_would_bypass():
+    import ee_formation_env
+    from ee_formation_env.baselines import make_policies
+    from ee_formation_env.baselines.metrics import run_episode
+    from pettingzoo.utils.wrappers import BaseParallelWrapper
+
+    env = ee_formation_env.parallel_env("planar_square", episode_seconds=0.05)
+    try:
+        with pytest.raises(TypeError, match=r"^env: expected the parallel env"):
+            run_episode(BaseParallelWrapper(env), make_policies("zero", env), seed=0)
+    finally:
+        env.close()

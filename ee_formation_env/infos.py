@@ -1,0 +1,59 @@
+"""The env's infos in their three forms: stacked arrays of K copies (the array API's, made by the batched env),
+agent -> dict of (K, ...) arrays (the batched dict API's) and agent -> dict of one copy's values (the parallel
+env's). The keys and their meaning: ``docs/spaces.md``."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+# Info keys with one value per agent (K, N, ...) in the array API; the others are per copy (K,).
+PER_AGENT_INFO = ("edge_errors", "edge_mask", "singularity_margin", "torque_saturation", "clipped_actions",
+                  "contacts")
+PER_COPY_INFO = ("formation_error", "physics_fault", "physics_fault_reason", "sim_time")
+
+
+def copies_info_dicts(infos: dict[str, np.ndarray], agents: Sequence[str], joint_slices: Sequence[slice],
+                      observation_slices: Sequence[slice]) -> dict[str, dict[str, np.ndarray]]:
+    """agent -> dict of (K, ...) arrays, from the stacked infos (agent i's joints and observation part:
+    ``joint_slices[i]``, ``observation_slices[i]``)."""
+    per_agent = {key: infos[key].swapaxes(0, 1) for key in PER_AGENT_INFO}  # agent-major views
+    result = {}
+    for i, (agent, joints, part) in enumerate(zip(agents, joint_slices, observation_slices)):
+        info = {key: values[i] for key, values in per_agent.items()}
+        info["applied_torque"] = infos["applied_torque"][:, joints]
+        if "final_observation" in infos:
+            info["final_observation"] = infos["final_observation"][:, part]
+        for key in PER_COPY_INFO:
+            info[key] = infos[key].copy() if i else infos[key]
+        result[agent] = info
+    return result
+
+
+def one_copy_info_dicts(infos: dict[str, np.ndarray], agents: Sequence[str], joint_slices: Sequence[slice]
+                        ) -> dict[str, dict[str, Any]]:
+    """agent -> its info dict, from the stacked infos of one copy (K = 1): numbers as Python numbers, arrays
+    as views of arrays made for this step only, one disjoint slice per agent."""
+    formation_error, sim_time = float(infos["formation_error"][0]), float(infos["sim_time"][0])
+    fault = int(infos["physics_fault"][0])
+    margins = infos["singularity_margin"][0].tolist()
+    saturation = infos["torque_saturation"][0].tolist()
+    clipped_so_far = infos["clipped_actions"][0].tolist()
+    contacts = infos["contacts"][0].tolist()
+    errors, masks, torques = infos["edge_errors"][0], infos["edge_mask"][0], infos["applied_torque"][0]
+    result = {}
+    for i, (agent, joints) in enumerate(zip(agents, joint_slices)):
+        result[agent] = {
+            "formation_error": formation_error,
+            "edge_errors": errors[i],
+            "edge_mask": masks[i],
+            "singularity_margin": margins[i],
+            "torque_saturation": saturation[i],
+            "applied_torque": torques[joints],
+            "clipped_actions": clipped_so_far[i],
+            "contacts": contacts[i],
+            "physics_fault": fault,
+            "sim_time": sim_time,
+        }
+    return result
