@@ -166,8 +166,8 @@ class VectorFormationEnv:
         self._sensor = Sensor(sensing, self.task, self._observer, K) if sensing.active else None
         self._sensed: tuple[np.ndarray, np.ndarray] | None = None  # the copies' measured slot z and errors
         self._observation_spaces = dict(zip(self.possible_agents, self._observer.spaces))
-        self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (model.n_joints,), dtype=np.float32)
-                               for agent, model in zip(self.possible_agents, self.task.models)}
+        self._action_spaces = {agent: gymnasium.spaces.Box(-1.0, 1.0, (m.n_joints,), np.float32)
+                               for agent, m in zip(self.possible_agents, self.task.models)}
         self.state_space = self._observer.state_space
         self.observation_spaces = dict(self._observation_spaces)  # PettingZoo's dict attributes
         self.action_spaces = dict(self._action_spaces)
@@ -247,8 +247,7 @@ class VectorFormationEnv:
         return bool(self._worlds) and all(world.connected for world in self._worlds)
 
     def copy_view(self, k: int) -> "CopyView":
-        """Copy ``k`` as a per-copy consumer (a policy source, a reference controller) sees it: this env, with
-        ``task`` copy k's current one (on a scenario distribution, its current draw)."""
+        """Copy ``k`` as a per-copy consumer (a policy source, a controller) sees it: ``task`` is its current one."""
         return CopyView(self, k)
 
     # ------------------------------------------------------------------------------------------ dict API
@@ -322,15 +321,15 @@ class VectorFormationEnv:
                 positions += q
                 velocities += dq
             contacts.append(arm_set.contacts_per_arm())
+        # New arrays each step, never changed in place: the infos hand them out without copies.
         self._step_counts += 1
-        self._clipped_actions += clipped
+        self._clipped_actions = self._clipped_actions + clipped
         self._clipped_step = clipped
-        self._contacts = np.array(contacts, dtype=np.int64).reshape(self.num_envs, self.task.n_agents)
+        self._contacts = np.array(contacts, dtype=np.int64)
         self._torques = torques
-        shape = (self.num_envs, self.n_joints)
         every = self._every
-        self._measurement = measured = self._derive(np.array(positions).reshape(shape),
-                                                    np.array(velocities).reshape(shape), every)
+        states = np.array((positions, velocities)).reshape(2, self.num_envs, self.n_joints)
+        self._measurement = measured = self._derive(states[0], states[1], every)
         if self._reference is not None:  # the motion's start points, kept while the formation holds
             holding = self._times() <= self.scenario.manoeuvre.start
             self._start_points[holding] = measured.ee_world[holding, :, :self.task.dim]
@@ -356,10 +355,9 @@ class VectorFormationEnv:
         self._last_reasons = measured.fault_reason
         done_mask = ended | truncated
         any_done = done_mask.any()
-        if not self.autoreset:
-            if any_done:
-                self._ended |= done_mask
-        else:
+        if not self.autoreset and any_done:
+            self._ended |= done_mask
+        elif self.autoreset:
             infos["final_observation"] = observations.copy()
             if any_done:
                 done = np.flatnonzero(done_mask)
@@ -438,9 +436,9 @@ class VectorFormationEnv:
 
     # Copies (pickle, deepcopy, subprocess workers) rebuild the env from its scenario in new worlds.
     def __getstate__(self) -> dict[str, Any]:
-        renderer = self._renderer
-        render = {} if renderer is None else {"render_mode": self.render_mode, "render_width": renderer.width,
-                                              "render_height": renderer.height, "real_time": renderer.real_time}
+        r = self._renderer
+        render = {} if r is None else {"render_mode": self.render_mode, "render_width": r.width,
+                                       "render_height": r.height, "real_time": r.real_time}
         return {"scenario": self.scenario, "num_envs": self.num_envs,
                 "autoreset_mode": self.metadata["autoreset_mode"], **render}
 
@@ -459,8 +457,7 @@ class VectorFormationEnv:
                                f"{np.flatnonzero(self._ended).tolist()}: reset them, e.g. with "
                                "options={'reset_mask': mask})")
 
-    def _times(self) -> np.ndarray:
-        """Each copy's simulated time (K,), s, at its last reset/step."""
+    def _times(self) -> np.ndarray:  # each copy's simulated time (K,), s, at its last reset/step
         return self._step_counts * self.scenario.control_dt
 
     def _reference_blocks(self) -> tuple[np.ndarray, ...]:
@@ -469,8 +466,7 @@ class VectorFormationEnv:
             return ()
         return (self._reference.observation_block(self._times(), self._start_points.mean(axis=-2)),)
 
-    def _last(self) -> Measurement:
-        """The last measurement (taken now if the env was never reset)."""
+    def _last(self) -> Measurement:  # the last measurement (taken now if the env was never reset)
         if self._measurement is None:
             self._measurement = self._measure_rows(np.arange(self.num_envs))
         return self._measurement
@@ -483,10 +479,10 @@ class VectorFormationEnv:
                                               lambda task, k=k: start_problem(self._arm_sets[k], task)))
             reset_world(self._worlds[k], self._arm_sets[k], self.tasks[k], self.np_randoms[k])
         self._step_counts[rows] = 0
-        self._clipped_actions[rows] = 0
-        self._clipped_step[rows] = 0
-        self._contacts[rows] = 0
-        self._torques[rows] = 0.0
+        # New arrays, not changed in place: earlier infos hold the old ones.
+        self._clipped_actions, self._clipped_step, self._contacts, self._torques = (
+            _zeroed(values, rows) for values in (self._clipped_actions, self._clipped_step, self._contacts,
+                                                 self._torques))
         self._ended[rows] = False
         part = self._measure_rows(rows)
         if self._measurement is None or len(rows) == self.num_envs:
@@ -567,12 +563,12 @@ class VectorFormationEnv:
             "edge_mask": self._edge_masks.copy(),  # fresh each call: infos of different calls share no object
             "singularity_margin": measured.singularity_margins,
             "torque_saturation": self._clipped_step / self._joint_counts,
-            "applied_torque": self._torques.copy(),
-            "clipped_actions": self._clipped_actions.copy(),
-            "contacts": self._contacts.copy(),
+            "applied_torque": self._torques,
+            "clipped_actions": self._clipped_actions.copy(),  # the next step adds to it
+            "contacts": self._contacts,
             "physics_fault": np.asarray(measured.fault).copy(),
             "physics_fault_reason": np.asarray(measured.fault_reason, dtype=object).copy(),
-            "sim_time": self._step_counts * self.scenario.control_dt,
+            "sim_time": self._times(),
         }
 
     def _observation_dict(self, observations: np.ndarray) -> dict[str, np.ndarray]:
@@ -596,3 +592,9 @@ class CopyView:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._env, name)
+
+
+def _zeroed(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    values = values.copy()  # with the rows ``rows`` set to zero
+    values[rows] = 0
+    return values
