@@ -207,7 +207,8 @@ def documentation_references() -> dict[str, list[tuple[str, str]]]:
             if included not in HISTORY:
                 found[included] = markdown_references((REPO / included).read_text(encoding="utf-8"))
     for scenario in sorted(BUILTIN.glob("*.yaml")):
-        found[f"ee_formation_env/builtin/{scenario.name}"] = references(yaml_comments(scenario.read_text(encoding="utf-8")))
+        comments = yaml_comments(scenario.read_text(encoding="utf-8"))
+        found[f"ee_formation_env/builtin/{scenario.name}"] = references(comments)
     return found
 
 
@@ -293,7 +294,8 @@ def test_placements_are_checked_where_they_say():
     assert placements(text) == [("in_file", "ROBOTS|ee_formation_env/scenario.py"),
                                 ("in_module", "make_training_env|ee_formation_env.baselines.learned.residual"),
                                 ("in_module", "make_training_env|ee_formation_env.baselines.learned.training_env")]
-    assert in_file_problem("ROBOTS|ee_formation_env/scenario.py") == "ee_formation_env/scenario.py does not define ROBOTS"
+    assert in_file_problem("ROBOTS|ee_formation_env/scenario.py") == (
+        "ee_formation_env/scenario.py does not define ROBOTS")
     assert in_file_problem("ROBOTS|ee_formation_env/robots.py") is None
     assert in_module_problem("make_training_env|ee_formation_env.baselines.learned.residual") == (
         "ee_formation_env.baselines.learned.residual has no attribute 'make_training_env'")
@@ -304,4 +306,5 @@ def test_a_planted_wrong_path_is_reported_with_its_source():
     found = {"docs/page.md": markdown_references("Gains: `baselines/gains.py`; outputs in `results/x.json`.")}
     assert broken_references(found) == ["docs/page.md: baselines/gains.py (no such file or folder)"]
     comments = {"ee_formation_env/builtin/x.yaml": references(yaml_comments("a: 1  # derived (baselines/gains.py).\n"))}
-    assert broken_references(comments) == ["ee_formation_env/builtin/x.yaml: baselines/gains.py (no such file or folder)"]
+    assert broken_references(comments) == [
+        "ee_formation_env/builtin/x.yaml: baselines/gains.py (no such file or folder)"]
