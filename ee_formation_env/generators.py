@@ -20,15 +20,13 @@ of them.
 from __future__ import annotations
 
 import math
-import os
 import warnings
 from typing import Any, Callable
 
 import numpy as np
 import pybullet
-import pybullet_data
 
-from ee_formation_env.robots import SPATIAL_INITIAL_Q, ROBOTS
+from ee_formation_env.robots import RANDOM_SPATIAL_ROBOTS, ROBOTS, SPATIAL_INITIAL_Q
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix, singularity_margins
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.task import build_task
@@ -118,12 +116,6 @@ def spatial_ring(n_agents: int, **overrides: Any) -> dict[str, Any]:
 PLANAR_SECONDS = 20.0  # s, episode length of a random planar scenario
 SPATIAL_SECONDS = 30.0  # s, of a random spatial scenario
 
-# Spatial robots: (urdf, end-effector link, base height in m). The PERA-like arm hangs from its base.
-SPATIAL_ROBOTS: dict[str, tuple[str, str, float]] = {
-    "kuka_iiwa": (os.path.join(pybullet_data.getDataPath(), "kuka_iiwa", "model.urdf"), "lbr_iiwa_link_7", 0.0),
-    "franka_panda": (os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf"), "panda_hand", 0.0),
-    "pera_arm": (str(ROBOTS["pera_arm"].urdf), ROBOTS["pera_arm"].ee_link, 1.0),
-}
 _SPATIAL_REGION_HEIGHT = (0.35, 0.65)  # m, z range of the shared end-effector region
 _SPATIAL_REGION_RADIUS = 0.25  # m, horizontal radius of the shared region around the ring's centre
 _MIN_VERTEX_SPACING = 0.15  # m between any two end-effectors (initial) or target vertices
@@ -158,8 +150,8 @@ def planar_scenario(seed: int) -> dict[str, Any]:
 def _sample_pose(robot: str, base: np.ndarray, yaw: float, centre: np.ndarray, rng: np.random.Generator,
                  taken: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """A configuration (rad) of ``robot`` putting its end-effector (world, m) in the shared region."""
-    urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
-    chain = chain_model(urdf, ee_link)
+    spec = RANDOM_SPATIAL_ROBOTS[robot]
+    chain = chain_model(str(spec.urdf), spec.ee_link)
     rotation = rpy_to_matrix(np.array([0.0, 0.0, yaw]))
     # Keep away from the joint limits (10 % margin) and from singular configurations.
     span = chain.upper - chain.lower
@@ -183,10 +175,10 @@ class _ClearanceChecker:
         self.bodies: list[int] = []
 
     def place(self, robot: str, base: np.ndarray, yaw: float, q: np.ndarray) -> int:
-        urdf, ee_link, _ = SPATIAL_ROBOTS[robot]
-        body = pybullet.loadURDF(urdf, base.tolist(), pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
+        spec = RANDOM_SPATIAL_ROBOTS[robot]
+        body = pybullet.loadURDF(str(spec.urdf), base.tolist(), pybullet.getQuaternionFromEuler([0.0, 0.0, yaw]),
                                  useFixedBase=True, physicsClientId=self.client)
-        names = chain_model(urdf, ee_link).joint_names
+        names = chain_model(str(spec.urdf), spec.ee_link).joint_names
         for j in range(pybullet.getNumJoints(body, physicsClientId=self.client)):
             name = pybullet.getJointInfo(body, j, physicsClientId=self.client)[1].decode()
             if name in names:
@@ -232,7 +224,7 @@ def spatial_scenario(seed: int) -> dict[str, Any]:
 def _spatial_attempt(seed: int, rng: np.random.Generator) -> dict[str, Any]:
     """One draw of :func:`spatial_scenario` (LookupError if its arms cannot be posed)."""
     n_agents = int(rng.integers(3, 5))
-    robots = [str(name) for name in rng.choice(list(SPATIAL_ROBOTS), size=n_agents)]
+    robots = [str(name) for name in rng.choice(list(RANDOM_SPATIAL_ROBOTS), size=n_agents)]
     radius = float(rng.uniform(0.45, 0.65))
     offset = float(rng.uniform(-math.pi, math.pi))
     initial_checker, target_checker = _ClearanceChecker(), _ClearanceChecker()
@@ -256,15 +248,15 @@ def _pose_arms(robots: list[str], radius: float, offset: float, rng: np.random.G
     arms, initial_ee, targets = [], [], []
     for i, robot in enumerate(robots):
         angle = offset + 2 * math.pi * i / n_agents
-        urdf, ee_link, height = SPATIAL_ROBOTS[robot]
-        base = np.array([radius * math.cos(angle), radius * math.sin(angle), height])
+        spec = RANDOM_SPATIAL_ROBOTS[robot]
+        base = np.array([radius * math.cos(angle), radius * math.sin(angle), spec.random_base_height])
         yaw = float(rng.uniform(-math.pi, math.pi))
         q0, ee0 = _clear_pose(robot, base, yaw, centre, rng, initial_ee, initial_checker)
         _, target = _clear_pose(robot, base, yaw, centre, rng, targets, target_checker)
         initial_ee.append(ee0)
         targets.append(target)
         arm = {"base_position": base.tolist(), "base_rpy": [0.0, 0.0, yaw], "initial_q": q0.tolist()}
-        arm.update({"robot": robot} if robot in ROBOTS else {"urdf": urdf, "ee_link": ee_link})
+        arm.update({"robot": robot} if robot in ROBOTS else {"urdf": str(spec.urdf), "ee_link": spec.ee_link})
         arms.append(arm)
     return arms, targets
 

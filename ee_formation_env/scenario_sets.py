@@ -19,8 +19,8 @@ Test sets are fixed: a scenario's name here names one problem for good.
 
 A scenario **distribution** (``docs/scenarios.md``, "Scenario distributions"; the built-ins of
 :data:`DISTRIBUTIONS`) is its own test set: its draws at the reset seeds :data:`TEST_SEEDS` (50 seeds from
-10000, where the held-out evaluation seeds of every learned method start; training resets use seeds below
-it) are the held-out problems, and its draws at :data:`TRAIN_SEEDS` a sample of the training problems.
+:data:`HELD_OUT_SEED_OFFSET`, 10000, where the held-out evaluation seeds of every learned method start;
+training resets use seeds below it) are the held-out problems, and its draws at :data:`TRAIN_SEEDS` a sample of the training problems.
 :func:`held_out_draws` lists them as fixed scenarios.
 
 :data:`RANDOM_FAMILIES` are the seeded random families of the random-scenario study
@@ -36,7 +36,11 @@ from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario
 from ee_formation_env.generators import planar_scenario, spatial_scenario, square_vertices
 
 CENTRE = (3.0, 3.0)  # m, the built-in planar squares' centre
-TEST_SEEDS: tuple[int, ...] = tuple(range(10_000, 10_050))  # a distribution's held-out draws (reset seeds)
+#: The first held-out reset seed: every evaluation of a learned method (and every study that reports on
+#: held-out problems) resets with seeds from here up; training resets use seeds below it.
+HELD_OUT_SEED_OFFSET = 10_000
+#: A distribution's held-out draws (reset seeds).
+TEST_SEEDS: tuple[int, ...] = tuple(range(HELD_OUT_SEED_OFFSET, HELD_OUT_SEED_OFFSET + 50))
 TRAIN_SEEDS: tuple[int, ...] = tuple(range(50))  # a sample of its training draws (reset seeds)
 
 

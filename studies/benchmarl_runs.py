@@ -131,6 +131,7 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
 
     from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, evaluate_benchmarl_policy,
                                                                    export_benchmarl_policy)
+    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
     torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
     config = ExperimentConfig.get_from_yaml()
@@ -163,7 +164,7 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
         print(f"training stopped: {stop} (BenchMARL's 'Experiment failed' line above is this stop)", flush=True)
     train_seconds = time.time() - started
     n_agents = sum(len(agents) for agents in experiment.group_map.values())
-    evaluation = evaluate_benchmarl_policy(experiment, episodes=episodes, seed=10_000)
+    evaluation = evaluate_benchmarl_policy(experiment, episodes=episodes, seed=HELD_OUT_SEED_OFFSET)
     evaluation["per_episode"] = [{k: v for k, v in e.items() if k != "trajectory"} for e in evaluation["per_episode"]]
     export_benchmarl_policy(experiment, out / "policy")
     with (out / "curve.csv").open("w", newline="", encoding="utf-8") as handle:
@@ -228,6 +229,8 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
+
     parser = argparse.ArgumentParser(prog="python -m studies.benchmarl_runs", description=__doc__.split("\n\n")[0])
     parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS)
     parser.add_argument("--scenario", default="planar_square", help="built-in scenario")
@@ -237,7 +240,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS),
                         help="learning settings: benchmarl (its defaults), sb3 (train.py's torque preset's) or "
                              "sb3-decay (those with its linear learning-rate decay)")
-    parser.add_argument("--episodes", type=int, default=10, help="held-out evaluation episodes (seeds 10000+)")
+    parser.add_argument("--episodes", type=int, default=10, help=f"held-out evaluation episodes (seeds {HELD_OUT_SEED_OFFSET}+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
                         help="no training: draw the learning curves of these finished runs into --figure")

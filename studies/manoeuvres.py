@@ -35,11 +35,12 @@ import numpy as np
 from ee_formation_env import parallel_env
 from ee_formation_env.baselines import make_policies
 from ee_formation_env.baselines.metrics import run_episode
+from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 from studies._common import LAWS, copy_figures, report_outputs, save_figure
 from studies.sensing import largest_edge_error
 
 TASKS = ("planar_square_transport", "spatial_tetrahedron_rotate")
-SEEDS = (10_000, 10_001, 10_002)
+SEEDS = tuple(HELD_OUT_SEED_OFFSET + k for k in range(3))
 EDGE_TARGET = 0.01  # m: every edge within 1 cm after the shape settles
 CENTROID_TARGET = 0.02  # m: centroid within 2 cm of the reference over the motion
 #: The laws' manoeuvre feedforward (baselines.reference.controllers): ``hold``, the default gains (the velocity

@@ -29,12 +29,13 @@ from ee_formation_env import parallel_env
 from ee_formation_env.baselines import make_policies
 from ee_formation_env.baselines.metrics import run_episode
 from ee_formation_env.scenario import load_scenario
+from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 from studies._common import LAWS, copy_figures, report_outputs, save_figure
 
 #: Each knob's levels: noise (m, standard deviation), delay (control steps), bias (m), yaw (rad).
 LEVELS: dict[str, tuple[float, ...]] = {"noise": (0.002, 0.005, 0.01), "delay": (2, 5, 10),
                                         "bias": (0.005, 0.01, 0.02), "yaw": (0.05, 0.1, 0.2)}
-SEEDS = (10_000, 10_001, 10_002)
+SEEDS = tuple(HELD_OUT_SEED_OFFSET + k for k in range(3))
 RATE_WINDOW_SECONDS = 10.0
 DEFAULT_SCENARIOS = ("planar_square", "planar_square_displacement")
 QUICK_EPISODE_SECONDS = 2.0

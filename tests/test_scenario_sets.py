@@ -57,3 +57,13 @@ def test_random_families_are_seeded_and_the_random_studys_own():
     assert random_scenarios.planar_scenario is RANDOM_FAMILIES["planar"]
     assert random_scenarios.spatial_scenario is RANDOM_FAMILIES["spatial"]
     assert RANDOM_FAMILIES["planar"](5) == RANDOM_FAMILIES["planar"](5) != RANDOM_FAMILIES["planar"](6)
+
+
+def test_every_held_out_seed_starts_at_the_one_offset():
+    """The env core defines the held-out seed offset; the learning wing's evaluation and the distributions'
+    test sets start there, and no train draw reaches it."""
+    from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
+    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET, TEST_SEEDS, TRAIN_SEEDS
+
+    assert EVAL_SEED_OFFSET == HELD_OUT_SEED_OFFSET == TEST_SEEDS[0] == 10_000
+    assert max(TRAIN_SEEDS) < HELD_OUT_SEED_OFFSET

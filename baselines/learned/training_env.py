@@ -32,13 +32,14 @@ from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEn
 from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
 from ee_formation_env.baselines.learned.shaping import (ContactShapingEnv, HoldShapingEnv, check_contact_penalty,
                                                        check_hold_penalty, hold_penalty_factors)
+from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 from ee_formation_env.vector import BatchedStep
 
 if TYPE_CHECKING:
     from ee_formation_env.baselines.learned.config import TrainConfig
 
 TRAINING_MODES = ("torque", "residual")
-EVAL_SEED_OFFSET = 10_000  # held-out evaluation seeds start here; training resets use seeds below it
+EVAL_SEED_OFFSET = HELD_OUT_SEED_OFFSET  # held-out evaluation seeds start here; training resets use seeds below it
 
 
 def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",

@@ -53,3 +53,9 @@ def test_learned_needs_a_scoreboard_folder(tmp_path, capsys):
     with pytest.raises(SystemExit):
         manoeuvres.main(["--quick", "--out", str(tmp_path), "--learned", str(tmp_path / "nothing")])
     assert "--learned:" in capsys.readouterr().err
+
+
+def test_the_study_resets_with_the_first_held_out_seeds():
+    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
+
+    assert manoeuvres.SEEDS == tuple(HELD_OUT_SEED_OFFSET + k for k in range(3)) == (10_000, 10_001, 10_002)

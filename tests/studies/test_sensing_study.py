@@ -46,3 +46,9 @@ def test_an_unknown_scenario_is_refused_before_any_run(tmp_path, capsys):
         sensing.main(["--scenarios", "nowhere", "--out", str(tmp_path / "x")])
     assert "--scenarios: unknown" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_the_study_resets_with_the_first_held_out_seeds():
+    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
+
+    assert sensing.SEEDS == tuple(HELD_OUT_SEED_OFFSET + k for k in range(3)) == (10_000, 10_001, 10_002)
