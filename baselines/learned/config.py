@@ -64,8 +64,6 @@ def _option_flag(name: str, **argparse_kwargs: Any) -> Any:
     help = spec.metadata["meaning"] + (f", {spec.metadata['unit']}" if spec.metadata["unit"] else "")
     if spec.default is None:
         help += f" (default {_preset_text(name)})"
-    else:
-        help += f" (default {spec.default})"
     return _flag(help, spec.default, **argparse_kwargs)
 
 
