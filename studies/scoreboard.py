@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import fault_kinds, run_episodes
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
