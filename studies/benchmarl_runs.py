@@ -234,7 +234,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m studies.benchmarl_runs", description=__doc__.split("\n\n")[0])
     parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS)
     parser.add_argument("--scenario", default="planar_square", help="built-in scenario")
-    parser.add_argument("--mode", default="torque", choices=("torque", "residual"))
+    from ee_formation_env.baselines.learned.modes import mode_names
+
+    parser.add_argument("--mode", default="torque", choices=mode_names(), help="training mode (default torque)")
     parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock training budget")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
     parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS),

@@ -37,13 +37,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import numpy as np
-
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import fault_kinds, run_episodes
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
+from studies.bootstrap import aggregate
 
 
 @dataclass(frozen=True)
@@ -123,7 +122,6 @@ METHODS: dict[str, Method] = {
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
 DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
-BOOTSTRAP_REPS = 2000
 QUICK_FLAGS = ("--total-timesteps", "64", "--n-envs", "1", "--n-steps", "16", "--n-workers", "0")
 
 #: The board's metrics, one value per evaluation episode: (key, title, unit, meaning, format).
@@ -135,53 +133,6 @@ METRICS: tuple[tuple[str, str, str, str, str], ...] = (
     ("contact_steps", "contacts", "steps", "env steps with a contact between arms", "{:.1f}"),
     ("mean_return", "return", "", "episode return, mean over agents", "{:,.0f}"),
 )
-
-
-# ------------------------------------------------------------------------------------------ statistics
-def interquartile_mean(values: np.ndarray, axis: int | None = None) -> np.ndarray:
-    """The mean of the middle 50 % (``int(n / 4)`` values trimmed at each end, as ``scipy.stats.trim_mean(x,
-    0.25)`` and rliable's IQM), over the flattened array or along ``axis``."""
-    values = np.sort(np.asarray(values, dtype=np.float64), axis=axis)
-    if axis is None:
-        values = values.ravel()
-        axis = 0
-    n = values.shape[axis]
-    cut = int(0.25 * n)
-    return np.take(values, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
-
-
-def stratified_bootstrap(scores: np.ndarray, reps: int = BOOTSTRAP_REPS, seed: int = 0, confidence: float = 0.95
-                         ) -> dict[str, tuple[float, float]]:
-    """95 % percentile intervals of the mean and the IQM of ``scores`` (runs, strata): each replicate resamples
-    the runs with replacement within every stratum independently (rliable's ``StratifiedBootstrap``).
-    ``{"mean": (low, high), "iqm": (low, high)}``."""
-    scores = np.asarray(scores, dtype=np.float64)
-    if scores.ndim != 2 or not scores.size:
-        raise ValueError(f"scores: expected a non-empty (runs, strata) array, got shape {scores.shape}")
-    runs, strata = scores.shape
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(0, runs, size=(reps, runs, strata))
-    samples = scores[picks, np.arange(strata)]  # (reps, runs, strata)
-    flat = samples.reshape(reps, -1)
-    tail = 100 * (1 - confidence) / 2
-    out = {}
-    for name, values in (("mean", flat.mean(axis=1)), ("iqm", interquartile_mean(flat, axis=1))):
-        low, high = np.percentile(values, [tail, 100 - tail])
-        out[name] = (float(low), float(high))
-    return out
-
-
-def aggregate(per_run: Sequence[Sequence[float]]) -> dict[str, Any]:
-    """One metric of one (scenario, method): ``per_run`` holds each training run's per-episode values (all of
-    the same evaluation episodes). Mean, IQM, their 95 % intervals and each run's mean."""
-    scores = np.array(per_run, dtype=np.float64)
-    # One run (a reference controller): the episodes are what varies, so they are resampled.
-    strata = scores.T if len(scores) == 1 else scores
-    intervals = stratified_bootstrap(strata)
-    return {"mean": float(scores.mean()), "iqm": float(interquartile_mean(scores)),
-            "ci_low": intervals["mean"][0], "ci_high": intervals["mean"][1],
-            "iqm_ci_low": intervals["iqm"][0], "iqm_ci_high": intervals["iqm"][1],
-            "per_seed": [float(np.mean(run)) for run in scores]}
 
 
 # ------------------------------------------------------------------------------------------ cells

@@ -18,10 +18,9 @@ so their runs are unchanged); the figures are in the training docs ("Action scal
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
-from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from ee_formation_env.baselines.reference.dynamics import nominal_dynamics
 
@@ -79,47 +78,3 @@ def rescaling(task: Any, acceleration: float = DEFAULT_ACTION_ACCELERATION) -> d
     on every built-in robot): what the training env, the saved policy and the labels apply."""
     scales = action_scales(task, acceleration)
     return None if all_ones(scales) else scales
-
-
-class ScaledActionPolicy:
-    """A learned per-agent policy whose actions (in [-1, 1]) are scaled per joint into the env's normalized
-    actions: ``clip(policy(observation), -1, 1) * scale`` (torque mode)."""
-
-    def __init__(self, policy: Any, scale: np.ndarray):
-        self.policy, self.scale = policy, np.asarray(scale, dtype=np.float64)
-
-    def reset(self) -> None:
-        self.policy.reset()
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        return np.clip(self.policy(observation), -1.0, 1.0) * self.scale
-
-    @classmethod
-    def stacked(cls, policies: Sequence["ScaledActionPolicy"]):
-        """A stack of them as one callable ``(k, size) -> (k, n)``, row by row bit for bit."""
-        from ee_formation_env.baselines.metrics import stack_policies
-
-        policies = list(policies)
-        inner = stack_policies([policy.policy for policy in policies])
-        scales = np.stack([policy.scale for policy in policies])
-        return lambda observations: np.clip(np.asarray(inner(observations)), -1.0, 1.0) * scales
-
-
-class ScaledActionEnv(BaseParallelWrapper):
-    """A parallel env whose actions are learned actions (in [-1, 1], clipped) scaled per joint by ``scales``
-    (agent -> (n,)) into the wrapped env's normalized actions. Malformed actions reach the env unchanged, so
-    that it raises its own error naming the field."""
-
-    def __init__(self, env: Any, scales: Mapping[str, np.ndarray]):
-        super().__init__(env)
-        self.scales = {agent: np.asarray(scales[agent], dtype=np.float64) for agent in env.possible_agents}
-
-    def step(self, actions: Any):
-        if isinstance(actions, Mapping) and actions.keys() == self.scales.keys():
-            try:
-                arrays = {agent: np.asarray(action, dtype=np.float64) for agent, action in actions.items()}
-            except (TypeError, ValueError):
-                return self.env.step(actions)
-            if all(arrays[a].shape == s.shape and np.isfinite(arrays[a]).all() for a, s in self.scales.items()):
-                actions = {agent: np.clip(arrays[agent], -1.0, 1.0) * scale for agent, scale in self.scales.items()}
-        return self.env.step(actions)

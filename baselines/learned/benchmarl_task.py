@@ -17,7 +17,8 @@ actions, observation features, hold penalty, physically scaled actions) and hand
 the learning wing. The training env shares one policy among identical agents, so a task needs a team of one
 robot kind (one BenchMARL group).
 
-**Config.** A task's config is one dict: the fields of :class:`TrainingTaskOptions` (missing ones take their
+**Config.** A task's config is one dict: the fields of :class:`TrainingTaskOptions` (the training options,
+:class:`~ee_formation_env.baselines.learned.options.TrainingOptions`; missing ones take their
 defaults), optionally ``scenario`` (a scenario file or dict instead of the member's built-in scenario), and
 scenario overrides: every other key, checked by the scenario loader (an unknown key is its error, naming it).
 The overrides apply to training and evaluation alike; training then sets ``episode_seconds`` to
@@ -50,8 +51,6 @@ which :func:`evaluate_benchmarl_policy` also accepts.
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,13 +64,9 @@ from benchmarl.models.mlp import Mlp
 from torchrl.envs import EnvBase
 from torchrl.modules.distributions import IndependentNormal, TanhNormal
 
-from ee_formation_env.baselines import MODEL_BASED_POLICIES
-from ee_formation_env.baselines.learned.action_scale import DEFAULT_ACTION_ACCELERATION, check_action_acceleration
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, load_tensors, read_json, write_json
-from ee_formation_env.baselines.learned.config import MODES, PRESETS
-from ee_formation_env.baselines.learned.features import FEATURE_SETS
+from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.policy import LearnedPolicy, ObservationNormalizer, composed_policy_factory
-from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, BatchedTrainingEnv
 from ee_formation_env.baselines.metrics import DEFAULT_POSITION_TOLERANCE, run_episodes, summarize
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
@@ -84,138 +79,24 @@ ACTOR_TENSORS, ACTOR_DESCRIPTION = "actor.pt", "actor.json"
 
 
 # ------------------------------------------------------------------------------------------ options
-def _option(default: Any, unit: str, meaning: str) -> Any:
-    """A field of :class:`TrainingTaskOptions`: its unit ("" if none) and meaning travel in its metadata
-    (:meth:`TrainingTaskOptions.options_table`)."""
-    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning})
+#: A task's options are the training options, the one class ``train.py``'s flags read too.
+TrainingTaskOptions = TrainingOptions
 
 
-@dataclass(frozen=True)
-class TrainingTaskOptions:
-    """The training options of a BenchMARL task: what :class:`BatchedTrainingEnv` is built with. Fields left
-    ``None`` take the mode's preset of ``train.py`` (:data:`~ee_formation_env.baselines.learned.config.PRESETS`,
-    :meth:`resolved`); the other defaults are ``TrainConfig``'s, except ``mode``. Checked on construction: a bad
-    value raises ``ValueError`` (``TypeError`` for a wrong type) naming the field. Units and meanings:
-    :meth:`options_table`.
-    """
-
-    mode: str = _option("torque", "", "torque: the policy outputs the normalized joint torques; residual: it outputs "
-                        "a correction added to the reference controller's torques")
-    reference: str = _option("adaptive_jacobian", "", "residual mode: the reference controller (a model-based one: "
-                             + ", ".join(MODEL_BASED_POLICIES) + ")")
-    residual_scale: float = _option(0.3, "", "residual mode: the correction's share of one unit of learned action, "
-                                    "in (0, 1]")
-    residual_gate: bool = _option(True, "", "residual mode: scale the correction by min(1, the agent's error in "
-                                  "success tolerances), so that it fades out at the goal")
-    correction_penalty: float = _option(0.5, "", "residual mode: each agent's reward is multiplied by 1 - this * "
-                                        "mean(correction^2), in [0, 1]")
-    obs_features: Optional[str] = _option(None, "", "features appended to each agent's observation, from it alone "
-                                          "(features.py): " + " or ".join(FEATURE_SETS))
-    hold_penalty: Optional[float] = _option(None, "reward per step", "training only: subtract this times "
-                                            f"min(1, joint speed / {SPEED_SCALE} rad/s) from an in-formation agent's "
-                                            "reward (shaping.py), in [0, 1]")
-    contact_penalty: float = _option(0.0, "reward per step", "training only: subtract this from an agent's reward on "
-                                     "every step its arm touches another arm (shaping.py), >= 0")
-    action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
-                                         "correction) is the torque giving a joint this acceleration at the "
-                                         "initial configuration, at most its torque limit (action_scale.py)")
-    train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
-                                                     "scenario's episode_seconds)")
-    train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
-                                                     "joint positions while training (None in a preset: the "
-                                                     "scenario's; evaluation: the scenario's)")
-
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode: expected one of {list(MODES)}, got {self.mode!r}")
-        if self.reference not in MODEL_BASED_POLICIES:
-            raise ValueError(f"reference: expected a model-based controller {list(MODEL_BASED_POLICIES)}, "
-                             f"got {self.reference!r}")
-        if not isinstance(self.residual_gate, bool):
-            raise TypeError(f"residual_gate: expected True or False, got {self.residual_gate!r}")
-        if self.obs_features is not None and self.obs_features not in FEATURE_SETS:
-            raise ValueError(f"obs_features: expected one of {list(FEATURE_SETS)} or None, got {self.obs_features!r}")
-        self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
-        self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
-        self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
-        self._number("contact_penalty", lambda x: x >= 0, "a value >= 0")
-        object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
-        self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
-        self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
-
-    def _number(self, name: str, valid: Callable[[float], bool], expected: str, optional: bool = False) -> None:
-        """Check field ``name`` is a finite real number (or None if ``optional``) for which ``valid`` holds, and
-        store it as a float."""
-        value = getattr(self, name)
-        if value is None and optional:
-            return
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise TypeError(f"{name}: expected a number ({expected}), got {type(value).__name__} {value!r}")
-        if not (math.isfinite(value) and valid(value)):
-            raise ValueError(f"{name}: expected {expected}, got {value!r}")
-        object.__setattr__(self, name, float(value))
-
-    @classmethod
-    def options_table(cls) -> str:
-        """Every option with its default, unit and meaning, as a Markdown table (docs/training.md shows it)."""
-        lines = ["| option | default | unit | meaning |", "|---|---|---|---|"]
-        for spec in dataclasses.fields(cls):
-            default = f"`{spec.default!r}`" if isinstance(spec.default, str) else f"`{spec.default}`"
-            if spec.default is None:
-                default = "mode preset (" + ", ".join(
-                    f"{mode}: `{getattr(PRESETS[mode], spec.name)}`" for mode in ("torque", "residual")) + ")"
-            lines.append(f"| `{spec.name}` | {default} | {spec.metadata['unit'] or '-'} | {spec.metadata['meaning']} |")
-        return "\n".join(lines)
-
-    @classmethod
-    def fields(cls) -> tuple[str, ...]:
-        """The option names, in order (the keys of a task config that are not scenario overrides)."""
-        return tuple(spec.name for spec in dataclasses.fields(cls))
-
-    def resolved(self) -> "TrainingTaskOptions":
-        """A copy with every ``None`` field filled from the mode's preset, as ``TrainConfig.resolved`` fills them
-        (``train_initial_q_noise`` stays None, the scenario's, where the preset says so: residual mode)."""
-        preset = PRESETS[self.mode]
-        filled = {name: getattr(preset, name) for name in ("obs_features", "hold_penalty", "train_episode_seconds",
-                                                           "train_initial_q_noise") if getattr(self, name) is None}
-        return dataclasses.replace(self, **filled)
-
-    def training_overrides(self) -> dict[str, Any]:
-        """Scenario overrides of the training env (options resolved): episode length and, if set, start noise."""
-        options = self.resolved()
-        overrides: dict[str, Any] = {"episode_seconds": options.train_episode_seconds}
-        if options.train_initial_q_noise is not None:
-            overrides["initial_q_noise"] = options.train_initial_q_noise
-        return overrides
-
-    def to_dict(self) -> dict[str, Any]:
-        """The options as plain values (JSON-ready): ``TrainingTaskOptions(**options.to_dict())`` is a copy."""
-        return dataclasses.asdict(self)
-
-    def training_env(self, scenario: Any, overrides: Mapping[str, Any], num_envs: int) -> BatchedTrainingEnv:
-        """The training env of these options (resolved): ``num_envs`` copies of ``scenario`` with ``overrides``
-        and then :meth:`training_overrides`."""
-        options = self.resolved()
-        return BatchedTrainingEnv(scenario, {**overrides, **self.training_overrides()}, options.mode,
-                                  options.reference, options.residual_scale, options.correction_penalty,
-                                  options.residual_gate, options.hold_penalty, options.obs_features,
-                                  options.action_acceleration, options.contact_penalty, num_envs=num_envs)
-
-    def policy_factory(self, learned: Mapping[str, Any], env: Any) -> Callable[[Any], dict[str, Any]]:
-        """``copy_env -> per-agent policies`` that act as the training env of these options with the learned
-        per-agent parts ``learned`` (:func:`~ee_formation_env.baselines.learned.policy.composed_policy_factory`)."""
-        options = self.resolved()
-        return composed_policy_factory(learned, env, options.mode, options.reference, options.residual_scale,
-                                       options.residual_gate, options.obs_features, options.action_acceleration)
+def training_env(options: TrainingOptions, scenario: Any, overrides: Mapping[str, Any],
+                 num_envs: int) -> BatchedTrainingEnv:
+    """The training env of ``options``: ``num_envs`` copies of ``scenario`` with ``overrides`` and then the
+    options' training overrides (episode length, start noise)."""
+    return BatchedTrainingEnv(scenario, {**overrides, **options.training_overrides()}, options, num_envs=num_envs)
 
 
-def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[TrainingTaskOptions, Any, dict[str, Any]]:
+def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[TrainingOptions, Any, dict[str, Any]]:
     """A task config as (options, scenario, scenario overrides): the option fields, ``scenario`` (default
     ``default_scenario``) and every other key as an override. Raises naming the first bad option."""
     if not isinstance(config, Mapping):
         raise TypeError(f"config: expected a dict of options and scenario overrides, got {type(config).__name__}")
-    names = set(TrainingTaskOptions.fields())
-    options = TrainingTaskOptions(**{key: value for key, value in config.items() if key in names})
+    names = set(TrainingOptions.fields())
+    options = TrainingOptions(**{key: value for key, value in config.items() if key in names})
     overrides = {key: value for key, value in config.items() if key not in names and key != "scenario"}
     return options, config.get("scenario", default_scenario), overrides
 
@@ -229,7 +110,7 @@ class TrainingTaskClass(EEFormationTaskClass):
         super().__init__(name, config)
         self.check()
 
-    def parts(self) -> tuple[TrainingTaskOptions, Any, dict[str, Any]]:
+    def parts(self) -> tuple[TrainingOptions, Any, dict[str, Any]]:
         """(options, scenario, scenario overrides) of the config (:func:`split_config`)."""
         return split_config(self.config, self.name.lower())
 
@@ -252,7 +133,7 @@ class TrainingTaskClass(EEFormationTaskClass):
         options, scenario, overrides = self.parts()
         # BenchMARL calls this for its test env too, with the same arguments: both are training envs (module
         # docstring); copy k of either resets with seed + k first.
-        return lambda: BatchedTorchRLEnv.from_batched(options.training_env(scenario, overrides, num_envs), seed=seed,
+        return lambda: BatchedTorchRLEnv.from_batched(training_env(options, scenario, overrides, num_envs), seed=seed,
                                                       device=device)
 
     def max_steps(self, env: EnvBase) -> int:
@@ -380,10 +261,10 @@ class GroupActor:
 @dataclass
 class BenchmarlActors:
     """A trained BenchMARL experiment's deterministic actors (numpy, per group) and the task they trained on:
-    its ``options`` (:class:`TrainingTaskOptions`, resolved), ``scenario`` and scenario ``overrides``."""
+    its ``options`` (:class:`TrainingOptions`, resolved), ``scenario`` and scenario ``overrides``."""
 
     groups: Dict[str, GroupActor]
-    options: TrainingTaskOptions
+    options: TrainingOptions
     scenario: Any
     overrides: Dict[str, Any]
     task: str = ""  # the task member's name, e.g. "PLANAR_SQUARE"
@@ -403,7 +284,7 @@ class BenchmarlActors:
         """``copy_env -> per-agent policies`` acting as the task's training env did, for
         :func:`~ee_formation_env.baselines.metrics.run_episodes` (fresh reference controllers per call)."""
         learned = self.learned_policies()
-        return lambda copy_env: self.options.policy_factory(learned, copy_env)(copy_env)
+        return lambda copy_env: composed_policy_factory(learned, copy_env, self.options)(copy_env)
 
     def description(self) -> dict[str, Any]:
         """``actor.json``: what rebuilds the actors around ``actor.pt``'s tensors (module docstring)."""
@@ -510,7 +391,7 @@ def load_benchmarl_policy(path: str | os.PathLike) -> BenchmarlActors:
     if not isinstance(description, dict) or description.get("format") != EXPORT_FORMAT:
         raise ValueError(f"{ACTOR_DESCRIPTION}: expected format {EXPORT_FORMAT}")
     try:
-        options = TrainingTaskOptions(**description["options"])
+        options = TrainingOptions(**description["options"])
         groups = {}
         for group, entry in description["groups"].items():
             weights = [np.asarray(w.numpy(), dtype=np.float64).transpose(0, 2, 1) for w in tensors[group]["weight"]]

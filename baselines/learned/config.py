@@ -1,8 +1,10 @@
-"""The configuration of a training run: one typed object, per-mode presets, the CLI flags derived from it.
+"""The configuration of a training run: one typed object, the CLI flags derived from it.
 
 A :class:`TrainConfig` holds every setting of a run (``python train.py`` / ``ee-formation train``: each field is
-one flag, ``--n-envs`` for ``n_envs``). Fields left ``None`` take their training mode's preset
-(:data:`PRESETS`) when :meth:`TrainConfig.resolved` fills and checks them; a resolved configuration is what a
+one flag, ``--n-envs`` for ``n_envs``). The training options among them (mode, features, shaping, action
+scale) are :class:`~ee_formation_env.baselines.learned.options.TrainingOptions`' fields, with its defaults and
+meanings; :meth:`TrainConfig.training_options` hands them on. Fields left ``None`` take their training mode's
+preset (:data:`PRESETS`, each registered mode's ``preset``) when :meth:`TrainConfig.resolved` fills and checks them; a resolved configuration is what a
 run saves in its ``config.json`` and what :meth:`TrainConfig.from_dict` reads back. The training design
 behind the presets (episode length, start noise, PPO settings, rollout layout) is in docs/training.md.
 """
@@ -15,61 +17,33 @@ import json
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 from ee_formation_env.baselines import MODEL_BASED_POLICIES
-from ee_formation_env.baselines.learned.action_scale import DEFAULT_ACTION_ACCELERATION
 from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
-from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
-
-MODES = ("residual", "torque")
-
-
-@dataclass(frozen=True)
-class PPOSettings:
-    """PPO's network and optimizer settings of a mode (the rest is common: GAE 0.95, clip 0.2)."""
-
-    net_arch: tuple[int, ...]  # hidden layer widths of the actor and the critic
-    n_epochs: int  # passes over each rollout
-    learning_rate: float
-    learning_rate_decay: bool  # linear decay to 0 over the run
+from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
+from ee_formation_env.baselines.learned.options import TrainingOptions
 
 
-@dataclass(frozen=True)
-class ModePreset:
-    """The defaults of one training mode: what every ``None`` field of :class:`TrainConfig` becomes."""
 
-    total_timesteps: int  # agent steps (all agents count)
-    train_episode_seconds: float  # s: short episodes give many starts per budget
-    train_initial_q_noise: float | None  # rad, half-width; None: the scenario's
-    obs_features: str  # features appended to each agent's observation (features.py)
-    gamma: float  # discount per control step
-    hold_penalty: float  # training-only shaping (shaping.py)
-    log_std_init: float  # initial log standard deviation of the Gaussian policy
-    ppo: PPOSettings
-    n_envs: int  # envs, each with all its agents
-    n_steps: int  # PPO steps per env slot per update
-    n_workers: int  # worker processes for the envs
-    in_process_envs: int  # with worker processes: envs the learner's process steps itself
+class _Presets(Mapping[str, ModePreset]):
+    """Mode name -> its preset, read from the mode registry (a mode registered later is in it too)."""
+
+    def __getitem__(self, name: str) -> ModePreset:
+        if name not in mode_names():
+            raise KeyError(name)
+        return training_mode(name).preset
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(mode_names())
+
+    def __len__(self) -> int:
+        return len(mode_names())
 
 
-#: Per-mode presets (docs/training.md gives the evidence for each value). Residual mode: short episodes, the
-#: raw observation, 32 envs of which 18 in the learner's process beside one worker (throughput). Torque
-#: mode: longer episodes, wider start noise, log-scaled error features, the hold penalty and a larger network;
-#: the layout of its documented 30-minute run (8 envs in-process, 128 steps).
-PRESETS: dict[str, ModePreset] = {
-    "residual": ModePreset(
-        total_timesteps=600_000, train_episode_seconds=3.0, train_initial_q_noise=None, obs_features="none",
-        gamma=0.99, hold_penalty=0.0, log_std_init=-1.0,
-        ppo=PPOSettings(net_arch=(64, 64), n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
-        n_envs=32, n_steps=32, n_workers=1, in_process_envs=18),
-    "torque": ModePreset(
-        total_timesteps=5_000_000, train_episode_seconds=10.0, train_initial_q_noise=0.1, obs_features="log-error",
-        gamma=0.99, hold_penalty=0.5, log_std_init=-2.0,
-        ppo=PPOSettings(net_arch=(128, 128), n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
-        n_envs=8, n_steps=128, n_workers=0, in_process_envs=0),
-}
+#: Per-mode presets: each mode's ``preset`` (docs/training.md gives the evidence for each value).
+PRESETS: Mapping[str, ModePreset] = _Presets()
 FAULT_WINDOW = 100  # training episodes over which --max-fault-fraction is judged (all copies together)
 IMITATION_NET_ARCH = (256, 256)  # a copy of a reference controller (--imitate) needs a wider actor
 
@@ -83,26 +57,27 @@ def _flag(help: str, default: Any = None, **argparse_kwargs: Any) -> Any:
     return field(default=default, metadata={"help": help, **argparse_kwargs})
 
 
+def _option_flag(name: str, **argparse_kwargs: Any) -> Any:
+    """The flag of the training option ``name``: its default and meaning are :class:`TrainingOptions`'
+    (one owner), its unit and a ``None`` default's presets added to the help."""
+    spec = TrainingOptions.__dataclass_fields__[name]
+    help = spec.metadata["meaning"] + (f", {spec.metadata['unit']}" if spec.metadata["unit"] else "")
+    if spec.default is None:
+        help += f" (default {_preset_text(name)})"
+    return _flag(help, spec.default, **argparse_kwargs)
+
+
 @dataclass
 class TrainConfig:
     """Every setting of a training run; ``None`` fields take the mode's preset (:meth:`resolved`)."""
 
     scenario: Any = _flag("built-in name or YAML/JSON scenario file", "planar_square")
-    mode: str = _flag("residual (default): learn a correction on top of --reference; torque: learn torques",
-                      "residual", choices=MODES)
-    reference: str = _flag("reference controller of --mode residual", "adaptive_jacobian",
-                           choices=MODEL_BASED_POLICIES)
-    residual_scale: float = _flag("residual mode: the correction's share of one unit of learned action, in (0, 1]",
-                                  0.3, type=float)
-    action_acceleration: float = _flag("one unit of learned action (torque mode) or correction (residual mode) is "
-                                       "the torque giving this joint acceleration at the initial configuration, "
-                                       "rad/s^2, at most the torque limit (action_scale.py)",
-                                       DEFAULT_ACTION_ACCELERATION, type=float)
-    correction_penalty: float = _flag("residual mode: rewards are scaled by 1 - this * mean(residual^2), in [0, 1]",
-                                      0.5, type=float)
-    residual_gate: bool = _flag("residual mode: scale the correction by min(1, the agent's error in tolerances), "
-                                "so that it fades out at the goal (default on)", True,
-                                action=argparse.BooleanOptionalAction)
+    mode: str = _option_flag("mode")
+    reference: str = _option_flag("reference", choices=MODEL_BASED_POLICIES)
+    residual_scale: float = _option_flag("residual_scale", type=float)
+    action_acceleration: float = _option_flag("action_acceleration", type=float)
+    correction_penalty: float = _option_flag("correction_penalty", type=float)
+    residual_gate: bool = _option_flag("residual_gate", action=argparse.BooleanOptionalAction)
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
                                 "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
                                 "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
@@ -123,23 +98,14 @@ class TrainConfig:
     in_process_envs: int | None = _flag("with worker processes: how many of the envs the learner's process steps "
                                         "while the workers step the others (default "
                                         f"{_preset_text('in_process_envs')}; 0 without workers)", type=int)
-    train_episode_seconds: float | None = _flag("episode length while training, s (default "
-                                                f"{_preset_text('train_episode_seconds')})", type=float)
-    train_initial_q_noise: float | None = _flag("half-width of the uniform noise on the initial joint positions while "
-                                                f"training, rad (default {_preset_text('train_initial_q_noise')}, "
-                                                "None: the scenario's; evaluation uses the scenario's)", type=float)
+    train_episode_seconds: float | None = _option_flag("train_episode_seconds", type=float)
+    train_initial_q_noise: float | None = _option_flag("train_initial_q_noise", type=float)
     gamma: float | None = _flag(f"discount per control step (default {_preset_text('gamma')})", type=float)
     log_std_init: float | None = _flag("initial log standard deviation of the Gaussian policy (ppo; default "
                                        f"{_preset_text('log_std_init')})", type=float)
-    obs_features: str | None = _flag("features appended to each agent's observation, computed from it alone "
-                                     f"(ee_formation_env.baselines.learned.features; default "
-                                     f"{_preset_text('obs_features')})", choices=FEATURE_SETS)
-    hold_penalty: float | None = _flag(f"training only: subtract this times min(1, |dq| / {SPEED_SCALE} rad/s) from an "
-                                       "agent's reward on steps where it is in formation "
-                                       "(ee_formation_env.baselines.learned.shaping), in [0, 1]; default "
-                                       f"{_preset_text('hold_penalty')}", type=float)
-    contact_penalty: float = _flag("training only: subtract this from an agent's reward on every step its arm touches "
-                                   "another arm (ee_formation_env.baselines.learned.shaping), >= 0", 0.0, type=float)
+    obs_features: str | None = _option_flag("obs_features", choices=FEATURE_SETS)
+    hold_penalty: float | None = _option_flag("hold_penalty", type=float)
+    contact_penalty: float = _option_flag("contact_penalty", type=float)
     max_train_seconds: float | None = _flag("sb3: stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     max_fault_fraction: float = _flag("sb3: stop training with an error naming the fault when more than this share "
@@ -163,8 +129,13 @@ class TrainConfig:
 
     # ------------------------------------------------------------------------------------------ presets
     @property
+    def registered_mode(self) -> Any:
+        """The registered training mode of ``mode``."""
+        return training_mode(self.mode)
+
+    @property
     def preset(self) -> ModePreset:
-        return PRESETS[self.mode]
+        return self.registered_mode.preset
 
     @property
     def ppo(self) -> PPOSettings:
@@ -177,8 +148,10 @@ class TrainConfig:
     def resolved(self) -> "TrainConfig":
         """A copy with every ``None`` field filled from the mode's preset, checked: raises ``ValueError``
         naming the flag of the first setting out of range."""
-        if self.mode not in MODES:
-            raise ValueError(f"--mode: expected one of {list(MODES)}, got {self.mode!r}")
+        try:
+            training_mode(self.mode)
+        except ValueError as error:
+            raise ValueError(f"--{error}") from None
         config = dataclasses.replace(self)
         preset = config.preset
         if config.imitate is None:
@@ -213,8 +186,10 @@ class TrainConfig:
             raise ValueError("--residual-scale: expected a value in (0, 1]")
         if not (math.isfinite(self.action_acceleration) and self.action_acceleration > 0):
             raise ValueError("--action-acceleration: expected a finite value > 0 (rad/s^2)")
-        if imitating and (self.mode != "torque" or self.backend != "sb3" or self.algo != "ppo"):
-            raise ValueError("--imitate: expected none, except with --mode torque, --backend sb3 and --algo ppo")
+        if imitating and (not self.registered_mode.imitation or self.backend != "sb3" or self.algo != "ppo"):
+            imitating_modes = [name for name in mode_names() if training_mode(name).imitation]
+            raise ValueError(f"--imitate: expected none, except with --mode {' or '.join(imitating_modes)}, "
+                             "--backend sb3 and --algo ppo")
         if self.imitation_rounds < 1 or self.imitation_episodes < 1:
             raise ValueError("--imitation-rounds and --imitation-episodes must be >= 1")
         if self.eval_seconds is not None and not (math.isfinite(self.eval_seconds) and self.eval_seconds > 0):
@@ -245,8 +220,18 @@ class TrainConfig:
             raise ValueError("--log-std-init: expected a finite number")
         if (self.train_initial_q_noise is not None and self.train_initial_q_noise < 0) or self.train_episode_seconds <= 0:
             raise ValueError("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
+        try:  # the training options' own checks (the mode's included), named by flag
+            self.training_options()
+        except (TypeError, ValueError) as error:
+            name, _, rest = str(error).partition(": ")
+            raise ValueError(f"--{name.replace('_', '-')}: {rest}") from None
 
     # ------------------------------------------------------------------------------------------ the env
+    def training_options(self) -> TrainingOptions:
+        """The training options of this configuration (its fields of the same names): what the training env
+        and the evaluated policy are built from. Raises naming the field of a bad value."""
+        return TrainingOptions(**{name: getattr(self, name) for name in TrainingOptions.fields()})
+
     def training_overrides(self) -> dict[str, Any]:
         """Scenario overrides of the training env: episode length and start randomization."""
         overrides: dict[str, Any] = {"episode_seconds": self.train_episode_seconds}

@@ -21,17 +21,16 @@ inputs (its z_ij turn, its q_1 shifts) but not this observation, and joint torqu
 pose, so a policy on it acts the same on any base yaw: the same physical problem gets the same actions. It
 needs arms whose first joint turns about their base z axis (:func:`check_invariant_arms`).
 
-The same transform runs in training (:class:`FeatureEnv`, around the env the learner steps) and evaluation
-(:class:`FeaturePolicy`, around the learned per-agent policy); ``train.py`` saves its name in the run's config.
+One transform (:class:`FeatureRows`) runs in training (the training env's K x N rows) and evaluation (the
+learned per-agent policy, one row); ``train.py`` saves the set's name in the run's config.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Sequence
 
 import gymnasium
 import numpy as np
-from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
@@ -120,17 +119,9 @@ def check_invariant_arms(task: Any) -> None:
                              f"{np.round(origin, 6).tolist()} m in its base frame")
 
 
-def transform(layout: ObservationLayout, features: str) -> Callable[[np.ndarray], np.ndarray]:
-    """``observation -> observation with the features appended`` (float32), or the identity for ``"none"``."""
-    _check(features)
-    if features == "none":
-        return lambda observation: observation
-    stack = transform_stack(layout, features)
-    return lambda observation: stack(np.asarray(observation)[None])[0]
-
-
 def transform_stack(layout: ObservationLayout, features: str) -> Callable[[np.ndarray], np.ndarray]:
-    """:func:`transform` of a stack (k, size) of observations of one layout: (k, size + extra) float32."""
+    """``observations -> observations with the features appended`` for a stack (k, size) of observations of one
+    layout: (k, size + extra) float32; the identity for ``"none"``."""
     _check(features)
     if features == "none":
         return lambda observations: observations
@@ -157,81 +148,42 @@ def feature_space(space: gymnasium.spaces.Box, layout: ObservationLayout, featur
     return gymnasium.spaces.Box(low, high, dtype=np.float32)
 
 
-class FeatureEnv(BaseParallelWrapper):
-    """A parallel env whose observations carry the features appended; everything else is the wrapped env's.
+class FeatureRows:
+    """The features of a stack of R agent rows: row r's observation (of layout ``layouts[r]``) with the set
+    ``features[r]`` appended, the rows of one layout and set in one call. The training env's K x N rows and an
+    evaluated per-agent policy's one row both go through it.
 
-    Its observations are longer than the wrapped env's :class:`~ee_formation_env.observation.ObservationLayout`
-    describes: :meth:`raw_observation_layout` is the layout of their first part.
+    Called with fewer rows than R (``observations`` (R', size), R' < R), it treats them as the first R' rows:
+    with copy-major rows, the first copies' agents (the copies that ended a step, say).
     """
 
-    def __init__(self, env: Any, features: str = "log-error"):
-        _check(features)
-        super().__init__(env)
-        self.features = features
-        self._transforms = {agent: transform(env.observation_layout(agent), features) for agent in env.possible_agents}
-        self._spaces = {agent: feature_space(env.observation_space(agent), env.observation_layout(agent), features)
-                        for agent in env.possible_agents}
-
-    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
-        return self._spaces[agent]
-
-    def raw_observation_layout(self, agent: str) -> ObservationLayout:
-        """The layout of the first part of ``agent``'s observation: the wrapped env's observation."""
-        return self.env.observation_layout(agent)
-
-    def observation_layout(self, agent: str) -> ObservationLayout:
-        raise TypeError("FeatureEnv.observation_layout: the observations carry appended features that no "
-                        "ObservationLayout describes; raw_observation_layout(agent) is the layout of their first part")
-
-    def _apply(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {agent: self._transforms[agent](obs) for agent, obs in observations.items()}
-
-    def reset(self, seed: int | None = None, options: dict | None = None):
-        observations, infos = self.env.reset(seed=seed, options=options)
-        return self._apply(observations), infos
-
-    def step(self, actions: Mapping[str, np.ndarray]):
-        observations, rewards, terminations, truncations, infos = self.env.step(actions)
-        return self._apply(observations), rewards, terminations, truncations, infos
-
-
-class FeaturePolicy:
-    """A per-agent policy on featured observations, called with the env's raw observation."""
-
-    def __init__(self, policy: Any, layout: ObservationLayout, features: str):
-        self.policy, self.layout, self.features = policy, layout, features
-        self.transform = transform(layout, features)
-
-    def reset(self) -> None:
-        self.policy.reset()
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        return self.policy(self.transform(observation))
-
-    @classmethod
-    def stacked(cls, policies: Sequence["FeaturePolicy"]) -> Callable[[np.ndarray], np.ndarray]:
-        """A stack of these policies as one callable ``(k, size) -> (k, n)``: features of the rows of one
-        layout in one call, the inner policies as one stack
-        (:func:`~ee_formation_env.baselines.metrics.stack_policies`)."""
-        from ee_formation_env.baselines.metrics import stack_policies
-
-        policies = list(policies)
-        inner = stack_policies([policy.policy for policy in policies])
+    def __init__(self, layouts: Sequence[ObservationLayout | None], features: Sequence[str]):
+        for name in features:
+            _check(name)
+        self.identity = all(name == "none" for name in features)
+        self.size: int | None = None  # the featured size; None where every row has none (any layout)
+        if self.identity:
+            return
         groups: dict[tuple[ObservationLayout, str], list[int]] = {}
-        for row, policy in enumerate(policies):
-            groups.setdefault((policy.layout, policy.features), []).append(row)
-        stacks = [(np.array(rows), transform_stack(layout, features)) for (layout, features), rows in groups.items()]
+        for row, key in enumerate(zip(layouts, features)):
+            groups.setdefault(key, []).append(row)
+        self._groups = [(np.array(rows), transform_stack(layout, name)) for (layout, name), rows in groups.items()]
+        sizes = {layout.size + feature_size(layout, name) for layout, name in groups}
+        if len(sizes) > 1:
+            raise ValueError(f"obs_features: rows of one stack must have one featured size, got {sorted(sizes)}")
+        self.size = sizes.pop()
 
-        def act(observations: np.ndarray) -> np.ndarray:
-            if len(stacks) == 1:
-                return inner(stacks[0][1](observations))
-            parts = [(rows, apply(observations[rows])) for rows, apply in stacks]
-            featured = np.empty((len(observations), parts[0][1].shape[1]), dtype=np.float32)
-            for rows, part in parts:
-                featured[rows] = part
-            return inner(featured)
-
-        return act
+    def __call__(self, observations: np.ndarray) -> np.ndarray:
+        """(R', size) raw observations -> (R', featured size) (float32; unchanged where every row has none)."""
+        if self.identity:
+            return observations
+        if len(self._groups) == 1:
+            return self._groups[0][1](observations)
+        out = np.empty((len(observations), self.size), dtype=np.float32)
+        for rows, apply in self._groups:
+            rows = rows[rows < len(observations)]
+            out[rows] = apply(observations[rows])
+        return out
 
 
 def _check(features: str) -> None:

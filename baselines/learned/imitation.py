@@ -50,7 +50,7 @@ def demonstrations(env: Any, reference: str, episodes: int, seeds: np.ndarray,
     (samples, size) and the reference's normalized actions there (samples, n), clipped to [-1, 1].
 
     ``action_scales`` (N, n): ``env`` takes learned actions scaled per joint by them
-    (:class:`~ee_formation_env.baselines.learned.action_scale.ScaledActionEnv`); the labels are then the
+    (torque mode, :mod:`~ee_formation_env.baselines.learned.torque`); the labels are then the
     reference's actions divided by them (clipped to [-1, 1]: the reference drives within the learned range).
 
     The reference drives, except that with ``learner`` given each step is driven by the learner (all
@@ -97,12 +97,12 @@ def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
     exploration noise is narrowed to ``IMITATION_LOG_STD``. Writes ``imitation.json``."""
     import torch
 
-    from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, make_training_env
+    from ee_formation_env.baselines.learned.action_scale import rescaling
+    from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, ParallelTrainingEnv
 
     venv = model.get_env()  # VecNormalize: the policy sees normalized observations
-    env = make_training_env(args.scenario, args.training_overrides(), "torque",
-                            action_acceleration=args.action_acceleration)
-    scales = getattr(env, "scales", None)  # a ScaledActionEnv: the learned actions' per-joint scales
+    env = ParallelTrainingEnv(args.scenario, args.training_overrides(), args.training_options())
+    scales = rescaling(env.task, args.action_acceleration)  # the learned actions' per-joint scales, if any
     scales = None if scales is None else np.stack([scales[agent] for agent in env.possible_agents])
     rng = np.random.default_rng(args.seed)
     seeds = rng.integers(0, EVAL_SEED_OFFSET, size=args.imitation_rounds * args.imitation_episodes)

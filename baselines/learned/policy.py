@@ -1,9 +1,9 @@
-"""A saved run's learned policy as per-agent policies: the normalizer, the actor, the residual composition.
+"""A saved run's learned policy as per-agent policies: the normalizer, the actor, the training env's transforms.
 
 :func:`learned_policies` rebuilds what the learner stepped around the shared network: observation
-normalization, the observation features (``obs_features``) and, in residual mode, the reference controller
-with its error gate. The result plugs into :func:`ee_formation_env.baselines.metrics.run_episode` like a
-reference policy.
+normalization, then the training env's own transforms (:class:`ComposedPolicy`): the observation features and
+the mode's action rule (residual mode: the reference controller with its error gate). The result plugs into
+:func:`ee_formation_env.baselines.metrics.run_episode` like a reference policy.
 """
 
 from __future__ import annotations
@@ -13,12 +13,11 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from ee_formation_env import baselines
-from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionPolicy,
-                                                             rescaling)
+from ee_formation_env.baselines.learned.action_scale import rescaling
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
-from ee_formation_env.baselines.learned.features import FeaturePolicy, check_invariant_arms
-from ee_formation_env.baselines.learned.residual import ResidualPolicy
+from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms
+from ee_formation_env.baselines.learned.modes import ActionRows
+from ee_formation_env.baselines.learned.options import TrainingOptions
 
 
 class ObservationNormalizer:
@@ -104,42 +103,77 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> C
     else:
         predict = rllib_predictor(model_dir)
     learned = LearnedPolicy(predict, normalizer)
-    # Runs saved before an option existed had its default then: no features, no gate, and the default action
-    # acceleration, which leaves the built-in robots as they were.
-    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, config["mode"],
-                                   config.get("reference"), config.get("residual_scale"),
-                                   config.get("residual_gate", False), config.get("obs_features", "none"),
-                                   config.get("action_acceleration", DEFAULT_ACTION_ACCELERATION))
+    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env,
+                                   TrainingOptions.from_saved(config))
 
 
-def composed_policy_factory(learned: Mapping[str, Any], env: Any, mode: str, reference: str | None,
-                            residual_scale: float | None, residual_gate: bool, obs_features: str,
-                            action_acceleration: float) -> Callable[[Any], dict[str, Any]]:
+def composed_policy_factory(learned: Mapping[str, Any], env: Any, options: TrainingOptions
+                            ) -> Callable[[Any], dict[str, Any]]:
     """``copy_env -> per-agent policies`` around ``learned`` (agent -> a policy on the observation the learner
-    saw: featured by ``obs_features``, output in [-1, 1]), by the training env's rules: the features computed
-    from the env's raw observation (:class:`FeaturePolicy`); in ``"torque"`` mode the learned action scaled per
-    joint by ``action_acceleration`` (rad/s^2, :class:`ScaledActionPolicy`; unscaled where every scale is 1); in
-    ``"residual"`` mode the ``reference`` controller plus ``residual_scale`` times the correction, gated by the
-    agent's error when ``residual_gate`` (:class:`ResidualPolicy`). Each call gives fresh reference controllers;
-    the learned parts are shared (stateless)."""
-    per_agent = {agent: learned[agent] if obs_features == "none" else
-                 FeaturePolicy(learned[agent], env.observation_layout(agent), obs_features)
-                 for agent in env.possible_agents}
-    if obs_features == "invariant":
+    saw: featured by ``options.obs_features``), by the training env's own transforms (:class:`ComposedPolicy`).
+    Each call gives fresh state (the residual mode's reference controllers); the learned parts are shared
+    (stateless)."""
+    options = options.resolved()
+    if options.obs_features == "invariant":
         check_invariant_arms(env.task)
-    scales = rescaling(env.task, action_acceleration)
+    scales = rescaling(env.task, options.action_acceleration)
+    mode = options.training_mode
 
     def build(copy_env: Any) -> dict[str, Any]:
-        if mode == "torque":
-            return dict(per_agent) if scales is None else {
-                agent: ScaledActionPolicy(policy, scales[agent]) for agent, policy in per_agent.items()}
-        references = baselines.make_policies(reference, copy_env)
-        return {agent: ResidualPolicy(references[agent], per_agent[agent], residual_scale,
-                                      copy_env.observation_layout(agent) if residual_gate else None,
-                                      None if scales is None else scales[agent])
-                for agent in copy_env.possible_agents}
+        agents = list(copy_env.possible_agents)
+        rows = mode.action_rows(options, [copy_env], agents, scales).split()  # one rule of one row per agent
+        return {agent: ComposedPolicy(learned[agent], copy_env.observation_layout(agent), options.obs_features, row)
+                for agent, row in zip(agents, rows)}
 
     return build
+
+
+class ComposedPolicy:
+    """One agent's learned part composed as the training env composes it: its raw observation featured
+    (:class:`~ee_formation_env.baselines.learned.features.FeatureRows`), the learned action, then the mode's
+    action rule (``rows``, a rule of one row). It is the one-row case of the training env's transforms, and a
+    stack of them (:meth:`stacked`) is their many-row case."""
+
+    def __init__(self, learned: Any, layout: Any, obs_features: str, rows: ActionRows):
+        self.learned, self.layout, self.obs_features, self.rows = learned, layout, obs_features, rows
+        self.features = FeatureRows([layout], [obs_features])
+
+    def reset(self) -> None:
+        self.rows.reset()
+        self.learned.reset()
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        raw = np.asarray(observation)[None]
+        action = self.learned(self.features(raw)[0])
+        return self.rows(raw, np.asarray(action)[None])[0][0]
+
+    @classmethod
+    def stacked(cls, policies: Sequence["ComposedPolicy"]) -> Callable[[np.ndarray], np.ndarray]:
+        """A stack of them as one callable ``(k, size) -> (k, n)``, each row its policy's action bit for bit:
+        the features of the rows of one layout in one call, the learned parts as one stack
+        (:func:`~ee_formation_env.baselines.metrics.stack_policies`), the rules of one kind as one rule."""
+        from ee_formation_env.baselines.metrics import stack_policies
+
+        policies = list(policies)
+        learned = stack_policies([policy.learned for policy in policies])
+        features = FeatureRows([policy.layout for policy in policies], [policy.obs_features for policy in policies])
+        groups: dict[Any, list[int]] = {}
+        for row, policy in enumerate(policies):
+            groups.setdefault(policy.rows.stack_key, []).append(row)
+        rules = [(np.array(rows), type(policies[rows[0]].rows).concatenate([policies[r].rows for r in rows]))
+                 for rows in groups.values()]
+
+        def act(observations: np.ndarray) -> np.ndarray:
+            actions = np.asarray(learned(features(observations)))
+            if len(rules) == 1:
+                return rules[0][1](observations, actions)[0]
+            parts = [(rows, rule(observations[rows], actions[rows])[0]) for rows, rule in rules]
+            out = np.empty((len(observations), parts[0][1].shape[1]), dtype=np.result_type(*(p for _, p in parts)))
+            for rows, part in parts:
+                out[rows] = part
+            return out
+
+        return act
 
 
 def _numpy_actor(policy: Any) -> Callable[[np.ndarray], np.ndarray] | None:

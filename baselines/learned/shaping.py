@@ -1,40 +1,24 @@
-"""Training-side reward shaping for learned policies: hold still once in formation, and do not touch.
+"""Training-only reward shaping: hold still once in formation, and do not touch another arm.
 
-The env's reward depends on the edge errors only, so it is blind to a rigid motion of the whole formation
-(a distance formation may translate and rotate freely). A torque policy trained on it reached the formation
-to ~0.05 tolerances in 1 s, but left the arms moving at ~0.1-0.4 rad/s along that motion: nothing in the
-reward damps it (the references damp every joint, ``-K_D dq``), and after 10-15 s an elbow drifted into its
-singularity and the formation broke (0 % success over 30 s). :class:`HoldShapingEnv` charges the agent's
-own joint speed on the steps where it is in formation:
+For each agent row i of a step, on the observation the step ended in:
 
-``r_i' = r_i - hold_penalty * [every incident edge of i within tolerance] * min(1, |dq_i| / SPEED_SCALE)``
+``r_i' = r_i - hold_penalty * [every incident edge of i within tolerance] * min(1, |dq_i| / SPEED_SCALE)
+            - contact_penalty * [arm i has a contact point with another arm]``
 
-read from agent i's own observation. With ``hold_penalty <= 1`` an in-formation step still earns more
-than any step outside it (the env gives >= 1 + 0.65 inside, < 1 outside), so leaving the formation never
-pays and every reward stays >= 0; reaching is not slowed, since nothing is charged before the tolerance.
-Evaluation always uses the env's own reward and metrics.
-
-The env's reward is blind to arm-arm contact too, and on the spatial tetrahedron a residual policy bought
-speed with contacts its reference never makes. :class:`ContactShapingEnv` charges every step on which the
-agent's arm touches another arm:
-
-``r_i' = r_i - contact_penalty * [arm i has a contact point with another arm]``
-
-from the env's own ``infos[agent]["contacts"]`` (both arms of a contact pay).
-
-``SPEED_SCALE``: with the penalty full from 0.2 rad/s, a policy trained for 30 min held every held-out
-formation to < 0.1 tolerances for 10-20 s, but its arms still coasted at ~0.02 rad/s with ~zero torque (a
-penalty of 0.05 per step at that speed taught no damping) until the formation broke between 20 and 30 s.
+the first term read from agent i's own observation (:func:`hold_penalty_factors`), the second from the env's
+``contacts`` info (both arms of a contact pay). With ``hold_penalty <= 1`` an in-formation step still earns more
+than any step outside it, so leaving the formation never pays. :func:`shaped_rewards` applies both to the
+training env's K x N rewards; evaluation always uses the env's own reward. Why each term and the choice of
+``SPEED_SCALE``, with the figures: the training docs (docs/training.md, "Why these defaults").
 """
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Sequence
 
 import numpy as np
-from pettingzoo.utils.wrappers import BaseParallelWrapper
 
-SPEED_SCALE = 0.05  # rad/s: joint speed (2-norm over the arm's joints) at which the penalty is full
+SPEED_SCALE = 0.05  # rad/s: joint speed (2-norm over the arm's joints) at which the hold penalty is full
 
 
 def check_hold_penalty(hold_penalty: float) -> None:
@@ -58,37 +42,17 @@ def hold_penalty_factors(layout: Any, observations: np.ndarray) -> np.ndarray:
     return np.where(inside, np.minimum(1.0, speeds / SPEED_SCALE), 0.0)
 
 
-def hold_penalty_factor(layout: Any, observation: np.ndarray) -> float:
-    """:func:`hold_penalty_factors` of one observation."""
-    return float(hold_penalty_factors(layout, np.asarray(observation)[None])[0])
-
-
-class HoldShapingEnv(BaseParallelWrapper):
-    """A parallel env whose rewards carry the hold penalty (module docstring); all else is the wrapped env's."""
-
-    def __init__(self, env: Any, hold_penalty: float):
-        check_hold_penalty(hold_penalty)
-        super().__init__(env)
-        self.hold_penalty = float(hold_penalty)
-        self._layouts = {agent: env.observation_layout(agent) for agent in env.possible_agents}
-
-    def step(self, actions: Mapping[str, np.ndarray]):
-        observations, rewards, terminations, truncations, infos = self.env.step(actions)
-        shaped = {agent: reward - self.hold_penalty * hold_penalty_factor(self._layouts[agent], observations[agent])
-                  for agent, reward in rewards.items()}
-        return observations, shaped, terminations, truncations, infos
-
-
-class ContactShapingEnv(BaseParallelWrapper):
-    """A parallel env whose rewards carry the contact penalty (module docstring); all else is the wrapped env's."""
-
-    def __init__(self, env: Any, contact_penalty: float):
-        check_contact_penalty(contact_penalty)
-        super().__init__(env)
-        self.contact_penalty = float(contact_penalty)
-
-    def step(self, actions: Mapping[str, np.ndarray]):
-        observations, rewards, terminations, truncations, infos = self.env.step(actions)
-        shaped = {agent: reward - self.contact_penalty * float(infos[agent]["contacts"] > 0)
-                  for agent, reward in rewards.items()}
-        return observations, shaped, terminations, truncations, infos
+def shaped_rewards(rewards: np.ndarray, observations: np.ndarray, contacts: np.ndarray,
+                   layout_rows: Sequence[tuple[Any, np.ndarray]], hold_penalty: float,
+                   contact_penalty: float) -> np.ndarray:
+    """The rewards (K, N) with both penalties (module docstring). ``observations`` (K * N, size): the raw
+    observations each step ended in, copy-major; ``contacts`` (K, N): each arm's contact points with other
+    arms; ``layout_rows``: (layout, the rows of that layout). A penalty of 0 leaves the rewards as they are."""
+    if hold_penalty > 0:
+        factors = np.empty(len(observations))
+        for layout, rows in layout_rows:
+            factors[rows] = hold_penalty_factors(layout, observations[rows])
+        rewards = rewards - hold_penalty * factors.reshape(rewards.shape)
+    if contact_penalty > 0:
+        rewards = rewards - contact_penalty * (contacts > 0)
+    return rewards

@@ -1,19 +1,16 @@
-"""The env a learner steps: the formation env, in residual form, with training-only shaping and features.
+"""The env a learner steps: K copies of the formation env, the learned actions, the shaping and the features.
 
-:func:`make_training_env` composes, from the inside out: the formation env (``mode="torque"``: actions are the
-normalized torques), :class:`~ee_formation_env.baselines.learned.residual.ResidualActionEnv` (``mode="residual"``:
-actions are corrections on a reference controller), :class:`~ee_formation_env.baselines.learned.shaping.HoldShapingEnv`
-(``hold_penalty > 0``), :class:`~ee_formation_env.baselines.learned.shaping.ContactShapingEnv`
-(``contact_penalty > 0``) and :class:`~ee_formation_env.baselines.learned.features.FeatureEnv` (``obs_features``).
-It is a module-level function so that ``functools.partial(make_training_env, ...)`` pickles into worker
-processes; :func:`env_factory` builds that partial from a run's configuration.
-
-:class:`BatchedTrainingEnv` is the same env for K copies at once, on the batched env
-(:func:`ee_formation_env.vector_env`): the residual rule, the shaping and the features applied to the K x N
-agents in one numpy pass. Copy k reproduces one :func:`make_training_env` env reset with its seed, bit for bit
-(``tests/baselines/learned/test_training_env.py``). The SB3 trainer steps it
-(:class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv`); :func:`batched_env_factory` builds its
-factory from a run's configuration. RLlib steps the single env.
+:class:`BatchedTrainingEnv` is the one training env of every backend, on the batched env
+(:func:`ee_formation_env.vector_env`, its array API): each step applies, to the K x N agent rows in one numpy
+pass, the training mode's action rule (:meth:`~ee_formation_env.baselines.learned.modes.TrainingMode.action_rows`:
+residual corrections on a reference controller, or physically scaled torques) and its reward factors, the
+training-only shaping (:func:`~ee_formation_env.baselines.learned.shaping.shaped_rewards`) and the observation
+features (:class:`~ee_formation_env.baselines.learned.features.FeatureRows`), all as
+:class:`~ee_formation_env.baselines.learned.options.TrainingOptions` say. SB3 steps it
+(:class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv`), BenchMARL through TorchRL
+(:meth:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv.from_batched`); RLlib and the imitation's
+demonstrations step one copy as a PettingZoo parallel env, :class:`ParallelTrainingEnv`, a thin adapter.
+:func:`batched_env_factory` and :func:`env_factory` build their picklable factories from a run's configuration.
 """
 
 from __future__ import annotations
@@ -23,155 +20,94 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import gymnasium
 import numpy as np
+from pettingzoo.utils.env import ParallelEnv
 
-from ee_formation_env import baselines
-from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionEnv,
-                                                             check_action_acceleration, rescaling)
-from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, check_invariant_arms, feature_space,
-                                                         transform_stack)
-from ee_formation_env.baselines.learned.residual import ResidualActionEnv, ResidualRows, check_residual_settings
-from ee_formation_env.baselines.learned.shaping import (ContactShapingEnv, HoldShapingEnv, check_contact_penalty,
-                                                       check_hold_penalty, hold_penalty_factors)
+from ee_formation_env.baselines.learned.action_scale import rescaling
+from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_space
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.shaping import shaped_rewards
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 from ee_formation_env.vector import BatchedStep
 
 if TYPE_CHECKING:
     from ee_formation_env.baselines.learned.config import TrainConfig
 
-TRAINING_MODES = ("torque", "residual")
 EVAL_SEED_OFFSET = HELD_OUT_SEED_OFFSET  # held-out evaluation seeds start here; training resets use seeds below it
-
-
-def make_training_env(scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
-                      reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
-                      correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
-                      obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION,
-                      contact_penalty: float = 0.0) -> Any:
-    """The training env of ``scenario`` (plus ``overrides``) in ``mode``, shaped and featured (module docstring);
-    learned actions in the physical units of ``action_acceleration`` (rad/s^2, :mod:`.action_scale`)."""
-    from ee_formation_env import parallel_env
-
-    if mode not in TRAINING_MODES:
-        raise ValueError(f"mode: expected 'torque' or 'residual', got {mode!r}")
-    if obs_features not in FEATURE_SETS:
-        raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {obs_features!r}")
-    check_action_acceleration(action_acceleration)
-    check_contact_penalty(contact_penalty)
-    env = parallel_env(scenario, **dict(overrides or {}))
-    try:
-        if obs_features == "invariant":
-            check_invariant_arms(env.task)
-        scales = rescaling(env.task, action_acceleration)
-        if mode == "residual":
-            env = ResidualActionEnv(env, reference=reference, scale=residual_scale,
-                                    correction_penalty=correction_penalty, gate=gate, joint_scales=scales)
-        elif scales is not None:
-            env = ScaledActionEnv(env, scales)
-        if hold_penalty > 0:
-            env = HoldShapingEnv(env, hold_penalty)
-        if contact_penalty > 0:
-            env = ContactShapingEnv(env, contact_penalty)
-        return env if obs_features == "none" else FeatureEnv(env, obs_features)
-    except Exception:
-        env.close()
-        raise
-
-
-def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None) -> Callable[[], Any]:
-    """A picklable factory of the env the learner of ``config`` (resolved) steps; ``overrides`` default to
-    the configuration's training overrides (episode length, start noise)."""
-    return functools.partial(make_training_env, config.scenario,
-                             config.training_overrides() if overrides is None else dict(overrides), config.mode,
-                             config.reference, config.residual_scale, config.correction_penalty,
-                             config.residual_gate, config.hold_penalty, config.obs_features,
-                             config.action_acceleration, config.contact_penalty)
 
 
 def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None
                         ) -> Callable[..., "BatchedTrainingEnv"]:
-    """A picklable factory ``(num_envs=K) -> BatchedTrainingEnv`` of the env the SB3 learner of ``config``
-    (resolved) steps; ``overrides`` as for :func:`env_factory`."""
+    """A picklable factory ``(num_envs=K) -> BatchedTrainingEnv`` of the env the learner of ``config``
+    (resolved) steps; ``overrides`` default to the configuration's training overrides (episode length, start
+    noise)."""
     return functools.partial(BatchedTrainingEnv, config.scenario,
-                             config.training_overrides() if overrides is None else dict(overrides), config.mode,
-                             config.reference, config.residual_scale, config.correction_penalty,
-                             config.residual_gate, config.hold_penalty, config.obs_features,
-                             config.action_acceleration, config.contact_penalty)
+                             config.training_overrides() if overrides is None else dict(overrides),
+                             config.training_options())
+
+
+def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None) -> Callable[[], "ParallelTrainingEnv"]:
+    """A picklable factory of one copy of the training env as a PettingZoo parallel env (RLlib);
+    ``overrides`` as for :func:`batched_env_factory`."""
+    return functools.partial(ParallelTrainingEnv, config.scenario,
+                             config.training_overrides() if overrides is None else dict(overrides),
+                             config.training_options())
 
 
 class BatchedTrainingEnv:
-    """K copies of :func:`make_training_env`'s env in one, with the batched env's array API.
+    """K copies of the training env (module docstring), with the batched env's array API.
 
     ``reset_arrays(seed, options)`` and ``step_arrays(actions)`` behave as those of
     :class:`ee_formation_env.vector.VectorFormationEnv` (per-copy seeds, SAME_STEP autoreset, ``reset_mask``;
-    actions (K * N, n) or (K, N, n)): in residual mode the actions are corrections, rewards carry the
-    correction factor, the hold penalty and the contact penalty, observations (K, N * size) carry the features
-    (``infos["final_observation"]`` too: the observation each copy ended in, featured). Every agent must have
-    the same observation size and joints (one policy is shared by all). The other infos are the batched env's,
-    and so are ``state()``, ``state_space`` and the copies' generators ``np_randoms``: it has the array API
-    that :class:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv` wraps (``from_batched``).
+    actions (K * N, n) or (K, N, n)): the actions are learned actions (the mode's), rewards carry the mode's
+    reward factors and the shaping, observations (K, N * size) carry the features (``infos["final_observation"]``
+    too: the observation each copy ended in, featured). Every agent must have the same observation size and
+    joints (one policy is shared by all). The other infos are the batched env's, and so are ``state()``,
+    ``state_space`` and the copies' generators ``np_randoms``: it has the array API that
+    :class:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv` wraps (``from_batched``).
 
-    Arguments: those of :func:`make_training_env`, and ``num_envs`` (K).
+    ``overrides``: scenario overrides as given (a caller adds ``options.training_overrides()`` where it wants
+    them); ``options``: the training options (``None`` fields take the mode's preset); ``num_envs``: K.
     """
 
-    def __init__(self, scenario: Any, overrides: Mapping[str, Any] | None = None, mode: str = "torque",
-                 reference: str = "adaptive_jacobian", residual_scale: float = 0.1,
-                 correction_penalty: float = 0.5, gate: bool = False, hold_penalty: float = 0.0,
-                 obs_features: str = "none", action_acceleration: float = DEFAULT_ACTION_ACCELERATION,
-                 contact_penalty: float = 0.0, num_envs: int = 1):
+    def __init__(self, scenario: Any, overrides: Mapping[str, Any] | None = None,
+                 options: TrainingOptions | None = None, num_envs: int = 1):
         from ee_formation_env import vector_env
 
-        if mode not in TRAINING_MODES:
-            raise ValueError(f"mode: expected 'torque' or 'residual', got {mode!r}")
-        if obs_features not in FEATURE_SETS:
-            raise ValueError(f"obs_features: expected one of {FEATURE_SETS}, got {obs_features!r}")
-        if mode == "residual":
-            check_residual_settings(reference, residual_scale, correction_penalty)
-        check_hold_penalty(hold_penalty)
-        check_contact_penalty(contact_penalty)
-        check_action_acceleration(action_acceleration)
-        self.contact_penalty = float(contact_penalty)
+        if options is None:
+            options = TrainingOptions()
+        if not isinstance(options, TrainingOptions):
+            raise TypeError(f"options: expected TrainingOptions, got {type(options).__name__}")
+        self.options = options.resolved()
         self.env = env = vector_env(scenario, num_envs=num_envs, **dict(overrides or {}))
         try:
-            self._build(mode, reference, residual_scale, correction_penalty, gate, hold_penalty, obs_features,
-                        action_acceleration)
+            self._build()
         except Exception:
             env.close()
             raise
 
-    def _build(self, mode: str, reference: str, residual_scale: float, correction_penalty: float, gate: bool,
-               hold_penalty: float, obs_features: str, action_acceleration: float) -> None:
-        env = self.env
+    def _build(self) -> None:
+        env, options = self.env, self.options
         self.num_envs, self.scenario, self.task = env.num_envs, env.scenario, env.task
         self.possible_agents = self.agents = list(env.possible_agents)
         self.render_mode = None
         spaces = [(env.observation_space(a), env.action_space(a)) for a in self.possible_agents]
         if any(space != spaces[0] for space in spaces) or env.uniform_joints is None:
             raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
-        self.mode, self.hold_penalty, self.obs_features = mode, float(hold_penalty), obs_features
-        self.correction_penalty = float(correction_penalty)
+        if options.obs_features == "invariant":
+            check_invariant_arms(self.task)
         layouts = [env.observation_layout(agent) for agent in self.possible_agents]
         self._size = spaces[0][0].shape[0]
-        # Rows of one layout are transformed together: (layout, rows of the (K * N) stack).
+        row_layouts = layouts * self.num_envs  # copy-major rows
         groups: dict[Any, list[int]] = {}
-        for k in range(self.num_envs):
-            for i, layout in enumerate(layouts):
-                groups.setdefault(layout, []).append(k * len(layouts) + i)
+        for row, layout in enumerate(row_layouts):
+            groups.setdefault(layout, []).append(row)
         self._layout_rows = [(layout, np.array(rows)) for layout, rows in groups.items()]
-        self._features = [transform_stack(layout, obs_features) for layout, _ in self._layout_rows]
-        self._observation_spaces = {agent: feature_space(space, layout, obs_features)
+        self._features = FeatureRows(row_layouts, [options.obs_features] * len(row_layouts))
+        self._observation_spaces = {agent: feature_space(space, layout, options.obs_features)
                                     for agent, (space, _), layout in zip(self.possible_agents, spaces, layouts)}
-        self._featured_size = self._observation_spaces[self.possible_agents[0]].shape[0]
-        if obs_features == "invariant":
-            check_invariant_arms(self.task)
-        scales = rescaling(self.task, action_acceleration)
-        # Torque mode: the learned actions' per-joint scales as flat rows (K, T); None: the env's own actions.
-        self._action_scales = None if scales is None or mode == "residual" else np.tile(
-            np.concatenate([scales[agent] for agent in self.possible_agents]), (self.num_envs, 1))
-        self.residuals = None
-        if mode == "residual":
-            teams = [baselines.make_policies(reference, env.copy_view(k)) for k in range(self.num_envs)]
-            gate_layouts = dict(zip(self.possible_agents, layouts)) if gate else None
-            self.residuals = ResidualRows(teams, self.possible_agents, residual_scale, gate_layouts, scales)
+        self.action_rows = options.training_mode.action_rows(
+            options, [env.copy_view(k) for k in range(self.num_envs)], self.possible_agents,
+            rescaling(self.task, options.action_acceleration))
         self._raw: np.ndarray | None = None  # the batched env's last observations (K * N, size)
 
     # -- spaces ---------------------------------------------------------------------------------------
@@ -180,6 +116,10 @@ class BatchedTrainingEnv:
 
     def action_space(self, agent: str) -> gymnasium.spaces.Box:
         return self.env.action_space(agent)
+
+    def observation_layout(self, agent: str) -> Any:
+        """The layout of the raw part of ``agent``'s observation (the batched env's; features are appended)."""
+        return self.env.observation_layout(agent)
 
     @property
     def joint_slices(self) -> list[slice]:
@@ -204,43 +144,28 @@ class BatchedTrainingEnv:
     def reset_arrays(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None
                      ) -> BatchedStep:
         result = self.env.reset_arrays(seed=seed, options=options)
-        if self.residuals is not None:
-            mask = None if options is None else options.get("reset_mask")
-            self.residuals.reset(None if mask is None else np.flatnonzero(mask))
+        mask = None if options is None else options.get("reset_mask")
+        self.action_rows.reset(None if mask is None else self._copy_rows(np.flatnonzero(mask)))
         self._raw = self._rows(result.observations)
         observations = self._featured(self._raw)
         return result._replace(observations=observations, infos={**result.infos, "final_observation": observations})
 
     def step_arrays(self, actions: np.ndarray) -> BatchedStep:
         K, N = self.num_envs, len(self.possible_agents)
-        if self.residuals is None:
-            if self._action_scales is not None:
-                actions = np.clip(self.env.checked_action_array(actions), -1.0, 1.0) * self._action_scales
-            result = self.env.step_arrays(actions)
-            rewards = result.rewards
-        else:
-            residuals = self._checked_residuals(actions)
-            combined, penalties = self.residuals(self._raw, residuals)
-            result = self.env.step_arrays(combined)
-            rewards = result.rewards
-            if self.correction_penalty > 0:
-                rewards = rewards * (1.0 - self.correction_penalty * penalties).reshape(K, N)
-            ended = np.flatnonzero(result.terminations | result.truncations)
-            if len(ended):  # SAME_STEP autoreset: those copies start a new episode, their references too
-                self.residuals.reset(ended)
+        learned = self._checked_actions(actions)
+        applied, factors = self.action_rows(self._raw, learned)
+        result = self.env.step_arrays(applied)
+        rewards = result.rewards if factors is None else result.rewards * factors.reshape(K, N)
+        ended = np.flatnonzero(result.terminations | result.truncations)
+        if len(ended):  # SAME_STEP autoreset: those copies start a new episode, their rules' state too
+            self.action_rows.reset(self._copy_rows(ended))
         final = self._rows(result.infos["final_observation"])
-        if self.hold_penalty > 0:  # charged on the observation each step ended in
-            factors = np.empty(K * N)
-            for layout, rows in self._layout_rows:
-                factors[rows] = hold_penalty_factors(layout, final[rows])
-            rewards = rewards - self.hold_penalty * factors.reshape(K, N)
-        if self.contact_penalty > 0:
-            rewards = rewards - self.contact_penalty * (result.infos["contacts"] > 0)
+        rewards = shaped_rewards(rewards, final, result.infos["contacts"], self._layout_rows,
+                                 self.options.hold_penalty, self.options.contact_penalty)
         self._raw = self._rows(result.observations)
         observations = self._featured(self._raw)
         # A copy that did not end ended its step in the observation it returns: only ended copies differ.
         featured_final = observations.copy()
-        ended = np.flatnonzero(result.terminations | result.truncations)
         if len(ended):
             featured_final[ended] = self._featured(final.reshape(K, N, -1)[ended].reshape(-1, self._size),
                                                    copies=len(ended))
@@ -261,23 +186,112 @@ class BatchedTrainingEnv:
         """(K, N * size) -> (K * N, size): one row per agent, copy-major."""
         return observations.reshape(-1, self._size)
 
+    def _copy_rows(self, copies: np.ndarray) -> np.ndarray:
+        """The rows of ``copies``: agent i of copy k is row ``k * N + i``."""
+        N = len(self.possible_agents)
+        return (np.asarray(copies)[:, None] * N + np.arange(N)).ravel()
+
     def _featured(self, rows: np.ndarray, copies: int | None = None) -> np.ndarray:
         """(C * N, size) raw rows of ``copies`` = C copies (default all K) -> (C, N * featured size)
         observations with the features appended."""
-        copies = self.num_envs if copies is None else copies
-        if self.obs_features == "none":
-            return rows.reshape(copies, -1)
-        out = np.empty((len(rows), self._featured_size), dtype=np.float32)
-        for (_, part), apply in zip(self._layout_rows, self._features):
-            part = part[part < len(rows)]  # rows of one layout: agent-major positions repeat per copy
-            out[part] = apply(rows[part])
-        return out.reshape(copies, -1)
+        return self._features(rows).reshape(self.num_envs if copies is None else copies, -1)
 
-    def _checked_residuals(self, actions: Any) -> np.ndarray:
-        """Residuals (K * N, n) float64 clipped to [-1, 1], or the batched env's error for bad ones (naming
-        the field) before any copy or controller moves."""
+    def _checked_actions(self, actions: Any) -> np.ndarray:
+        """The learned actions (K * N, n) float64 as given (the mode's rule clips them where it uses them, and the
+        env counts what it clips), or the batched env's error for bad ones (naming the field) before any copy or
+        controller moves."""
         K, N, n = self.num_envs, len(self.possible_agents), self.env.uniform_joints
         if self._raw is None:
             raise RuntimeError("step: call reset() first (the batched env has never been reset)")
-        residuals = self.env.checked_action_array(actions)  # (K, T) float64, a copy; raises the env's errors
-        return np.clip(residuals.reshape(K * N, n), -1.0, 1.0)
+        return self.env.checked_action_array(actions).reshape(K * N, n)  # a copy; raises the env's errors
+
+
+class ParallelTrainingEnv(ParallelEnv):
+    """One copy of :class:`BatchedTrainingEnv` as a PettingZoo parallel env (RLlib's and the imitation's view):
+    dicts per agent in and out, the same transforms. An episode's end empties ``agents``; the copy has already
+    started its next episode (SAME_STEP autoreset), which ``reset()`` without a seed returns, as a fresh reset
+    of the env's generator would. Infos per agent are the batched env's entries of the copy."""
+
+    metadata = {"name": "ee_formation_training_v0"}
+
+    def __init__(self, scenario: Any, overrides: Mapping[str, Any] | None = None,
+                 options: TrainingOptions | None = None):
+        self.batched = BatchedTrainingEnv(scenario, overrides, options, num_envs=1)
+        self.possible_agents = list(self.batched.possible_agents)
+        self.agents: list[str] = []
+        self.task, self.scenario, self.options = self.batched.task, self.batched.scenario, self.batched.options
+        self.render_mode = None
+        self._size = self.batched.observation_space(self.possible_agents[0]).shape[0]
+        self._next: Any = None  # the autoreset's start, after an episode ended
+
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self.batched.observation_space(agent)
+
+    def action_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self.batched.action_space(agent)
+
+    def observation_layout(self, agent: str) -> Any:
+        return self.batched.observation_layout(agent)
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is None and options is None and self._next is not None:
+            result = self._next
+        else:
+            result = self.batched.reset_arrays(seed=None if seed is None else [seed], options=options)
+        self._next = None
+        self.agents = list(self.possible_agents)
+        return self._observations(result.observations), self._infos(result.infos)
+
+    def step(self, actions: Mapping[str, Any]):
+        if not self.agents:
+            raise RuntimeError("step: the episode has ended (or never started); call reset()")
+        result = self.batched.step_arrays(self._action_array(actions))
+        observations = self._observations(result.infos["final_observation"])
+        rewards = {agent: float(reward) for agent, reward in zip(self.possible_agents, result.rewards[0])}
+        terminations = {agent: bool(result.terminations[0]) for agent in self.possible_agents}
+        truncations = {agent: bool(result.truncations[0]) for agent in self.possible_agents}
+        infos = self._infos(result.infos)
+        if result.terminations[0] or result.truncations[0]:
+            self.agents = []
+            self._next = result._replace(infos={key: value for key, value in result.infos.items()
+                                                if key != "final_observation"})
+        return observations, rewards, terminations, truncations, infos
+
+    def state(self) -> np.ndarray:
+        return self.batched.state()[0]
+
+    def close(self) -> None:
+        self.batched.close()
+
+    def _observations(self, observations: np.ndarray) -> dict[str, np.ndarray]:
+        return dict(zip(self.possible_agents, observations.reshape(len(self.possible_agents), self._size)))
+
+    def _infos(self, infos: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+        N = len(self.possible_agents)
+        out: dict[str, dict[str, Any]] = {agent: {} for agent in self.possible_agents}
+        for key, value in infos.items():
+            if key == "final_observation" or not isinstance(value, np.ndarray) or len(value) != 1:
+                continue
+            entry = value[0]
+            for i, agent in enumerate(self.possible_agents):
+                out[agent][key] = entry[i] if isinstance(entry, np.ndarray) and entry.shape[:1] == (N,) else entry
+        return out
+
+    def _action_array(self, actions: Any) -> np.ndarray:
+        """(N, n) float64 from the per-agent actions; ``ValueError`` naming the agent for a bad one."""
+        if not isinstance(actions, Mapping) or set(actions) != set(self.possible_agents):
+            raise ValueError(f"actions: expected a dict with one action per agent {self.possible_agents}, got "
+                             f"{sorted(actions) if isinstance(actions, Mapping) else type(actions).__name__}")
+        shape = self.action_space(self.possible_agents[0]).shape
+        rows = []
+        for agent in self.possible_agents:
+            try:
+                action = np.asarray(actions[agent], dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"actions[{agent!r}]: expected a numeric array") from None
+            if action.shape != shape:
+                raise ValueError(f"actions[{agent!r}]: expected shape {shape}, got {action.shape}")
+            if not np.isfinite(action).all():
+                raise ValueError(f"actions[{agent!r}]: expected finite values")
+            rows.append(action)
+        return np.stack(rows)

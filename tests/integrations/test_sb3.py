@@ -15,13 +15,17 @@ pytest.importorskip("stable_baselines3")
 
 from stable_baselines3 import PPO  # noqa: E402
 
+from ee_formation_env.baselines.learned.options import TrainingOptions  # noqa: E402
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv  # noqa: E402
+
+# The plain torque-mode training env: no features, no shaping.
+TORQUE = TrainingOptions(mode="torque", obs_features="none", hold_penalty=0.0)
 from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv  # noqa: E402
 
 
 def _factory(**overrides):
     overrides.setdefault("episode_seconds", 0.05)  # 5 env steps at 100 Hz
-    return functools.partial(BatchedTrainingEnv, "planar_square", overrides)
+    return functools.partial(BatchedTrainingEnv, "planar_square", overrides, TORQUE)
 
 
 def test_a_plain_batched_env_works_as_well():
@@ -166,7 +170,8 @@ def test_worker_processes_build_their_own_worlds():
 def test_envs_in_process_beside_workers_step_as_all_in_process():
     """One copy stepped by this process while a worker steps two: the same rollout as all three in-process."""
     factory = _factory(episode_seconds=0.05)
-    residual = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, "residual")
+    residual = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05},
+                                 TrainingOptions(mode="residual"))
     for chosen in (factory, residual):
         split = SharedPolicyVecEnv(chosen, 3, n_workers=1, in_process_envs=1)
         in_process = SharedPolicyVecEnv(chosen, 3, n_workers=0)
@@ -193,7 +198,7 @@ def test_bad_in_process_envs_are_rejected_before_any_worker_starts(n_workers, in
 
 
 def test_worker_errors_surface_in_the_parent():
-    bad = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, "torque")
+    bad = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, TORQUE)
     venv = SharedPolicyVecEnv(bad, 1, n_workers=1)
     try:
         venv.reset()

@@ -18,7 +18,11 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
+from ee_formation_env.baselines.learned.options import TrainingOptions  # noqa: E402
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv  # noqa: E402
+
+# The plain torque-mode training env: no features, no shaping.
+TORQUE = TrainingOptions(mode="torque", obs_features="none", hold_penalty=0.0)
 from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals and /proc (Linux)")
@@ -27,7 +31,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _factory():
-    return functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05})
+    return functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, TORQUE)
 
 
 def _gone(pid: int) -> bool:
@@ -99,7 +103,7 @@ def test_a_stopped_worker_times_out_and_close_kills_it():
 
 
 def test_worker_errors_name_the_worker_and_carry_its_traceback():
-    bad = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, "torque")
+    bad = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05}, TORQUE)
     venv = SharedPolicyVecEnv(bad, 1, n_workers=1)
     pids = venv.worker_pids()
     try:

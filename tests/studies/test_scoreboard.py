@@ -11,31 +11,6 @@ from ee_formation_env.scenario_sets import held_out_scenarios
 from studies import scoreboard
 
 
-def test_interquartile_mean_trims_a_quarter_at_each_end():
-    assert scoreboard.interquartile_mean(np.arange(8.0)) == pytest.approx(np.mean([2, 3, 4, 5]))
-    assert scoreboard.interquartile_mean(np.array([[0, 1, 2, 100.0]]), axis=1)[0] == pytest.approx(1.5)
-
-
-def test_stratified_bootstrap_resamples_runs_within_each_stratum():
-    # Every stratum holds the same two values across runs: any resample's mean lies between them.
-    scores = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
-    intervals = scoreboard.stratified_bootstrap(scores, reps=500)
-    low, high = intervals["mean"]
-    assert 0.0 <= low < 0.5 < high <= 1.0
-    constant = scoreboard.stratified_bootstrap(np.full((3, 4), 2.5), reps=50)
-    assert constant["mean"] == (2.5, 2.5) and constant["iqm"] == (2.5, 2.5)
-    # Strata are never mixed: with one run per stratum nothing varies.
-    assert scoreboard.stratified_bootstrap(np.array([[0.0, 10.0]]), reps=50)["mean"] == (5.0, 5.0)
-    with pytest.raises(ValueError, match="scores: expected a non-empty"):
-        scoreboard.stratified_bootstrap(np.zeros(3))
-
-
-def test_aggregate_resamples_episodes_of_a_single_run():
-    metric = scoreboard.aggregate([[0.0, 1.0, 1.0, 1.0]])
-    assert metric["mean"] == 0.75 and metric["per_seed"] == [0.75]
-    assert metric["ci_low"] < 0.75 < metric["ci_high"] or metric["ci_high"] == 1.0
-
-
 def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
     argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "gradient",
             "residual-ppo", "--seeds", "0", "1", "--episodes", "2"]

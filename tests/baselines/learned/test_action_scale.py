@@ -9,15 +9,20 @@ import pytest
 
 from ee_formation_env import parallel_env
 from ee_formation_env.env import PHYSICS_FAULTS
-from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, ScaledActionEnv,
-                                                             ScaledActionPolicy, action_scales, all_ones,
+from ee_formation_env.baselines.learned.action_scale import (DEFAULT_ACTION_ACCELERATION, action_scales, all_ones,
                                                              check_action_acceleration, unit_torques)
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.policy import ComposedPolicy
+from ee_formation_env.baselines.learned.torque import TorqueRows
+from ee_formation_env.baselines.learned.training_env import ParallelTrainingEnv
 from ee_formation_env.baselines.metrics import stack_policies
 from ee_formation_env.baselines.reference.dynamics import nominal_dynamics
 from ee_formation_env.scenario import BUILTIN_SCENARIOS, load_scenario
 from ee_formation_env.task import build_task
 
 KUKA_TEAM = str(Path(__file__).parents[3] / "studies" / "scenarios" / "kuka_team.yaml")
+# Torque mode, physically scaled actions and nothing else.
+TORQUE = TrainingOptions(mode="torque", obs_features="none", hold_penalty=0.0)
 
 
 @pytest.mark.parametrize("name", BUILTIN_SCENARIOS)
@@ -71,7 +76,7 @@ def test_random_learned_actions_drive_a_kuka_team_without_faults(closer):
     raw = closer(parallel_env(KUKA_TEAM))
     steps, fault = _random_episode_steps(raw, rng)
     assert steps == 1 and PHYSICS_FAULTS[fault].startswith("joint speed")
-    scaled = closer(ScaledActionEnv(parallel_env(KUKA_TEAM), action_scales(raw.task)))
+    scaled = closer(ParallelTrainingEnv(KUKA_TEAM, None, TORQUE))
     steps, fault = _random_episode_steps(scaled, rng)
     assert (steps, fault) == (100, 0)
 
@@ -79,7 +84,7 @@ def test_random_learned_actions_drive_a_kuka_team_without_faults(closer):
 def test_scaled_env_applies_clipped_actions_times_the_scales(closer):
     env = closer(parallel_env(KUKA_TEAM))
     scales = action_scales(env.task)
-    wrapped = closer(ScaledActionEnv(parallel_env(KUKA_TEAM), scales))
+    wrapped = closer(ParallelTrainingEnv(KUKA_TEAM, None, TORQUE))
     env.reset(seed=1)
     wrapped.reset(seed=1)
     actions = {agent: np.linspace(-1.5, 1.5, 7) for agent in env.possible_agents}
@@ -104,12 +109,13 @@ def test_scaled_policies_stack_row_by_row_exactly():
         def __call__(self, observation):
             return observation @ self.weights
 
-    policies = [ScaledActionPolicy(Linear(rng.normal(size=(5, 3))), rng.uniform(0.01, 1, 3)) for _ in range(4)]
+    policies = [ComposedPolicy(Linear(rng.normal(size=(5, 3))), None, "none", TorqueRows([rng.uniform(0.01, 1, 3)]))
+                for _ in range(4)]
     observations = rng.normal(size=(4, 5))
     stacked = stack_policies(policies)(observations)
     for row, policy in enumerate(policies):
         assert stacked[row].tobytes() == policy(observations[row]).tobytes()
-        assert np.all(np.abs(stacked[row]) <= policy.scale)
+        assert np.all(np.abs(stacked[row]) <= policy.rows.joint_scales[0])
 
 
 @pytest.mark.parametrize("mode", ["torque", "residual"])
@@ -131,5 +137,4 @@ def test_a_saved_run_acts_with_the_scales_it_trained_with(tmp_path, closer, mode
     expected = action_scales(env.task, 40.0)
     policies = learned_policies(run_dir, env, config)
     for agent, policy in policies.items():
-        scale = policy.scale if mode == "torque" else policy.joint_scale
-        assert np.array_equal(scale, expected[agent]), agent
+        assert np.array_equal(policy.rows.joint_scales[0], expected[agent]), agent

@@ -7,13 +7,24 @@ import pytest
 
 import ee_formation_env
 
-from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureEnv, FeaturePolicy, feature_size,
-                                                         log_error_features, transform)
-from ee_formation_env.baselines.learned.training_env import make_training_env
+from ee_formation_env.baselines.learned.features import (FEATURE_SETS, FeatureRows, feature_size, log_error_features,
+                                                         transform_stack)
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.policy import ComposedPolicy
+from ee_formation_env.baselines.learned.torque import TorqueRows
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, ParallelTrainingEnv
+
+# Torque mode with features and nothing else: the env's actions and rewards.
+FEATURED = TrainingOptions(mode="torque", obs_features="log-error", hold_penalty=0.0)
 
 
-def test_feature_env_appends_the_transform_of_each_agents_own_observation(make_env):
-    plain, wrapped = make_env("planar_square"), FeatureEnv(make_env("planar_square"), "log-error")
+def transform(layout, features):
+    """One observation's transform: the one-row case of the stack's."""
+    return lambda observation: transform_stack(layout, features)(np.asarray(observation)[None])[0]
+
+
+def test_feature_env_appends_the_transform_of_each_agents_own_observation(make_env, closer):
+    plain, wrapped = make_env("planar_square"), closer(ParallelTrainingEnv("planar_square", None, FEATURED))
     observations, _ = plain.reset(seed=3)
     featured, _ = wrapped.reset(seed=3)
     for _ in range(3):
@@ -53,7 +64,9 @@ def test_features_resolve_the_error_in_tolerances_and_point_downhill(make_env):
     toward = -parts.relative_positions[0] / np.linalg.norm(parts.relative_positions[0])
     np.testing.assert_allclose(direction, toward * np.log1p(1.0), atol=1e-12)
     # "none" appends nothing.
-    assert feature_size(layout, "none") == 0 and transform(layout, "none")(raw) is raw
+    stack = raw[None]
+    assert feature_size(layout, "none") == 0 and transform_stack(layout, "none")(stack) is stack
+    assert FeatureRows([layout], ["none"])(stack) is stack
 
 
 def test_feature_policy_sees_what_training_saw(make_env):
@@ -70,10 +83,10 @@ def test_feature_policy_sees_what_training_saw(make_env):
             seen.append(observation)
             return np.zeros(2)
 
-    policy = FeaturePolicy(Recorder(), layout, "log-error")
+    policy = ComposedPolicy(Recorder(), layout, "log-error", TorqueRows([None]))
     observations, _ = env.reset(seed=1)
     policy(observations[agent])
-    training_env = make_training_env("planar_square", {"episode_seconds": 0.3}, obs_features="log-error")
+    training_env = ParallelTrainingEnv("planar_square", {"episode_seconds": 0.3}, FEATURED)
     try:
         featured, _ = training_env.reset(seed=1)
         np.testing.assert_array_equal(seen[0], featured[agent])
@@ -84,7 +97,9 @@ def test_feature_policy_sees_what_training_saw(make_env):
 def test_unknown_feature_set_is_rejected(make_env):
     assert FEATURE_SETS == ("none", "log-error", "invariant")
     with pytest.raises(ValueError, match="obs_features"):
-        FeatureEnv(make_env("planar_square"), "squared")
+        TrainingOptions(obs_features="squared")
+    with pytest.raises(ValueError, match="obs_features"):
+        FeatureRows([make_env("planar_square").observation_layout("arm_0")], ["squared"])
 
 
 @pytest.mark.parametrize("scenario, rotated", [
@@ -116,4 +131,4 @@ def test_invariant_features_need_a_first_joint_about_the_base_z_axis(closer):
                                          "base z axis; arms\\[0\\] joint 'joint_1'"):
         check_invariant_arms(closer(ee_formation_env.parallel_env("spatial_tetrahedron")).task)
     with pytest.raises(ValueError, match="obs_features: 'invariant'"):
-        make_training_env("spatial_tetrahedron", obs_features="invariant")
+        BatchedTrainingEnv("spatial_tetrahedron", options=TrainingOptions(obs_features="invariant"))

@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 
 from ee_formation_env import baselines
-from ee_formation_env.baselines.learned.residual import (ResidualActionEnv, ResidualPolicy, combine, correction_factor,
-                               error_gate, error_gates)
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.policy import ComposedPolicy
+from ee_formation_env.baselines.learned.residual import ResidualRows, error_gate, error_gates
+from ee_formation_env.baselines.learned.training_env import ParallelTrainingEnv
+
+
+def _residual_env(scenario, overrides=None, **options):
+    """The residual training env of one copy, without features or shaping."""
+    return ParallelTrainingEnv(scenario, overrides, TrainingOptions(mode="residual", obs_features="none",
+                                                                    hold_penalty=0.0, **options))
 
 
 class _Zero:
@@ -19,9 +27,10 @@ class _Zero:
 
 
 @pytest.mark.parametrize("reference,gate", [("gradient", False), ("adaptive_jacobian", False), ("adaptive_jacobian", True)])
-def test_zero_correction_reproduces_the_reference_bit_for_bit(make_env, reference, gate):
-    plain, wrapped_env = make_env("planar_square", episode_seconds=0.3), make_env("planar_square", episode_seconds=0.3)
-    residual = ResidualActionEnv(wrapped_env, reference=reference, scale=0.3, gate=gate)
+def test_zero_correction_reproduces_the_reference_bit_for_bit(make_env, closer, reference, gate):
+    plain = make_env("planar_square", episode_seconds=0.3)
+    residual = closer(_residual_env("planar_square", {"episode_seconds": 0.3}, reference=reference,
+                                    residual_scale=0.3, residual_gate=gate))
     policies = baselines.make_policies(reference, plain)
     observations, _ = plain.reset(seed=4)
     residual_observations, _ = residual.reset(seed=4)
@@ -43,28 +52,33 @@ def test_residual_policy_with_zero_correction_is_the_reference(make_env):
     twins = baselines.make_policies("adaptive_jacobian", env)
     observations, _ = env.reset(seed=1)
     for agent in env.possible_agents:
-        policy = ResidualPolicy(twins[agent], _Zero(), scale=0.5)
+        rule = ResidualRows([twins[agent]], 0.5, 0.5, [None], [None])
+        policy = ComposedPolicy(_Zero(), env.observation_layout(agent), "none", rule)
         policy.reset()
         references[agent].reset()
-        assert policy(observations[agent]).tobytes() == references[agent](observations[agent]).tobytes()
+        expected = np.asarray(references[agent](observations[agent]), dtype=np.float64)  # the rule's float64
+        assert policy(observations[agent]).tobytes() == expected.tobytes()
 
 
-def test_correction_penalty_scales_the_reward_by_the_correction_only(make_env):
+def test_correction_penalty_scales_the_reward_by_the_correction_only(make_env, closer):
     plain = make_env("planar_square", episode_seconds=0.1)
-    residual = ResidualActionEnv(make_env("planar_square", episode_seconds=0.1), scale=0.1, correction_penalty=0.5)
+    residual = closer(_residual_env("planar_square", {"episode_seconds": 0.1}, residual_scale=0.1,
+                                    correction_penalty=0.5, residual_gate=False))
     plain_policies = baselines.make_policies("adaptive_jacobian", plain)
     observations, _ = plain.reset(seed=0)
     residual.reset(seed=0)
     correction = np.array([1.0, -0.5], dtype=np.float32)
     reference_actions = {a: plain_policies[a](observations[a]) for a in plain.agents}
-    _, plain_rewards, *_ = plain.step({a: combine(reference_actions[a], correction.astype(np.float64), 0.1)
+    _, plain_rewards, *_ = plain.step({a: reference_actions[a] + 0.1 * correction.astype(np.float64)
                                       for a in plain.agents})
     _, rewards, *_ = residual.step({a: correction for a in plain.possible_agents})
     for agent in plain.possible_agents:
         assert rewards[agent] == pytest.approx(plain_rewards[agent] * (1 - 0.5 * np.mean(correction.astype(np.float64) ** 2)), rel=1e-12)
-    assert correction_factor(np.array([3.0, -3.0]), 1.0) == 0.0  # the correction is clipped: rewards stay >= 0
+    rule = ResidualRows([plain_policies["arm_0"]], 0.1, 1.0, [None], [None])
+    _, factors = rule(observations["arm_0"][None], np.array([[3.0, -3.0]]))
+    assert factors[0] == 0.0  # the correction is clipped: rewards stay >= 0
     with pytest.raises(ValueError, match="correction_penalty"):
-        ResidualActionEnv(make_env("planar_square"), correction_penalty=1.5)
+        TrainingOptions(correction_penalty=1.5)
 
 
 @pytest.mark.parametrize("scenario", ["planar_square", "planar_square_displacement"])
@@ -108,13 +122,14 @@ def test_error_gates_of_a_stack_are_each_agents_gate(make_env, scenario):
     ({"arm_1": "left"}, r"actions\['arm_1'\]: expected a numeric array"),
     ({"arm_2": np.array([np.nan, 0.0])}, r"actions\['arm_2'\]: expected finite values"),
 ])
-def test_bad_residuals_get_the_envs_error_before_anything_moves(make_env, bad, match):
-    residual = ResidualActionEnv(make_env("planar_square"), scale=0.3, gate=True)
+def test_bad_residuals_get_the_envs_error_before_anything_moves(closer, bad, match):
+    residual = closer(_residual_env("planar_square", residual_scale=0.3, residual_gate=True))
     observations, _ = residual.reset(seed=0)
+    positions = residual.batched.env.joint_positions().copy()
     actions = {agent: np.zeros(2, dtype=np.float32) for agent in residual.possible_agents}
     with pytest.raises(ValueError, match=match):
         residual.step({**actions, **bad})
-    assert residual.env._step_count == 0
-    assert all(np.all(policy.eta == 0) for policy in residual.references.policies.values())  # nothing adapted
+    assert np.array_equal(residual.batched.env.joint_positions(), positions)  # nothing moved
+    assert all(np.all(policy.eta == 0) for policy in residual.batched.action_rows.references)  # nothing adapted
     after, *_ = residual.step(actions)  # the wrapper is still usable
     assert set(after) == set(observations)

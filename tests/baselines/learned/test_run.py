@@ -18,7 +18,8 @@ from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET  # 
 from ee_formation_env.baselines.learned.imitation import actor_mean, fit_actor  # noqa: E402
 from ee_formation_env.baselines.learned.sb3_backend import build_sb3_model, collected_steps  # noqa: E402
 from ee_formation_env.baselines.learned.imitation import demonstrations  # noqa: E402
-from ee_formation_env.baselines.learned.training_env import make_training_env  # noqa: E402
+from ee_formation_env.baselines.learned.options import TrainingOptions  # noqa: E402
+from ee_formation_env.baselines.learned.training_env import ParallelTrainingEnv  # noqa: E402
 
 EVAL_FAST = ["--eval-episodes", "2", "--eval-seconds", "0.3", "--no-progress", "--eval-workers", "0"]
 FAST = ["--n-envs", "1", "--n-workers", "0", "--train-episode-seconds", "0.5", "--imitation-rounds", "1",
@@ -141,7 +142,8 @@ def test_the_fitted_actor_follows_the_reference_actions():
                              "--no-progress"])
     model = build_sb3_model(args, None)
     try:
-        env = make_training_env("planar_square", {"episode_seconds": 0.5}, "torque")
+        env = ParallelTrainingEnv("planar_square", {"episode_seconds": 0.5},
+                                  TrainingOptions(mode="torque", obs_features="none", hold_penalty=0.0))
         observations, labels = demonstrations(env, "gradient", 3, np.arange(3))
         env.close()
         venv = model.get_env()

@@ -7,9 +7,20 @@ import numpy as np
 import pytest
 
 from conftest import CLOSING, two_planar_arms
-from ee_formation_env.baselines.learned.shaping import (SPEED_SCALE, ContactShapingEnv, HoldShapingEnv,
-                                                       hold_penalty_factor)
-from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.shaping import SPEED_SCALE, hold_penalty_factors
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, ParallelTrainingEnv
+
+
+def hold_penalty_factor(layout, observation):
+    """One observation's factor: the one-row case of the stack's."""
+    return float(hold_penalty_factors(layout, np.asarray(observation)[None])[0])
+
+
+def _torque(hold_penalty=0.0, contact_penalty=0.0):
+    """Torque mode with only the given shaping."""
+    return TrainingOptions(mode="torque", obs_features="none", hold_penalty=hold_penalty,
+                           contact_penalty=contact_penalty)
 
 
 def _observation_at_goal(env, agent, dq):
@@ -36,8 +47,8 @@ def test_penalty_factor_charges_speed_only_in_formation(make_env):
     assert hold_penalty_factor(layout, out_of_formation) == 0.0
 
 
-def test_shaped_rewards_are_the_envs_outside_the_formation(make_env):
-    plain, shaped = make_env("planar_square"), HoldShapingEnv(make_env("planar_square"), 0.5)
+def test_shaped_rewards_are_the_envs_outside_the_formation(make_env, closer):
+    plain, shaped = make_env("planar_square"), closer(ParallelTrainingEnv("planar_square", None, _torque(0.5)))
     plain.reset(seed=2)
     shaped.reset(seed=2)
     for _ in range(5):  # the start is ~40 tolerances away: nothing is charged
@@ -46,13 +57,14 @@ def test_shaped_rewards_are_the_envs_outside_the_formation(make_env):
         _, shaped_rewards, *_ = shaped.step(actions)
         assert shaped_rewards == rewards
     with pytest.raises(ValueError, match="hold_penalty"):
-        HoldShapingEnv(make_env("planar_square"), 1.5)
+        TrainingOptions(hold_penalty=1.5)
 
 
 def test_contact_steps_are_charged_to_both_arms_and_only_those(make_env, closer):
     scenario = two_planar_arms()
-    plain, shaped = make_env(scenario, episode_seconds=2.0), ContactShapingEnv(make_env(scenario, episode_seconds=2.0), 2.5)
-    batched = closer(BatchedTrainingEnv(scenario, {"episode_seconds": 2.0}, "torque", contact_penalty=2.5, num_envs=1))
+    plain = make_env(scenario, episode_seconds=2.0)
+    shaped = closer(ParallelTrainingEnv(scenario, {"episode_seconds": 2.0}, _torque(contact_penalty=2.5)))
+    batched = closer(BatchedTrainingEnv(scenario, {"episode_seconds": 2.0}, _torque(contact_penalty=2.5), num_envs=1))
     plain.reset(seed=0)
     shaped.reset(seed=0)
     batched.reset_arrays(seed=[0])
@@ -71,8 +83,6 @@ def test_contact_steps_are_charged_to_both_arms_and_only_those(make_env, closer)
 
 
 @pytest.mark.parametrize("penalty", [-0.1, float("inf"), float("nan")])
-def test_a_bad_contact_penalty_names_the_field(make_env, penalty):
+def test_a_bad_contact_penalty_names_the_field(penalty):
     with pytest.raises(ValueError, match="contact_penalty: expected a finite value >= 0"):
-        ContactShapingEnv(make_env("planar_square"), penalty)
-    with pytest.raises(ValueError, match="contact_penalty: expected a finite value >= 0"):
-        BatchedTrainingEnv("planar_square", contact_penalty=penalty)
+        TrainingOptions(contact_penalty=penalty)

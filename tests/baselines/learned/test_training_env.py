@@ -1,4 +1,5 @@
-"""The batched training env: copy k is one single training env reset with its seed, bit for bit."""
+"""The batched training env: copy k is one single-copy training env (the PettingZoo view) reset with its seed, bit
+for bit."""
 
 from __future__ import annotations
 
@@ -9,27 +10,24 @@ import numpy as np
 import pytest
 
 from conftest import mixed_team
-from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, make_training_env
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, ParallelTrainingEnv
 
 # Physically scaled learned actions (its URDF efforts are far above its links' needs): action_scale.py.
 KUKA_TEAM = str(Path(__file__).parents[3] / "studies" / "scenarios" / "kuka_team.yaml")
 
 # (mode, settings) of the training envs compared: both modes, gated and plain residuals, features and shaping.
 CASES = {
-    "residual": dict(mode="residual"),
-    "residual-gated": dict(mode="residual", gate=True, residual_scale=0.3, correction_penalty=0.8),
-    "torque-shaped": dict(mode="torque", hold_penalty=0.5, obs_features="log-error"),
-    "residual-shaped": dict(mode="residual", hold_penalty=1.0, obs_features="log-error"),
-    "residual-invariant": dict(mode="residual", gate=True, obs_features="invariant"),
+    "residual": TrainingOptions(mode="residual", residual_scale=0.1, residual_gate=False),
+    "residual-gated": TrainingOptions(mode="residual", residual_gate=True, residual_scale=0.3, correction_penalty=0.8),
+    "torque-shaped": TrainingOptions(mode="torque", hold_penalty=0.5, obs_features="log-error"),
+    "residual-shaped": TrainingOptions(mode="residual", hold_penalty=1.0, obs_features="log-error"),
+    "residual-invariant": TrainingOptions(mode="residual", residual_gate=True, obs_features="invariant"),
 }
 
 
-def _single(scenario: str, overrides: dict, settings: dict) -> Any:
-    settings = dict(settings)
-    mode = settings.pop("mode")
-    return make_training_env(scenario, overrides, mode, residual_scale=settings.pop("residual_scale", 0.1),
-                             correction_penalty=settings.pop("correction_penalty", 0.5),
-                             gate=settings.pop("gate", False), **settings)
+def _single(scenario: str, overrides: dict, options: TrainingOptions) -> Any:
+    return ParallelTrainingEnv(scenario, overrides, options)
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -40,7 +38,7 @@ def test_copies_are_single_training_envs_through_autoresets(closer, case, scenar
     # Short episodes: every copy ends and restarts (its references reset) within the steps compared.
     overrides = {"episode_seconds": 0.15 if scenario == "planar_square" else 0.05}
     count, seeds = 3, [5, 11, 2]
-    batched = closer(BatchedTrainingEnv(scenario, overrides, num_envs=count, **CASES[case]))
+    batched = closer(BatchedTrainingEnv(scenario, overrides, CASES[case], num_envs=count))
     singles = [closer(_single(scenario, overrides, CASES[case])) for _ in range(count)]
     agents = batched.possible_agents
     N, n = len(agents), batched.action_space(agents[0]).shape[0]
@@ -71,7 +69,7 @@ def test_copies_are_single_training_envs_through_autoresets(closer, case, scenar
 
 
 def test_spaces_are_the_single_training_envs(closer):
-    batched = closer(BatchedTrainingEnv("planar_square", num_envs=2, **CASES["torque-shaped"]))
+    batched = closer(BatchedTrainingEnv("planar_square", options=CASES["torque-shaped"], num_envs=2))
     single = closer(_single("planar_square", {}, CASES["torque-shaped"]))
     for agent in single.possible_agents:
         assert batched.observation_space(agent) == single.observation_space(agent)
@@ -82,7 +80,7 @@ def test_spaces_are_the_single_training_envs(closer):
 
 
 @pytest.mark.parametrize("settings, message", [
-    (dict(mode="imitation"), "mode: expected 'torque' or 'residual'"),
+    (dict(mode="imitation"), r"mode: expected one of \['residual', 'torque'\]"),
     (dict(obs_features="squared"), "obs_features: expected one of"),
     (dict(mode="residual", residual_scale=2.0), r"residual_scale: expected a value in \(0, 1\]"),
     (dict(mode="residual", reference="zero"), "reference: expected a model-based controller"),
@@ -93,7 +91,7 @@ def test_bad_settings_name_the_field_before_any_client_starts(settings, message,
 
     monkeypatch.setattr(ee_formation_env, "vector_env", lambda *a, **k: pytest.fail("a client was built"))
     with pytest.raises(ValueError, match=message):
-        BatchedTrainingEnv("planar_square", num_envs=2, **settings)
+        BatchedTrainingEnv("planar_square", options=TrainingOptions(**settings), num_envs=2)
 
 
 def test_mixed_robot_teams_are_refused_for_parameter_sharing():
@@ -107,19 +105,20 @@ def test_mixed_robot_teams_are_refused_for_parameter_sharing():
     (np.array([["a", "b"]] * 8), r"actions: expected a numeric array"),
 ])
 def test_bad_residuals_raise_before_any_copy_or_controller_moves(closer, bad, match):
-    batched = closer(BatchedTrainingEnv("planar_square", num_envs=2, mode="residual", gate=True))
+    batched = closer(BatchedTrainingEnv("planar_square", options=TrainingOptions(mode="residual", residual_gate=True),
+                                        num_envs=2))
     before = batched.reset_arrays(seed=0)
+    positions = batched.env.joint_positions().copy()
     with pytest.raises(ValueError, match=match):
         batched.step_arrays(bad)
-    policies = [policy for team in batched.residuals.teams for policy in team.values()]
-    assert all(np.all(policy.eta == 0) for policy in policies)  # nothing adapted
-    assert np.array_equal(batched.env.joint_positions(), batched.env.joint_positions())
+    assert all(np.all(policy.eta == 0) for policy in batched.action_rows.references)  # nothing adapted
+    assert np.array_equal(batched.env.joint_positions(), positions)  # nothing moved
     after = batched.step_arrays(np.zeros((8, 2), np.float32))  # still usable, from the same start
     assert after.infos["sim_time"].tolist() == pytest.approx([batched.scenario.control_dt] * 2)
     assert before.observations.shape == after.observations.shape
 
 
 def test_step_before_reset_is_refused(closer):
-    batched = closer(BatchedTrainingEnv("planar_square", num_envs=2, mode="residual"))
+    batched = closer(BatchedTrainingEnv("planar_square", options=TrainingOptions(mode="residual"), num_envs=2))
     with pytest.raises(RuntimeError, match="call reset"):
         batched.step_arrays(np.zeros((8, 2)))

@@ -1,0 +1,153 @@
+"""The training options: what a training mode, its features, its shaping and its action scale are, in one class.
+
+:class:`TrainingOptions` is the one owner of these settings and their defaults. ``train.py``'s flags
+(:class:`~ee_formation_env.baselines.learned.config.TrainConfig`), the BenchMARL task's options
+(:mod:`~ee_formation_env.baselines.learned.benchmarl_task`) and the RLlib and SB3 builders all read it; the
+training env (:class:`~ee_formation_env.baselines.learned.training_env.BatchedTrainingEnv`) and the evaluated
+policy (:mod:`~ee_formation_env.baselines.learned.policy`) are built from it. Fields left ``None`` take the
+mode's preset (:meth:`TrainingOptions.resolved`). The table of docs/training.md is :meth:`options_table`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Optional
+
+from ee_formation_env.baselines import MODEL_BASED_POLICIES
+from ee_formation_env.baselines.learned.action_scale import DEFAULT_ACTION_ACCELERATION, check_action_acceleration
+from ee_formation_env.baselines.learned.features import FEATURE_SETS
+from ee_formation_env.baselines.learned.modes import TrainingMode, mode_names, training_mode
+from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
+
+#: The fields a run's config.json may lack (saved before the option existed), and the value the run had then:
+#: no gate, no features, the default action acceleration (which leaves the built-in robots as they were).
+SAVED_RUN_DEFAULTS = {"residual_gate": False, "obs_features": "none", "hold_penalty": 0.0, "contact_penalty": 0.0,
+                      "action_acceleration": DEFAULT_ACTION_ACCELERATION}
+
+
+def _option(default: Any, unit: str, meaning: str) -> Any:
+    """A field of :class:`TrainingOptions`: its unit ("" if none) and meaning travel in its metadata (the
+    options table and ``train.py``'s flag help)."""
+    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning})
+
+
+@dataclass(frozen=True)
+class TrainingOptions:
+    """The training options (module docstring). Checked on construction: a bad value raises ``ValueError``
+    (``TypeError`` for a wrong type) naming the field. Frozen and plain, so it pickles into worker processes."""
+
+    mode: str = _option("residual", "", "what the learned action is: residual (a correction added to the "
+                        "reference controller's torques) or torque (the normalized joint torques); any registered "
+                        "mode (modes.py)")
+    reference: str = _option("adaptive_jacobian", "", "residual mode: the reference controller (a model-based one: "
+                             + ", ".join(MODEL_BASED_POLICIES) + ")")
+    residual_scale: float = _option(0.3, "", "residual mode: the correction's share of one unit of learned action, "
+                                    "in (0, 1]")
+    residual_gate: bool = _option(True, "", "residual mode: scale the correction by min(1, the agent's error in "
+                                  "success tolerances), so that it fades out at the goal")
+    correction_penalty: float = _option(0.5, "", "residual mode: each agent's reward is multiplied by 1 - this * "
+                                        "mean(correction^2), in [0, 1]")
+    obs_features: Optional[str] = _option(None, "", "features appended to each agent's observation, from it alone "
+                                          "(features.py): " + " or ".join(FEATURE_SETS))
+    hold_penalty: Optional[float] = _option(None, "reward per step", "training only: subtract this times "
+                                            f"min(1, joint speed / {SPEED_SCALE} rad/s) from an in-formation agent's "
+                                            "reward (shaping.py), in [0, 1]")
+    contact_penalty: float = _option(0.0, "reward per step", "training only: subtract this from an agent's reward on "
+                                     "every step its arm touches another arm (shaping.py), >= 0")
+    action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
+                                         "correction) is the torque giving a joint this acceleration at the "
+                                         "initial configuration, at most its torque limit (action_scale.py)")
+    train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
+                                                     "scenario's episode_seconds)")
+    train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
+                                                     "joint positions while training (None in a preset: the "
+                                                     "scenario's; evaluation: the scenario's)")
+
+    def __post_init__(self) -> None:
+        training_mode(self.mode)  # ValueError naming mode
+        if self.reference not in MODEL_BASED_POLICIES:
+            raise ValueError(f"reference: expected a model-based controller {list(MODEL_BASED_POLICIES)}, "
+                             f"got {self.reference!r}")
+        if not isinstance(self.residual_gate, bool):
+            raise TypeError(f"residual_gate: expected True or False, got {self.residual_gate!r}")
+        if self.obs_features is not None and self.obs_features not in FEATURE_SETS:
+            raise ValueError(f"obs_features: expected one of {list(FEATURE_SETS)} or None, got {self.obs_features!r}")
+        self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
+        self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
+        self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
+        self._number("contact_penalty", lambda x: x >= 0, "a finite value >= 0")
+        object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
+        self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
+        self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
+        self.training_mode.check(self)
+
+    def _number(self, name: str, valid: Callable[[float], bool], expected: str, optional: bool = False) -> None:
+        """Check field ``name`` is a finite real number (or None if ``optional``) for which ``valid`` holds, and
+        store it as a float."""
+        value = getattr(self, name)
+        if value is None and optional:
+            return
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise TypeError(f"{name}: expected a number ({expected}), got {type(value).__name__} {value!r}")
+        if not (math.isfinite(value) and valid(value)):
+            raise ValueError(f"{name}: expected {expected}, got {value!r}")
+        object.__setattr__(self, name, float(value))
+
+    @property
+    def training_mode(self) -> TrainingMode:
+        """The registered mode these options name (:func:`~ee_formation_env.baselines.learned.modes.training_mode`)."""
+        return training_mode(self.mode)
+
+    def resolved(self) -> "TrainingOptions":
+        """A copy with every ``None`` field filled from the mode's preset (``train_initial_q_noise`` stays None,
+        the scenario's, where the preset says so)."""
+        preset = self.training_mode.preset
+        filled = {name: getattr(preset, name) for name in PRESET_FIELDS if getattr(self, name) is None}
+        return dataclasses.replace(self, **filled) if filled else self
+
+    def training_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of the training env (options resolved): episode length and, if set, start noise."""
+        options = self.resolved()
+        overrides: dict[str, Any] = {"episode_seconds": options.train_episode_seconds}
+        if options.train_initial_q_noise is not None:
+            overrides["initial_q_noise"] = options.train_initial_q_noise
+        return overrides
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as plain values (JSON-ready): ``TrainingOptions(**options.to_dict())`` is a copy."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def fields(cls) -> tuple[str, ...]:
+        """The option names, in order."""
+        return tuple(spec.name for spec in dataclasses.fields(cls))
+
+    @classmethod
+    def from_saved(cls, saved: Mapping[str, Any]) -> "TrainingOptions":
+        """The options of a run's saved ``config.json`` (the same keys as the fields; other keys are ignored):
+        a key the run lacks takes :data:`SAVED_RUN_DEFAULTS`' value (what it had then), else the default."""
+        defaults = {spec.name: spec.default for spec in dataclasses.fields(cls)}
+        values = {name: saved[name] for name in cls.fields()
+                  if name in saved and not (saved[name] is None and defaults[name] is not None)}
+        for name, value in SAVED_RUN_DEFAULTS.items():
+            values.setdefault(name, value)
+        return cls(**values)
+
+    @classmethod
+    def options_table(cls) -> str:
+        """Every option with its default, unit and meaning, as a Markdown table (docs/training.md shows it)."""
+        lines = ["| option | default | unit | meaning |", "|---|---|---|---|"]
+        for spec in dataclasses.fields(cls):
+            default = f"`{spec.default!r}`" if isinstance(spec.default, str) else f"`{spec.default}`"
+            if spec.default is None:
+                default = "mode preset (" + ", ".join(
+                    f"{mode}: `{getattr(training_mode(mode).preset, spec.name)}`" for mode in mode_names()) + ")"
+            lines.append(f"| `{spec.name}` | {default} | {spec.metadata['unit'] or '-'} | {spec.metadata['meaning']} |")
+        return "\n".join(lines)
+
+
+#: The options a mode's preset fills where they are ``None``.
+PRESET_FIELDS = ("obs_features", "hold_penalty", "train_episode_seconds", "train_initial_q_noise")

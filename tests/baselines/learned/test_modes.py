@@ -1,0 +1,100 @@
+"""The mode registry: a mode is one class registered once, and a toy mode registered here trains and evaluates
+through the same path as the built-in ones (the training env, ``train.py``, the saved run's policies)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import ee_formation_env
+from ee_formation_env.baselines.learned.modes import (ActionRows, TrainingMode, mode_names, register_mode,
+                                                      training_mode, unregister_mode)
+from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.torque import TorqueMode
+from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
+
+
+class HalfTorqueRows(ActionRows):
+    """Half of the clipped learned action as the normalized torque; rewards unchanged."""
+
+    def __init__(self, count: int):
+        self.count = count
+
+    def __call__(self, observations, learned):
+        return 0.5 * np.clip(np.asarray(learned, dtype=np.float64), -1.0, 1.0), None
+
+    def split(self):
+        return [HalfTorqueRows(1) for _ in range(self.count)]
+
+    @classmethod
+    def concatenate(cls, parts):
+        return cls(sum(part.count for part in parts))
+
+
+class HalfTorqueMode(TrainingMode):
+    name = "half_torque"
+    help = "learn half of the joint torques"
+    preset = dataclasses.replace(TorqueMode.preset, n_envs=1, n_workers=0, train_episode_seconds=0.5)
+
+    def action_rows(self, options, copies, agents, joint_scales):
+        return HalfTorqueRows(len(copies) * len(agents))
+
+
+@pytest.fixture
+def half_torque():
+    register_mode(HalfTorqueMode)
+    try:
+        yield HalfTorqueMode
+    finally:
+        unregister_mode(HalfTorqueMode.name)
+
+
+def test_the_builtin_modes_come_first_and_unknown_ones_name_the_field():
+    assert mode_names()[:2] == ("residual", "torque")
+    assert training_mode("residual").name == "residual"
+    with pytest.raises(ValueError, match=r"mode: expected one of \['residual', 'torque'\], got 'torques'"):
+        training_mode("torques")
+    with pytest.raises(ValueError, match="mode: expected one of"):
+        TrainingOptions(mode="torques")
+
+
+def test_a_name_is_registered_once(half_torque):
+    assert "half_torque" in mode_names()
+    with pytest.raises(ValueError, match="mode: 'half_torque' is already registered"):
+        register_mode(HalfTorqueMode)
+
+
+def test_a_registered_mode_acts_in_the_training_env(half_torque, closer):
+    options = TrainingOptions(mode="half_torque", obs_features="none", hold_penalty=0.0)
+    env = closer(BatchedTrainingEnv("planar_square", {"episode_seconds": 0.1}, options, num_envs=2))
+    env.reset_arrays(seed=[0, 1])
+    actions = np.random.default_rng(0).uniform(-1.5, 1.5, (8, 2))
+    result = env.step_arrays(actions)
+    limits = np.concatenate(env.task.torque_limits)
+    expected = 0.5 * np.clip(actions, -1.0, 1.0).reshape(2, -1) * limits
+    np.testing.assert_allclose(result.infos["applied_torque"], expected, rtol=1e-12)
+
+
+def test_a_registered_mode_trains_and_evaluates_through_train_py(half_torque, tmp_path, closer):
+    pytest.importorskip("stable_baselines3")
+    from ee_formation_env.baselines.cli import train_command
+    from ee_formation_env.baselines.learned.policy import learned_policies
+
+    run_dir = tmp_path / "run"
+    assert train_command(["--mode", "half_torque", "--total-timesteps", "200", "--out", str(run_dir),
+                          "--eval-episodes", "1", "--eval-seconds", "0.1", "--eval-workers", "0",
+                          "--no-progress"]) == 0
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["mode"] == "half_torque" and config["n_envs"] == 1  # the mode's preset
+    assert json.loads((run_dir / "comparison.json").read_text())["results"]["learned"]["episodes"] == 1
+    env = closer(ee_formation_env.parallel_env("planar_square"))
+    policies = learned_policies(run_dir, env, config)
+    observations, _ = env.reset(seed=0)
+    for agent, policy in policies.items():
+        assert isinstance(policy.rows, HalfTorqueRows)
+        featured = policy.features(observations[agent][None])[0]  # the preset's features, as in training
+        raw = policy.learned(featured)  # the actor's own action, in [-1, 1]
+        np.testing.assert_array_equal(policy(observations[agent]), 0.5 * np.asarray(raw, dtype=np.float64))

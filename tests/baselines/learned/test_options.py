@@ -1,0 +1,62 @@
+"""The training options: one class, its defaults the ones every backend builds with, its table in the docs."""
+
+from __future__ import annotations
+
+import pickle
+import re
+from pathlib import Path
+
+import pytest
+
+from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.options import SAVED_RUN_DEFAULTS, TrainingOptions
+from ee_formation_env.baselines.learned.training_env import batched_env_factory, env_factory
+
+DOCS = Path(__file__).parents[3] / "docs"
+
+
+def test_train_py_flags_default_to_the_options():
+    config = TrainConfig()
+    for name in TrainingOptions.fields():
+        assert getattr(config, name) == getattr(TrainingOptions(), name), name
+    assert (TrainingOptions().mode, TrainingOptions().residual_scale, TrainingOptions().residual_gate) == (
+        "residual", 0.3, True)  # the settings the committed results were produced with
+
+
+@pytest.mark.parametrize("argv", [[], ["--mode", "torque", "--residual-scale", "0.2", "--no-residual-gate"]])
+def test_both_env_factories_carry_the_runs_options_and_pickle(argv):
+    config = TrainConfig.from_args(["--no-progress", *argv])
+    for factory in (batched_env_factory(config), env_factory(config)):
+        again = pickle.loads(pickle.dumps(factory))  # into worker processes
+        assert again.args[2] == config.training_options()
+        assert again.args[2].residual_scale == config.residual_scale
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--residual-scale", "0"], r"--residual-scale: expected a value in \(0, 1\]"),
+    (["--reference", "zero"], "--reference"),
+    (["--mode", "torques"], "--mode: expected one of"),
+    (["--contact-penalty", "nan"], "--contact-penalty"),
+])
+def test_bad_flags_name_the_flag(argv, message, capsys):
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(argv)
+    assert re.search(message, capsys.readouterr().err)
+
+
+def test_saved_runs_read_back_with_the_options_they_had():
+    old = {"mode": "residual", "reference": "gradient", "residual_scale": 0.1, "algo": "ppo"}  # before the gate
+    options = TrainingOptions.from_saved(old)
+    assert (options.reference, options.residual_scale) == ("gradient", 0.1)
+    for name, value in SAVED_RUN_DEFAULTS.items():
+        assert getattr(options, name) == value, name
+    saved = TrainConfig.from_args(["--mode", "torque"]).to_dict()
+    assert TrainingOptions.from_saved(saved) == TrainConfig.from_dict(saved).training_options()
+
+
+def test_the_training_page_shows_the_generated_options_table():
+    page = (DOCS / "training.md").read_text(encoding="utf-8")
+    match = re.search(r"<!-- generated: training_task_options -->\n(.*?)\n<!-- end generated -->", page, re.S)
+    assert match, "docs/training.md has no generated block 'training_task_options'"
+    assert match.group(1).strip() == TrainingOptions.options_table(), (
+        "docs/training.md: paste this table:\n" + TrainingOptions.options_table())
