@@ -299,7 +299,7 @@ def test_placements_are_checked_where_they_say():
     assert in_file_problem("ROBOTS|ee_formation_env/robots.py") is None
     assert in_module_problem("make_training_env|ee_formation_env.baselines.learned.residual") == (
         "ee_formation_env.baselines.learned.residual has no attribute 'make_training_env'")
-    assert in_module_problem("make_training_env|ee_formation_env.baselines.learned.training_env") is None
+    assert in_module_problem("BatchedTrainingEnv|ee_formation_env.baselines.learned.training_env") is None
 
 
 def test_a_planted_wrong_path_is_reported_with_its_source():
