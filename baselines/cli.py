@@ -3,13 +3,16 @@
 - ``train``: train a shared policy and compare it with the reference controllers (the flags of ``train.py``);
 - ``evaluate``: run reference policies on seeded episodes and print the metrics table;
 - ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
-  from the repository root of a checkout (they are not part of the installed package).
+  from the repository root of a checkout (they are not part of the installed package): the command runs the
+  study in a child Python process whose working directory is the checkout, so that ``studies`` imports from
+  there as it does for ``python -m``; this process's import path is left as it is.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import subprocess
 import sys
 from pathlib import Path
 from typing import Callable, Sequence
@@ -43,6 +46,23 @@ def _evaluate(argv: Sequence[str]) -> int:
     return report_errors(lambda: main(argv, prog="ee-formation evaluate"), "--debug" in argv)
 
 
+#: The child process of a study command: ``python -c`` puts its working directory, the checkout, first on
+#: the import path, where ``studies`` is found.
+_STUDY_PROCESS = ("import sys\n"
+                  "from ee_formation_env.baselines.cli import run_study_here\n"
+                  "sys.exit(run_study_here(sys.argv[1], sys.argv[2:]))\n")
+
+
+def run_study_here(module: str, argv: Sequence[str]) -> int:
+    """Run ``studies.<module>`` in this process, whose working directory is a checkout (the child process of a
+    study command); bad input is reported as by every command (:func:`report_errors`)."""
+    def run() -> int:
+        importlib.import_module(f"studies.{module}").main(list(argv))  # returns its results; they are written
+        return 0
+
+    return report_errors(run, "--debug" in argv)
+
+
 def _study(module: str) -> Callable[[Sequence[str]], int]:
     def run(argv: Sequence[str]) -> int:
         checkout = Path.cwd()
@@ -50,9 +70,7 @@ def _study(module: str) -> Callable[[Sequence[str]], int]:
             raise ValueError(f"{module.replace('_', '-')}: the study runs from the root of a checkout of the "
                              f"repository (it is not installed): cd there and run it again, or `python -m "
                              f"studies.{module}`")
-        sys.path.insert(0, str(checkout))
-        importlib.import_module(f"studies.{module}").main(list(argv))  # returns its results; they are written
-        return 0
+        return subprocess.run([sys.executable, "-c", _STUDY_PROCESS, module, *argv], cwd=checkout).returncode
 
     return lambda argv: report_errors(lambda: run(argv), "--debug" in argv)
 

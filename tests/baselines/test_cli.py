@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -63,3 +64,16 @@ def test_the_installed_command_runs(tmp_path):
         pytest.skip("the ee-formation script is not on PATH (package not installed)")
     result = subprocess.run([script, "--help"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert result.returncode == 0 and "evaluate" in result.stdout
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_a_study_runs_in_a_child_process_from_the_checkout_and_reports_bad_input_in_one_line(monkeypatch, capfd):
+    monkeypatch.chdir(REPO)
+    path_before = list(sys.path)
+    assert main(["random-scenarios", "--seeds", "0"]) == 2
+    assert capfd.readouterr().err.splitlines()[-1] == "error: --seeds: expected 1 to 50, got 0"
+    assert main(["sensing", "--help"]) == 0
+    assert "usage: python -m studies.sensing" in capfd.readouterr().out
+    assert sys.path == path_before  # the command's own import path is left as it was
