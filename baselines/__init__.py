@@ -23,7 +23,8 @@ import numpy as np
 
 from ee_formation_env.baselines.reference.controllers import (AdaptiveJacobianController, AgentModel,
                                                               ApproxJacobianController, FormationController, Gains,
-                                                              GradientController, RandomPolicy, ZeroPolicy)
+                                                              GradientController)
+from ee_formation_env.baselines.reference.team import RandomPolicy, ZeroPolicy
 from ee_formation_env.baselines.reference.dynamics import nominal_dynamics
 from ee_formation_env.baselines.reference.gains import default_gains
 from ee_formation_env.env import FormationEnv

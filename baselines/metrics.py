@@ -20,7 +20,8 @@ from typing import Any, Callable, Mapping, NamedTuple, Protocol, Sequence
 
 import numpy as np
 
-from ee_formation_env.baselines.reference.controllers import FormationController, PolicyTeam, RandomPolicy, ZeroPolicy
+from ee_formation_env.baselines.reference.controllers import FormationController
+from ee_formation_env.baselines.reference.team import PolicyTeam, RandomPolicy, ZeroPolicy
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.vector import BatchedStep, VectorFormationEnv
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances

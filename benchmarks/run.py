@@ -160,7 +160,7 @@ def time_closed_loop(env: FormationEnv, policies: dict[str, Any], steps: int, se
                      batched: bool = True) -> float:
     """Seconds for ``steps`` env steps with one controller per agent acting on its observation: evaluated as
     one :class:`ee_formation_env.baselines.reference.controllers.PolicyTeam` (``batched``, as ``run_episode`` does) or agent by agent."""
-    from ee_formation_env.baselines.reference.controllers import PolicyTeam
+    from ee_formation_env.baselines.reference.team import PolicyTeam
 
     team = PolicyTeam(policies)
     act = team if batched else (lambda observations: {a: policies[a](observations[a]) for a in env.agents})

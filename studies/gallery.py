@@ -20,7 +20,7 @@ import numpy as np
 
 import ee_formation_env
 from ee_formation_env.baselines import make_policies
-from ee_formation_env.baselines.reference.controllers import PolicyTeam
+from ee_formation_env.baselines.reference.team import PolicyTeam
 
 POLICY = "adaptive_jacobian"
 FORMED_SECONDS = {"planar": 4.0, "spatial": 10.0}  # simulated time after which the image is "formed"

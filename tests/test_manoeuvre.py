@@ -11,7 +11,8 @@ import pytest
 import ee_formation_env
 from ee_formation_env import load_scenario
 from ee_formation_env.baselines import make_policies
-from ee_formation_env.baselines.reference.controllers import ControllerBatch, PolicyTeam, turn_rotations
+from ee_formation_env.baselines.reference.controllers import ControllerBatch, turn_rotations
+from ee_formation_env.baselines.reference.team import PolicyTeam
 from ee_formation_env.baselines.reference.gains import HOLD_SHARE, default_gains, formation_stiffness
 from ee_formation_env.manoeuvre import ManoeuvreConfig, ReferenceMotion, best_fit_angle, parse_manoeuvre, rotation_about
 from ee_formation_env.task import build_task

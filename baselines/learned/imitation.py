@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping
 import numpy as np
 
 from ee_formation_env import baselines
-from ee_formation_env.baselines.reference.controllers import PolicyTeam
+from ee_formation_env.baselines.reference.team import PolicyTeam
 
 if TYPE_CHECKING:
     from ee_formation_env.baselines.learned.config import TrainConfig

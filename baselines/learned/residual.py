@@ -23,7 +23,7 @@ import numpy as np
 
 from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.modes import ActionRows, ModePreset, PPOSettings, TrainingMode, register_mode
-from ee_formation_env.baselines.reference.controllers import PolicyTeam
+from ee_formation_env.baselines.reference.team import PolicyTeam
 from ee_formation_env.observation import ObservationLayout
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE
 
@@ -49,7 +49,7 @@ def error_gate(layout: ObservationLayout, observation: np.ndarray,
 
 class ResidualRows(ActionRows):
     """The residual rule (module docstring) over R rows, in one set of batched calls: the rows' reference
-    controllers as one :class:`~ee_formation_env.baselines.reference.controllers.PolicyTeam`, the gates of the
+    controllers as one :class:`~ee_formation_env.baselines.reference.team.PolicyTeam`, the gates of the
     rows of one observation layout in one call.
 
     ``references`` (R,): each row's reference controller (stateful: :meth:`reset` restarts it).

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ee_formation_env import baselines
-from ee_formation_env.baselines.reference.controllers import PolicyTeam
+from ee_formation_env.baselines.reference.team import PolicyTeam
 from ee_formation_env.baselines.learned.imitation import demonstrations
 
 

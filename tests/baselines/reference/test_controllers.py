@@ -7,7 +7,8 @@ import pytest
 
 from ee_formation_env import baselines
 import ee_formation_env
-from ee_formation_env.baselines.reference.controllers import ControllerBatch, Gains, PolicyTeam
+from ee_formation_env.baselines.reference.controllers import ControllerBatch, Gains
+from ee_formation_env.baselines.reference.team import PolicyTeam
 from ee_formation_env.baselines.reference.gains import PAPER_GAINS, default_gains
 from ee_formation_env.baselines.metrics import run_episode
 from ee_formation_env.builtin import builtin_scenario
