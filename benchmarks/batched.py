@@ -16,7 +16,7 @@ import pybullet
 
 import ee_formation_env
 
-from benchmarks.timing import Budget, _row, interleaved
+from benchmarks.timing import Budget, _row, interleaved, time_zero_torques
 
 
 # ---------------------------------------------------------------------------------------------- vector
@@ -123,15 +123,7 @@ class OneClientFormations:
 
     def time(self, steps: int) -> float:
         self.world.restore_snapshot()
-        client = self.world.client
-        commands = [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm in self.arms]
-        set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
-        start = time.perf_counter()
-        for _ in range(steps):
-            for body, joints, forces in commands:
-                set_motors(body, joints, torque_control, forces=forces, physicsClientId=client)
-            step(physicsClientId=client)
-        return time.perf_counter() - start
+        return time_zero_torques(self.world.client, self.arms, steps)
 
     def close(self) -> None:
         self.world.close()

@@ -44,18 +44,22 @@ def _zero_actions(env: FormationEnv) -> dict[str, np.ndarray]:
     return {agent: np.zeros(env.action_space(agent).shape, dtype=np.float32) for agent in env.possible_agents}
 
 
-def time_raw_floor(env: FormationEnv, steps: int) -> float:
-    """Seconds for ``steps`` physics steps of the env's bodies: zero torques set, ``stepSimulation``."""
-    env.reset(seed=0)
-    client = env.world.client
-    arms = [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm in env.arms]
+def time_zero_torques(client: int, arms: Sequence[Any], steps: int) -> float:
+    """Seconds for ``steps`` physics steps of one client's ``arms``: zero torques set, ``stepSimulation``."""
+    commands = [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm in arms]
     set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
     start = time.perf_counter()
     for _ in range(steps):
-        for body, joints, forces in arms:
+        for body, joints, forces in commands:
             set_motors(body, joints, torque_control, forces=forces, physicsClientId=client)
         step(physicsClientId=client)
     return time.perf_counter() - start
+
+
+def time_raw_floor(env: FormationEnv, steps: int) -> float:
+    """Seconds for ``steps`` physics steps of the env's bodies: zero torques set, ``stepSimulation``."""
+    env.reset(seed=0)
+    return time_zero_torques(env.world.client, env.arms, steps)
 
 
 def _ee_link_index(body: int, name: str, client: int) -> int:

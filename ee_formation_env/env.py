@@ -12,6 +12,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from ee_formation_env.formation import Formation, FormationGraph
+from ee_formation_env.infos import one_copy_info_dicts
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.measurement import PHYSICS_FAULTS
 from ee_formation_env.observation import ObservationLayout, observation_table
@@ -315,30 +316,9 @@ class FormationEnv(ParallelEnv):
         return {agent: row[part] for agent, part in zip(self.possible_agents, self._observation_slices)}
 
     def agent_infos(self, infos: dict[str, np.ndarray]) -> dict[str, dict[str, Any]]:
-        """agent -> its info dict, from the batched env's stacked infos of the one copy (numbers as Python
-        numbers, arrays as views of arrays made for this step only, one disjoint slice per agent)."""
-        formation_error, sim_time = float(infos["formation_error"][0]), float(infos["sim_time"][0])
-        fault = int(infos["physics_fault"][0])
-        margins = infos["singularity_margin"][0].tolist()
-        saturation = infos["torque_saturation"][0].tolist()
-        clipped_so_far = infos["clipped_actions"][0].tolist()
-        contacts = infos["contacts"][0].tolist()
-        errors, masks, torques = infos["edge_errors"][0], infos["edge_mask"][0], infos["applied_torque"][0]
-        result = {}
-        for i, (agent, joints) in enumerate(zip(self.possible_agents, self._joint_slices)):
-            result[agent] = {
-                "formation_error": formation_error,
-                "edge_errors": errors[i],
-                "edge_mask": masks[i],
-                "singularity_margin": margins[i],
-                "torque_saturation": saturation[i],
-                "applied_torque": torques[joints],
-                "clipped_actions": clipped_so_far[i],
-                "contacts": contacts[i],
-                "physics_fault": fault,
-                "sim_time": sim_time,
-            }
-        return result
+        """agent -> its info dict, from the batched env's stacked infos of the one copy
+        (:func:`ee_formation_env.infos.one_copy_info_dicts`)."""
+        return one_copy_info_dicts(infos, self.possible_agents, self._joint_slices)
 
 
 FormationEnv.__doc__ = FormationEnv.__doc__.replace(
