@@ -110,6 +110,7 @@ class FormationEnv(ParallelEnv):
         self.batch = VectorFormationEnv(scenario, num_envs=1, autoreset_mode=AutoresetMode.DISABLED,
                                         render_mode=render_mode, render_width=render_width,
                                         render_height=render_height, real_time=real_time, **overrides)
+        self.render_width, self.render_height = int(render_width), int(render_height)  # checked by the batched env
         self.scenario = self.batch.scenario
         self.possible_agents = self.batch.possible_agents
         self.observation_spaces = dict(self.batch.observation_spaces)  # PettingZoo's dict attributes
@@ -181,14 +182,6 @@ class FormationEnv(ParallelEnv):
     @property
     def render_mode(self) -> str | None:
         return self.batch.render_mode
-
-    @property
-    def render_width(self) -> int:
-        return self.batch._renderer.width if self.batch._renderer else 480
-
-    @property
-    def render_height(self) -> int:
-        return self.batch._renderer.height if self.batch._renderer else 360
 
     @property
     def _step_count(self) -> int:

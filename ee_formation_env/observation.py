@@ -152,7 +152,7 @@ class ObservationBuilder:
     their z_ij and edge errors in their agent's base frame (:meth:`slots_in_own_frames`); then all agents'
     observations are gathered by one index from one source vector
     ``[0, 1, desired (S w), z (S m), e (S w), q_observed (T), dq (T)]`` (S real slots, T joints) and clipped
-    into the spaces' bounds (:meth:`observations`). With a ``reference``
+    into the spaces' bounds (:meth:`observation_matrix`). With a ``reference``
     (:class:`~ee_formation_env.manoeuvre.ReferenceMotion`), its per-agent blocks (N r') follow at the end of
     the source and each agent's block ends its observation.
     """
@@ -277,14 +277,6 @@ class ObservationBuilder:
     def observation_slices(self) -> list[slice]:
         """Each agent's slice of :meth:`observation_matrix`'s last axis."""
         return self._obs_slices
-
-    def observations(self, agents: list[str], slot_z: np.ndarray, slot_errors: np.ndarray,
-                     q_observed: np.ndarray, dq: np.ndarray, reference: np.ndarray | None = None
-                     ) -> dict[str, np.ndarray]:
-        """Every agent's observation (float32, clipped into its space), keyed by ``agents`` (views of one
-        :meth:`observation_matrix`; with K copies' arrays, each (K, obs_dim))."""
-        observation = self.observation_matrix(slot_z, slot_errors, q_observed, dq, reference)
-        return {agent: observation[..., part] for agent, part in zip(agents, self._obs_slices)}
 
     def state(self, ee_world: np.ndarray, q_observed: np.ndarray, dq: np.ndarray) -> np.ndarray:
         """The global state: all end-effector positions (world, formation axes, m), all q, all dq (leading

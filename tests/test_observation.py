@@ -74,9 +74,9 @@ def test_observations_gather_each_agents_slots_and_pad_the_rest():
     z = task.graph.edge_vectors(positions)
     slot_z, slot_errors = builder.slots_in_own_frames(z, task.formation.edge_errors(z))
     q = np.linspace(-1, 1, 8)
-    observations = builder.observations(task.agents, slot_z, slot_errors, q, -q)
+    matrix = builder.observation_matrix(slot_z, slot_errors, q, -q)
     for i, agent in enumerate(task.agents):
-        parts = builder.layouts[i].split(observations[agent])
+        parts = builder.layouts[i].split(matrix[builder.observation_slices[i]])
         degree = len(task.graph.neighbors[i])
         np.testing.assert_array_equal(parts.mask, [1.0] * degree + [0.0] * (3 - degree))
         for s, neighbor in enumerate(task.graph.neighbors[i]):
