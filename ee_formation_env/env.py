@@ -220,8 +220,8 @@ class FormationEnv(ParallelEnv):
         normalized = check.agent_dict(actions, None)
         result = self.batch.step_checked(normalized, check.clip(normalized))
         agents = self.possible_agents
-        ended, truncated = bool(result.terminations[0]), bool(result.truncations[0])
-        return (self.agent_observations(result.observations), dict(zip(agents, result.rewards[0].tolist())),
+        ended, truncated = result.terminations.item(), result.truncations.item()
+        return (self.agent_observations(result.observations), dict(zip(agents, result.rewards.tolist()[0])),
                 dict.fromkeys(agents, ended), dict.fromkeys(agents, truncated), self.agent_infos(result.infos))
 
     def check_action(self, agent: str, action: Any) -> None:

@@ -35,13 +35,12 @@ def one_copy_info_dicts(infos: dict[str, np.ndarray], agents: Sequence[str], joi
                         ) -> dict[str, dict[str, Any]]:
     """agent -> its info dict, from the stacked infos of one copy (K = 1): numbers as Python numbers, arrays
     as views of arrays made for this step only, one disjoint slice per agent."""
-    formation_error, sim_time = float(infos["formation_error"][0]), float(infos["sim_time"][0])
-    fault = int(infos["physics_fault"][0])
-    margins = infos["singularity_margin"][0].tolist()
-    saturation = infos["torque_saturation"][0].tolist()
-    clipped_so_far = infos["clipped_actions"][0].tolist()
-    contacts = infos["contacts"][0].tolist()
-    errors, masks, torques = infos["edge_errors"][0], infos["edge_mask"][0], infos["applied_torque"][0]
+    # One numpy call per entry (``item``, ``tolist`` of the whole (1, N) array): this runs every step.
+    formation_error, sim_time = infos["formation_error"].item(), infos["sim_time"].item()
+    fault = infos["physics_fault"].item()
+    (margins,), (saturation,) = infos["singularity_margin"].tolist(), infos["torque_saturation"].tolist()
+    (clipped_so_far,), (contacts,) = infos["clipped_actions"].tolist(), infos["contacts"].tolist()
+    (errors,), (masks,), (torques,) = infos["edge_errors"], infos["edge_mask"], infos["applied_torque"]
     result = {}
     for i, (agent, joints) in enumerate(zip(agents, joint_slices)):
         result[agent] = {

@@ -262,7 +262,8 @@ class ObservationBuilder:
         Agent i's part is ``observation_slices[i]``. ``reference``: the manoeuvre's blocks (N r') or (K, N r')
         (:meth:`~ee_formation_env.manoeuvre.ReferenceMotion.observation_block`), required with one."""
         lead = q_observed.shape[:-1]
-        constants = np.broadcast_to(self._constants, (*lead, len(self._constants)))
+        # np.broadcast_to costs more than the rest of a one-copy call: only with a copy axis.
+        constants = np.broadcast_to(self._constants, (*lead, len(self._constants))) if lead else self._constants
         parts = [constants, slot_z.reshape(*lead, -1), slot_errors.reshape(*lead, -1), q_observed, dq]
         if (reference is None) != (self.reference is None):
             raise ValueError("reference: expected the manoeuvre's reference blocks exactly when the task has one")

@@ -114,10 +114,11 @@ def rewards_from_ratios(mean_ratios: np.ndarray, all_within: np.ndarray, config:
     """Every agent's reward (N,) from :func:`agent_error_ratios`' outputs (or (K, N) from stacked ones; the
     team mean is then taken per copy)."""
     span = np.log10(config.error_ceiling / config.error_floor)
-    closeness = np.clip(np.log10(config.error_ceiling / (mean_ratios + config.error_floor)) / span, 0.0, 1.0)
+    closeness = np.log10(config.error_ceiling / (mean_ratios + config.error_floor)) / span
+    np.minimum(np.maximum(closeness, 0.0, out=closeness), 1.0, out=closeness)  # np.clip, without its overhead
     rewards = config.formation * closeness + config.in_tolerance * all_within
-    if config.team:
-        rewards = np.broadcast_to(rewards.mean(axis=-1, keepdims=True), rewards.shape).copy()
+    if config.team:  # every agent gets its copy's mean (np.mean's arithmetic, without its overhead)
+        rewards[...] = np.add.reduce(rewards, axis=-1, keepdims=True) / rewards.shape[-1]
     return rewards
 
 

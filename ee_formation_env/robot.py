@@ -94,11 +94,12 @@ class Arm:
         for j, value in zip(self.joint_indices, q):
             pybullet.resetJointState(self.body, j, float(value), 0.0, physicsClientId=self.world.client)
 
-    def read_state_lists(self) -> tuple[list[float], list[float]]:
-        """Joint positions (rad) and velocities (rad/s) of the chain joints, as Python lists (the env joins
+    def read_state_lists(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Joint positions (rad) and velocities (rad/s) of the chain joints, as Python tuples (the env joins
         every arm's into one array)."""
         states = pybullet.getJointStates(self.body, self.joint_indices, physicsClientId=self.world.client)
-        return [state[0] for state in states], [state[1] for state in states]
+        positions, velocities, _, _ = zip(*states)  # (q, dq, reaction wrench, applied torque) per joint
+        return positions, velocities
 
     def torque_command(self, torques: list[float]) -> tuple[int, list[int], list[float]]:
         """``(body, joint indices, torques N m)``: what :meth:`PhysicsWorld.step_with_torques` sends before
@@ -150,7 +151,10 @@ class ArmSet:
     def contacts_per_arm(self) -> list[int]:
         """Contact points of each arm with other arms (contacts with itself do not count)."""
         counts = [0] * len(self.arms)
-        for body_a, body_b in self.world.contact_pairs():
+        pairs = self.world.contact_pairs()
+        if not pairs:  # the common case
+            return counts
+        for body_a, body_b in pairs:
             a, b = self._body_to_agent.get(body_a), self._body_to_agent.get(body_b)
             if a is not None and b is not None and a != b:
                 counts[a] += 1
