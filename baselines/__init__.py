@@ -81,6 +81,9 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
         return ZeroPolicy(model.chain.n_joints)
     if name == "random":
         return RandomPolicy(model.chain.n_joints, seed=seed + env.task.agent_index(agent))
+    if env.scenario.gravity_compensation:  # the env would add g(q) to a torque that already holds the law's own
+        raise ValueError(f"policy: {name} sends the paper's raw joint torques; evaluate it on the scenario with "
+                         "gravity_compensation: false")
     index = env.task.agent_index(agent)
     follow = gains is None or isinstance(gains, Mapping)
     if follow:

@@ -12,6 +12,7 @@ import numpy as np
 import pybullet
 
 from ee_formation_env.kinematics import ChainBatch, SerialChain, rpy_to_matrix
+from ee_formation_env.gravity import GravityTorque, gravity_torques
 from ee_formation_env.mismatch import write_perturbed_urdf
 from ee_formation_env.scenario import ArmConfig
 from ee_formation_env.task import FormationTask
@@ -39,7 +40,8 @@ class Arm:
         self.world = world
         self.config = config
         self.model = model
-        self.body = world.load_urdf(urdf or config.urdf, config.base_position, config.base_rpy)
+        self.urdf = urdf or config.urdf  # the simulated robot
+        self.body = world.load_urdf(self.urdf, config.base_position, config.base_rpy)
         self.base_position = np.asarray(config.base_position, dtype=np.float64)
         self.base_rotation = rpy_to_matrix(config.base_rpy)  # base frame -> world frame
         client = world.client
@@ -53,6 +55,8 @@ class Arm:
                 movable.append(j)
         self.joint_indices = [index_by_name[name] for name in model.joint_names]
         self.extra_joint_indices = [j for j in movable if j not in self.joint_indices]
+        self._held_positions: dict[str, float] = {}  # the joints off the chain, by name: where they are held
+        self._gravity: GravityTorque | None = None
 
         for link in [-1, *range(pybullet.getNumJoints(self.body, physicsClientId=client))]:
             pybullet.changeDynamics(self.body, link, linearDamping=0.0, angularDamping=0.0,
@@ -70,12 +74,21 @@ class Arm:
                                            forces=[0.0] * model.n_joints, physicsClientId=client)
         if self.extra_joint_indices:
             held = [pybullet.getJointState(self.body, j, physicsClientId=client)[0] for j in self.extra_joint_indices]
+            names = {j: name for name, j in index_by_name.items()}
+            self._held_positions = {names[j]: position for j, position in zip(self.extra_joint_indices, held)}
             pybullet.setJointMotorControlArray(self.body, self.extra_joint_indices, pybullet.POSITION_CONTROL,
                                                targetPositions=held, physicsClientId=client)
 
     @property
     def n_joints(self) -> int:
         return self.model.n_joints
+
+    @property
+    def gravity(self) -> GravityTorque:
+        """This robot's own g(q) (:mod:`ee_formation_env.gravity`), built on first use."""
+        if self._gravity is None:
+            self._gravity = GravityTorque(self.urdf, self.model.joint_names, self._held_positions)
+        return self._gravity
 
     def place_base(self, position: tuple[float, ...], rpy: tuple[float, ...]) -> None:
         """Move the fixed base to ``position`` (m) and ``rpy`` (rad), as if loaded there (a sampled
@@ -147,6 +160,11 @@ class ArmSet:
         values = torques.tolist()
         commands = [arm.torque_command(values[joints]) for arm, joints in zip(self.arms, self.joint_slices)]
         self.world.step_with_torques(commands, physics_steps)
+
+    def gravity_torques(self, q: np.ndarray, gravity_in_bases: np.ndarray) -> np.ndarray:
+        """Every arm's own gravity torque (T,), N m, at flat joint positions ``q`` (T,), rad;
+        ``gravity_in_bases`` (N, 3): each arm's gravity in its base frame, m/s^2."""
+        return gravity_torques([arm.gravity for arm in self.arms], q, self.joint_slices, gravity_in_bases)
 
     def contacts_per_arm(self) -> list[int]:
         """Contact points of each arm with other arms (contacts with itself do not count)."""

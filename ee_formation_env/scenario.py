@@ -109,6 +109,10 @@ class Scenario:
                                         "0 turns randomization off", "rad")
     arm_collisions: bool = _key(True, "simulate contacts between arms (contacts are always reported)")
     terminate_on_contact: bool = _key(False, "end the episode when two arms touch")
+    gravity_compensation: bool = _key(False, "the env adds each arm's own gravity torque g(q) to the torque of "
+                                             "its action (the joint-torque convention of robosuite; see "
+                                             ":mod:`ee_formation_env.gravity`); the reference laws send raw "
+                                             "torques and refuse it")
     joint_damping: float | str = _key(0.0, 'viscous joint damping (URDF damping is replaced); ``"urdf"`` keeps '
                                            "the URDF values", "N m s/rad")
     max_joint_velocity: float = _key(50.0, "|dq| above this is a physics fault that terminates the episode "
@@ -362,7 +366,7 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["gravity"] = tuple(gravity.tolist())
     noise = data.get("initial_q_noise", _default("initial_q_noise"))
     kwargs["initial_q_noise"] = _non_negative("initial_q_noise", noise)
-    for flag in ("arm_collisions", "terminate_on_contact"):
+    for flag in ("arm_collisions", "terminate_on_contact", "gravity_compensation"):
         value = data.get(flag, _default(flag))
         if not isinstance(value, bool):
             raise ValueError(f"{flag}: expected true or false, got {excerpt(value)}")

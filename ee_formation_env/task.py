@@ -67,6 +67,10 @@ class FormationTask:
         """World gravity (m/s^2) in arm ``index``'s base frame: what its own mounting tells it."""
         return self.base_rotations[index].T @ np.asarray(self.scenario.gravity)
 
+    def gravity_in_base_frames(self) -> np.ndarray:
+        """Every arm's :meth:`gravity_in_base_frame` (N, 3), m/s^2."""
+        return np.stack([self.gravity_in_base_frame(i) for i in range(self.n_agents)])
+
 
 def build_task(scenario: Scenario) -> FormationTask:
     """Derive everything from ``scenario`` and validate it; ``ValueError`` naming the field otherwise."""

@@ -93,9 +93,7 @@ __all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS", "PER_AGENT_INF
 AutoresetMode = gymnasium.vector.AutoresetMode
 RENDER_MODES = ("human", "rgb_array")
 
-# ONE_COPY_FAST_PATH: with one copy (the parallel env), the arithmetic runs on the copy's own arrays, without
-# the leading axis, and the results get it back: the same functions, about 20 us per step cheaper than numpy on
-# a leading axis of 1 (docs/performance.md, "Batched env").
+# ONE_COPY_FAST_PATH: with one copy, the same functions on its own arrays, then given the K axis back (cheaper).
 
 class BatchedStep(NamedTuple):
     """One batched step (or reset) as stacked arrays: what :meth:`VectorFormationEnv.step_arrays` returns.
@@ -311,6 +309,8 @@ class VectorFormationEnv:
         """Step every copy with checked, clipped actions (K, T) (:class:`~ee_formation_env.actions.ActionCheck`),
         ``clipped`` the entries clipped per (copy, agent); ended copies restart with SAME_STEP autoreset."""
         torques = normalized * self._torque_limits_flat  # (K, T), N m
+        if self.scenario.gravity_compensation:  # each arm's own g(q) added, within its limits (gravity.py)
+            torques = np.clip(torques + self.gravity_torques(), -self._torque_limits_flat, self._torque_limits_flat)
         frame_skip = self.scenario.frame_skip
         contacts, positions, velocities = [], [], []
         # Each copy is read right after it steps, while its client's state is still in the CPU caches.
@@ -390,6 +390,12 @@ class VectorFormationEnv:
     def joint_velocities(self) -> np.ndarray:
         """Every copy's joint velocities (K, T), rad/s, at the last reset/step."""
         return self._last().dq.copy()
+
+    def gravity_torques(self) -> np.ndarray:
+        """Each copy's arms' own g(q) (K, T), N m, at the last reset/step: what the next step adds to the actions'
+        torques under ``gravity_compensation`` (:mod:`ee_formation_env.gravity`)."""
+        return np.stack([arm_set.gravity_torques(q, task.gravity_in_base_frames())
+                         for arm_set, task, q in zip(self._arm_sets, self.tasks, self._last().q)])
 
     def reference_centroid(self) -> np.ndarray:
         """Every copy's manoeuvre reference centroid c*(t) (K, dim), world, m, at the last reset/step (the
@@ -479,10 +485,10 @@ class VectorFormationEnv:
                                               lambda task, k=k: start_problem(self._arm_sets[k], task)))
             reset_world(self._worlds[k], self._arm_sets[k], self.tasks[k], self.np_randoms[k])
         self._step_counts[rows] = 0
-        # New arrays, not changed in place: earlier infos hold the old ones.
+        zeroed = np.isin(self._every, rows)[:, None]  # new arrays, not changed in place: earlier infos hold the old
         self._clipped_actions, self._clipped_step, self._contacts, self._torques = (
-            _zeroed(values, rows) for values in (self._clipped_actions, self._clipped_step, self._contacts,
-                                                 self._torques))
+            np.where(zeroed, 0, values) for values in (self._clipped_actions, self._clipped_step, self._contacts,
+                                                       self._torques))
         self._ended[rows] = False
         part = self._measure_rows(rows)
         if self._measurement is None or len(rows) == self.num_envs:
@@ -592,9 +598,3 @@ class CopyView:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._env, name)
-
-
-def _zeroed(values: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    values = values.copy()  # with the rows ``rows`` set to zero
-    values[rows] = 0
-    return values

@@ -110,6 +110,9 @@ METHODS: dict[str, Method] = {
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
     "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(
         "--mode", "torque", "--max-train-seconds", "1800", "--contact-penalty", "1.0")),
+    # The gravity-compensated torque convention (docs/spaces.md, "Action conventions"), at the same budget.
+    "torque-gc-ppo": Method("torque-gc-ppo", train_flags=(
+        "--mode", "torque", "--gravity-compensation", "--max-train-seconds", "1800")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),

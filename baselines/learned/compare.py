@@ -110,9 +110,11 @@ def _evaluation_worker_teardown() -> None:
 
 
 def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any]]:
-    """The held-out episodes of the policies ``names`` ("learned" or references), all together in one batched
-    env of this worker."""
+    """The held-out episodes of the policies ``names`` ("learned" or references), together in one batched env
+    of this worker (two when the learned policy's action convention, e.g. ``gravity_compensation``, is not the
+    reference laws' raw torque: the same scenario and seeds, each policy in its own convention)."""
     run_dir, config = _EVALUATION["run_dir"], _EVALUATION["config"]
+    learned_overrides = TrainConfig.from_dict(config).training_options().env_overrides()
     sources: dict[str, Any] = {}
     for name in names:
         if name == "learned":
@@ -126,7 +128,12 @@ def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any
             sources[name] = learned
         else:
             sources[name] = name
-    return run_policies(_EVALUATION["scenario"], sources, seeds, overrides=_EVALUATION["overrides"])
+    scenario, overrides = _EVALUATION["scenario"], _EVALUATION["overrides"]
+    if not learned_overrides or "learned" not in sources:
+        return run_policies(scenario, sources, seeds, overrides=overrides)
+    learned = run_policies(scenario, {"learned": sources.pop("learned")}, seeds,
+                           overrides={**overrides, **learned_overrides})
+    return {**learned, **(run_policies(scenario, sources, seeds, overrides=overrides) if sources else {})}
 
 
 def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
@@ -135,7 +142,7 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
 
     In residual mode the reference alone is the learner's zero correction, whose return is the same.
     """
-    overrides = TrainConfig.from_dict(config).training_overrides()
+    overrides = TrainConfig.from_dict(config).training_options().episode_overrides()  # the laws' raw torques
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
     runs = run_policies(saved_scenario(config), dict(zip(baselines.POLICIES, baselines.POLICIES)), seeds,
                         overrides=overrides)

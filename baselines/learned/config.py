@@ -78,6 +78,7 @@ class TrainConfig:
     action_acceleration: float = _option_flag("action_acceleration", type=float)
     correction_penalty: float = _option_flag("correction_penalty", type=float)
     residual_gate: bool = _option_flag("residual_gate", action=argparse.BooleanOptionalAction)
+    gravity_compensation: bool = _option_flag("gravity_compensation", action=argparse.BooleanOptionalAction)
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
                                 "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
                                 "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
@@ -233,11 +234,8 @@ class TrainConfig:
         return TrainingOptions(**{name: getattr(self, name) for name in TrainingOptions.fields()})
 
     def training_overrides(self) -> dict[str, Any]:
-        """Scenario overrides of the training env: episode length and start randomization."""
-        overrides: dict[str, Any] = {"episode_seconds": self.train_episode_seconds}
-        if self.train_initial_q_noise is not None:
-            overrides["initial_q_noise"] = self.train_initial_q_noise
-        return overrides
+        """Scenario overrides of the training env (:meth:`TrainingOptions.training_overrides`)."""
+        return self.training_options().training_overrides()
 
     # ------------------------------------------------------------------------------------------ files
     #: Fields that say where a run is or how this command behaves, not what the run is: not in its config.json.

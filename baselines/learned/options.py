@@ -60,6 +60,9 @@ class TrainingOptions:
     action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
                                          "correction) is the torque giving a joint this acceleration at the "
                                          "initial configuration, at most its torque limit (action_scale.py)")
+    gravity_compensation: bool = _option(False, "", "the env adds each arm's own gravity torque g(q) to the "
+                                         "learned torque, in training and evaluation (the scenario key of that "
+                                         "name, docs/spaces.md); torque mode")
     train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
                                                      "scenario's episode_seconds)")
     train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
@@ -71,8 +74,9 @@ class TrainingOptions:
         if self.reference not in MODEL_BASED_POLICIES:
             raise ValueError(f"reference: expected a model-based controller {list(MODEL_BASED_POLICIES)}, "
                              f"got {self.reference!r}")
-        if not isinstance(self.residual_gate, bool):
-            raise TypeError(f"residual_gate: expected True or False, got {self.residual_gate!r}")
+        for flag in ("residual_gate", "gravity_compensation"):
+            if not isinstance(getattr(self, flag), bool):
+                raise TypeError(f"{flag}: expected True or False, got {getattr(self, flag)!r}")
         if self.obs_features is not None and self.obs_features not in FEATURE_SETS:
             raise ValueError(f"obs_features: expected one of {list(FEATURE_SETS)} or None, got {self.obs_features!r}")
         self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
@@ -108,13 +112,23 @@ class TrainingOptions:
         filled = {name: getattr(preset, name) for name in PRESET_FIELDS if getattr(self, name) is None}
         return dataclasses.replace(self, **filled) if filled else self
 
-    def training_overrides(self) -> dict[str, Any]:
-        """Scenario overrides of the training env (options resolved): episode length and, if set, start noise."""
+    def env_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of every env the learned policy acts in, training and evaluation: its action
+        convention (``gravity_compensation``, only when set). The reference laws act without them."""
+        return {"gravity_compensation": True} if self.gravity_compensation else {}
+
+    def episode_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of the training episodes (options resolved): episode length and, if set, start
+        noise (what the learning curve's reference lines are also run with)."""
         options = self.resolved()
         overrides: dict[str, Any] = {"episode_seconds": options.train_episode_seconds}
         if options.train_initial_q_noise is not None:
             overrides["initial_q_noise"] = options.train_initial_q_noise
         return overrides
+
+    def training_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of the training env: :meth:`episode_overrides` and :meth:`env_overrides`."""
+        return {**self.episode_overrides(), **self.env_overrides()}
 
     def to_dict(self) -> dict[str, Any]:
         """The options as plain values (JSON-ready): ``TrainingOptions(**options.to_dict())`` is a copy."""

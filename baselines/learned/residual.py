@@ -127,6 +127,11 @@ class ResidualMode(TrainingMode):
         ppo=PPOSettings(net_arch=(64, 64), n_epochs=5, learning_rate=3e-4, learning_rate_decay=False),
         n_envs=32, n_steps=32, n_workers=1, in_process_envs=18)
 
+    def check(self, options: Any) -> None:
+        if options.gravity_compensation:
+            raise ValueError("gravity_compensation: residual mode corrects a reference law's raw torques; use it "
+                             "with mode torque")
+
     def action_rows(self, options: Any, copies: Sequence[Any], agents: Sequence[str],
                     joint_scales: Mapping[str, np.ndarray] | None) -> ResidualRows:
         references, layouts = [], []
