@@ -78,7 +78,7 @@ def test_rotation_refusals(scenario, manoeuvre, message):
     with pytest.raises(ValueError) as raised:
         load_scenario(scenario, manoeuvre=manoeuvre)
     assert message in str(raised.value)
-    assert parse_manoeuvre({"translation": [0.1, 0.0]}, 2, "displacement").active  # translating is fine
+    assert parse_manoeuvre({"translation": [0.1, 0.0]}, 2, "displacement", 0.01).active  # translating is fine
 
 
 def test_an_inactive_manoeuvre_leaves_everything_bit_identical(open_loop):
@@ -111,7 +111,7 @@ def test_an_active_manoeuvre_changes_only_the_reference_block(open_loop):
 
 def test_the_reference_signal_is_the_out_and_back_profile():
     config = parse_manoeuvre({"start": 2.0, "duration": 4.0, "translation": [0.3, 0.0, -0.4], "rotation": 0.5,
-                              "axis": [1.0, 0.0, 0.0]}, 3, "distance")
+                              "axis": [1.0, 0.0, 0.0]}, 3, "distance", 0.01)
     motion = ReferenceMotion(config, build_task(load_scenario("spatial_tetrahedron")))
     c0 = np.array([[0.25, 0.25, -0.5]])
     t = np.array([0.0, 1.9, 2.0, 3.0, 4.0, 5.0, 6.0, 6.5])
