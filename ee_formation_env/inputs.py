@@ -26,6 +26,7 @@ from __future__ import annotations
 import difflib
 import os
 import reprlib
+import warnings
 from typing import Any, Iterable, Mapping
 
 import numpy as np
@@ -174,13 +175,18 @@ RESET_OPTIONS = ("reset_mask",)
 def reset_rows(options: Any, copies: int, first_reset: bool) -> np.ndarray:
     """The copies a ``reset`` resets (the batched env's, and the parallel env's, its one-copy view): all, or
     ``options["reset_mask"]``'s (a (copies,) bool array; the first reset must reset every copy). ``options`` is
-    None or a dict whose keys are among :data:`RESET_OPTIONS`: ``TypeError`` / ``ValueError`` naming it."""
+    None or a dict (else ``TypeError`` naming it); a key outside :data:`RESET_OPTIONS` is ignored with a
+    ``UserWarning`` naming it and the accepted keys, not refused: PettingZoo's API conformance test resets with
+    ``options={"options": 1}`` and requires it to be accepted."""
     if options is None:
         return np.arange(copies)
     if not isinstance(options, Mapping):
         raise TypeError(f"options: expected None or a dict with keys among {list(RESET_OPTIONS)}, got "
                         f"{type(options).__name__} {excerpt(options)}")
-    check_known_keys("options", options, RESET_OPTIONS)
+    try:
+        check_known_keys("options", options, RESET_OPTIONS)
+    except ValueError as unknown:
+        warnings.warn(f"{unknown} (ignored)", UserWarning, stacklevel=4)
     if "reset_mask" not in options:
         return np.arange(copies)
     mask = options["reset_mask"]
