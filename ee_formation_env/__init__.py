@@ -18,10 +18,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from ee_formation_env.env import FormationEnv
-from ee_formation_env.builtin import BUILTIN_SCENARIOS
-from ee_formation_env.robots import ROBOTS
-from ee_formation_env.scenario import Scenario, load_scenario
+from ee_formation_env.pybullet_banner import import_pybullet_quietly
+
+import_pybullet_quietly()  # the process's first import of PyBullet, without its build-time banner on stdout
+
+from ee_formation_env.env import FormationEnv  # noqa: E402 (after the quiet import)
+from ee_formation_env.builtin import BUILTIN_SCENARIOS  # noqa: E402
+from ee_formation_env.robots import ROBOTS  # noqa: E402
+from ee_formation_env.scenario import Scenario, load_scenario  # noqa: E402
 
 __all__ = ["FormationEnv", "Scenario", "load_scenario", "parallel_env", "vector_env", "env", "raw_env",
            "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]
