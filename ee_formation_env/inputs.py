@@ -4,12 +4,12 @@ Rule: bad input is a ``ValueError`` (or ``TypeError``) whose message starts with
 before a PyBullet client connects (or after closing it), that never echoes more than a short excerpt of
 the input. The bounds are documented in ``docs/scenarios.md`` ("Limits"):
 
-- a scenario file is at most :data:`MAX_SCENARIO_FILE_BYTES` bytes;
+- a scenario file is at most :data:`MAX_SCENARIO_FILE_BYTES` bytes (checked before it is parsed);
 - a YAML scenario expands to at most :data:`MAX_SCENARIO_NODES` nodes, counted on the composed document
   before anything is constructed (each use of an alias counts its anchor's nodes again), so that a few
   hundred bytes of nested aliases ("billion laughs") are refused without being expanded;
 - scenario data (a file's or a dict's) nests lists and dicts at most :data:`MAX_NESTING_DEPTH` deep;
-- a scenario has at most :data:`MAX_ARMS` arms;
+- a scenario has at most :data:`MAX_ARMS` arms (checked before any arm is parsed);
 - a key given twice in one YAML or JSON mapping is refused (naming the key, and for YAML its lines);
 - YAML files are read with the YAML 1.2 core schema (:mod:`ee_formation_env.scenario_file`): ``010`` is 10,
   ``1e3`` is 1000.0, ``1:30`` and ``yes`` are strings (then refused by the field that expects a number or a
@@ -31,15 +31,17 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-#: Largest scenario file (YAML or JSON) read, bytes.
-MAX_SCENARIO_FILE_BYTES = 1_000_000
+#: Largest scenario file (YAML or JSON) read, bytes. A scenario of :data:`MAX_ARMS` arms with every key and
+#: comments is under 64 kB; at this size the YAML parser takes about a second before any bound below applies.
+MAX_SCENARIO_FILE_BYTES = 256_000
 #: Largest number of YAML nodes (scalars, sequences, mappings, keys included) a scenario file may expand
 #: to, aliases expanded. The built-in scenarios have fewer than 300.
 MAX_SCENARIO_NODES = 100_000
 #: Deepest nesting of lists and dicts in scenario data; the format needs 4 (arms, a list of dicts of lists).
 MAX_NESTING_DEPTH = 32
 #: Most arms in a scenario. Building a task checks every pair of arms (start contacts, reach), so the cost
-#: grows with the square of the count; 64 arms, far more than a formation study needs, build in seconds.
+#: grows with the square of the count (500 arms take seconds, 2,000 tens of seconds); 64 arms, far more than a
+#: formation study needs, build in a fraction of a second.
 MAX_ARMS = 64
 #: Most copies of a batched env: PyBullet holds at most 1024 clients per process (its MAX_PHYSICS_CLIENTS).
 MAX_NUM_ENVS = 1024
