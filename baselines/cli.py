@@ -2,7 +2,7 @@
 
 - ``train``: train a shared policy and compare it with the reference controllers (the flags of ``train.py``);
 - ``evaluate``: run reference policies on seeded episodes and print the metrics table;
-- ``validate SCENARIO``: run every check the env runs on a scenario (:func:`ee_formation_env.validation.validate_scenario`),
+- ``validate SCENARIO``: run every check the env runs on a scenario (:func:`ee_formation_env.validate_scenario`),
   without stepping physics: one ``OK`` line and exit status 0, or the error and exit status 2;
 - ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
   from the repository root of a checkout (they are not part of the installed package): the command runs the
@@ -62,7 +62,7 @@ def _validate(argv: Sequence[str]) -> int:
     args = parser.parse_args(argv)
 
     def run() -> int:
-        from ee_formation_env.validation import validate_scenario
+        from ee_formation_env import validate_scenario
 
         scenario = validate_scenario(args.scenario)
         print(f"OK: {args.scenario}: {scenario.n_agents} arms, dim {scenario.dim}, {scenario.formation} formation, "

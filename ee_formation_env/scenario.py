@@ -237,10 +237,10 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
 
     ``reward``, ``model_mismatch``, ``sensing``, ``distribution`` and ``manoeuvre`` overrides are merged into
     the scenario's. It checks the format: every field's type, range and the limits of
-    :mod:`ee_formation_env.inputs` (file size, nesting, arm count), and that every URDF and its mesh files
-    exist. It does not load the robots' kinematic models, so it does not check links, joint limits,
-    reachability, rigidity, singular starts or start contacts: :func:`ee_formation_env.validation.validate_scenario`
-    runs those (every check ``parallel_env`` runs, without stepping physics). Raises ``ValueError`` naming the
+    :mod:`ee_formation_env.inputs` (file size, nesting, arm count), and that every URDF exists. It does not
+    read the robots' models, so it does not check links, meshes, joint limits, reachability, rigidity,
+    singular starts or start contacts: :func:`ee_formation_env.validate_scenario` runs those too (every check
+    ``parallel_env`` runs, without stepping physics). Raises ``ValueError`` naming the
     offending field, or ``TypeError`` for an argument of the wrong type.
     """
     if isinstance(scenario, Scenario):

@@ -37,32 +37,8 @@ from ee_formation_env.formation import FormationGraph, check_rigidity
 from ee_formation_env.inputs import excerpt
 from ee_formation_env.kinematics import SerialChain, rpy_to_matrix, singularity_margins
 from ee_formation_env.robots import ROBOTS
-from ee_formation_env.scenario import ArmConfig, Scenario, load_scenario
+from ee_formation_env.scenario import ArmConfig, Scenario
 from ee_formation_env.workspace import workspace
-
-
-def validate_scenario(scenario: Any = "planar_square", **overrides: Any) -> Scenario:
-    """Run every check :func:`ee_formation_env.parallel_env` runs on ``scenario`` plus ``overrides``, and return
-    the parsed scenario; ``ValueError``/``TypeError`` naming the field on the first failure.
-
-    The checks: the format (:func:`~ee_formation_env.scenario.load_scenario`), this module's geometric checks
-    (:func:`~ee_formation_env.task.build_task`), the arms' start contacts, and for a distribution its first draw
-    (:func:`~ee_formation_env.generators.first_draw`). Contacts are a PyBullet collision query, so one
-    headless client loads the arms; no physics step runs, and the client is closed before returning.
-    """
-    # Imported here: the task and the world import this module (their checks live here).
-    from ee_formation_env.generators import first_draw
-    from ee_formation_env.robot import build_world
-    from ee_formation_env.task import build_task
-
-    parsed = load_scenario(scenario, **overrides)
-    world, arm_set = build_world(build_task(parsed))
-    try:
-        if parsed.distribution.active:
-            first_draw(parsed, arm_set)
-    finally:
-        world.close()
-    return parsed
 
 
 def _candidate_rotations(dim: int, allow_rotation: bool) -> list[np.ndarray]:

@@ -251,7 +251,7 @@ def test_validate_scenario_refuses_what_parallel_env_refuses_without_a_physics_s
     them with the same message; validate_scenario never steps physics and leaves no client connected."""
     import pybullet
 
-    from ee_formation_env.validation import validate_scenario
+    from ee_formation_env import validate_scenario
 
     load_scenario(data)  # the format is fine
     with pytest.raises(ValueError, match=pattern) as from_env:
@@ -269,7 +269,7 @@ def test_validate_scenario_refuses_what_parallel_env_refuses_without_a_physics_s
 
 
 def test_validate_scenario_returns_the_parsed_scenario_of_a_valid_one():
-    from ee_formation_env.validation import validate_scenario
+    from ee_formation_env import validate_scenario
 
     assert validate_scenario("planar_random") == load_scenario("planar_random")
     assert validate_scenario("planar_square", episode_seconds=2.0).episode_seconds == 2.0
