@@ -131,7 +131,6 @@ def _children(node: yaml.Node) -> list[yaml.Node]:
     return []
 
 
-
 def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     """A JSON object from its key-value pairs; ``ValueError`` for a key given twice."""
     data: dict[str, Any] = {}
