@@ -1,7 +1,8 @@
-"""How the command-line tools report errors: one line ``error: <field>: <what>`` and exit status 2.
+"""How the command-line tools report errors: ``error: <field>: <what>`` and exit status 2.
 
 The library raises ``ValueError``/``TypeError`` whose message starts with the field at fault; the tools print it
-without a traceback (``--debug`` shows it). A run stopped by SIGINT/SIGTERM exits with 128 + the signal's number.
+without a traceback (``--debug`` shows it). The message is one line, except for a scenario file that does not
+parse, whose message ends with the parser's own lines (where, and the line with a caret). A run stopped by SIGINT/SIGTERM exits with 128 + the signal's number.
 """
 
 from __future__ import annotations

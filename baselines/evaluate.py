@@ -25,8 +25,8 @@ import numpy as np
 import ee_formation_env
 from ee_formation_env.baselines import POLICIES, make_policies
 from ee_formation_env.baselines.extras import require
-from ee_formation_env.baselines.metrics import (DEFAULT_POSITION_TOLERANCE, EpisodeMetrics, format_table, metric_definitions,
-                               run_episode, run_episodes, summarize)
+from ee_formation_env.baselines.metrics import (DEFAULT_EVALUATION_COPIES, DEFAULT_POSITION_TOLERANCE, EpisodeMetrics,
+                                                format_table, metric_definitions, run_episode, run_episodes, summarize)
 from ee_formation_env.env import FormationEnv
 
 
@@ -85,22 +85,31 @@ def video_path(video_dir: Path | str, scenario: str, policy: str, seed: int) -> 
 def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
                     position_tolerance: float = DEFAULT_POSITION_TOLERANCE, overrides: dict | None = None,
                     policy_kwargs: dict | None = None, video_dir: Path | None = None,
-                    on_episode: Callable[[str, int, EpisodeMetrics], None] | None = None) -> dict[str, Any]:
+                    on_episode: Callable[[str, int, EpisodeMetrics], None] | None = None,
+                    on_round: Callable[[str, list[int]], None] | None = None) -> dict[str, Any]:
     """Summary (see :func:`ee_formation_env.baselines.metrics.summarize`) of ``policy`` over seeded episodes.
 
     ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``; the
     names made safe by :func:`file_stem`, so that a scenario's ``name`` cannot put it elsewhere), rendered as
-    ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode (without videos, the
-    episodes run together on the batched env, :func:`~ee_formation_env.baselines.metrics.run_episodes`, and it
-    is called for each once they have all ended).
+    ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode. Without videos, the
+    episodes run together on the batched env (:func:`~ee_formation_env.baselines.metrics.run_episodes`) in
+    rounds of at most :data:`~ee_formation_env.baselines.metrics.DEFAULT_EVALUATION_COPIES` seeds, each on a
+    fresh env as ``run_episodes`` itself makes them: ``on_round(policy, seeds)`` is called as a round starts and
+    ``on_episode`` for each of its episodes once they have all ended.
     """
-    if video_dir is None:  # every episode at once on the batched env: the same metrics, bit for bit
+    if video_dir is None:  # the episodes together on the batched env: the same metrics, bit for bit
         seeds = [seed + k for k in range(episodes)]
-        results = run_episodes(scenario, policy, seeds, position_tolerance=position_tolerance, overrides=overrides,
-                               policy_kwargs=policy_kwargs)
-        if on_episode is not None:
-            for episode_seed, metrics in zip(seeds, results):
-                on_episode(policy, episode_seed, metrics)
+        results = []
+        for start in range(0, len(seeds), DEFAULT_EVALUATION_COPIES):
+            chunk = seeds[start:start + DEFAULT_EVALUATION_COPIES]
+            if on_round is not None:
+                on_round(policy, chunk)
+            chunk_results = run_episodes(scenario, policy, chunk, position_tolerance=position_tolerance,
+                                         overrides=overrides, policy_kwargs=policy_kwargs)
+            results += chunk_results
+            if on_episode is not None:
+                for episode_seed, metrics in zip(chunk, chunk_results):
+                    on_episode(policy, episode_seed, metrics)
         summary = summarize(results)
         summary["per_episode"] = [r.as_dict() for r in results]
         return summary
@@ -133,15 +142,17 @@ def _overrides(pairs: Sequence[str]) -> dict[str, Any]:
     return overrides
 
 
-def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_env.baselines.evaluate") -> int:
+def build_parser(prog: str = "python -m ee_formation_env.baselines.evaluate") -> argparse.ArgumentParser:
+    """The command's flags (every one with its help)."""
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="table columns (mean over episodes unless said otherwise):\n"
                                             + metric_definitions())
     parser.add_argument("--scenario", default="planar_square", help="built-in name or YAML/JSON file")
     parser.add_argument("--policy", default="all", help=f"one of {list(POLICIES)} or 'all'")
-    parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=10, help="episodes per policy (default 10)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="reset seed of the first episode; episode k uses seed + k (default 0)")
     parser.add_argument("--tolerance", type=float, default=DEFAULT_POSITION_TOLERANCE,
                         help="edge-length accuracy (m) that counts as success")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
@@ -150,7 +161,13 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
     parser.add_argument("--video", metavar="DIR", type=Path,
                         help="also write one video per episode into DIR (MP4, or GIF without imageio-ffmpeg; "
                              "needs the 'video' extra)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_env.baselines.evaluate") -> int:
+    parser = build_parser(prog)
     args = parser.parse_args(argv)
     # Every argument is checked before the first episode runs.
     if args.episodes < 1:
@@ -187,8 +204,14 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
         print(f"  {name}: episode {seed - args.seed + 1}/{args.episodes} (seed {seed}) {outcome}", file=sys.stderr,
               flush=True)
 
+    def round_started(name: str, seeds: list[int]) -> None:
+        first, last = seeds[0] - args.seed + 1, seeds[-1] - args.seed + 1
+        print(f"  {name}: running episodes {first}-{last}/{args.episodes} together ...", file=sys.stderr, flush=True)
+
+    quiet = args.quiet
     results = {name: evaluate_policy(args.scenario, name, args.episodes, args.seed, args.tolerance, overrides,
-                                     video_dir=args.video, on_episode=progress) for name in names}
+                                     video_dir=args.video, on_episode=None if quiet else progress,
+                                     on_round=None if quiet else round_started) for name in names}
     print(format_table(results))
     if args.video is not None:
         print(f"wrote {len(names) * args.episodes} videos to {args.video.resolve()}")

@@ -18,13 +18,17 @@ from __future__ import annotations
 
 from typing import Any
 
-from ee_formation_env.env import FormationEnv
-from ee_formation_env.builtin import BUILTIN_SCENARIOS
-from ee_formation_env.robots import ROBOTS
-from ee_formation_env.scenario import Scenario, load_scenario
+from ee_formation_env.pybullet_banner import import_pybullet_quietly
 
-__all__ = ["FormationEnv", "Scenario", "load_scenario", "parallel_env", "vector_env", "env", "raw_env",
-           "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]
+import_pybullet_quietly()  # the process's first import of PyBullet, without its build-time banner on stdout
+
+from ee_formation_env.env import FormationEnv  # noqa: E402 (after the quiet import)
+from ee_formation_env.builtin import BUILTIN_SCENARIOS  # noqa: E402
+from ee_formation_env.robots import ROBOTS  # noqa: E402
+from ee_formation_env.scenario import Scenario, load_scenario  # noqa: E402
+
+__all__ = ["FormationEnv", "Scenario", "load_scenario", "validate_scenario", "parallel_env", "vector_env", "env",
+           "raw_env", "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]
 __version__ = "0.1.0"
 
 
@@ -48,6 +52,29 @@ def parallel_env(scenario: Any = "planar_square", render_mode: str | None = None
     ``episode_seconds = max_cycles * control_dt``.
     """
     return FormationEnv(scenario, render_mode=render_mode, **_with_max_cycles(scenario, max_cycles, overrides))
+
+
+def validate_scenario(scenario: Any = "planar_square", **overrides: Any) -> Scenario:
+    """Run every check :func:`parallel_env` runs on ``scenario`` plus ``overrides`` and return the parsed scenario;
+    ``ValueError``/``TypeError`` naming the field on the first failure (``ee-formation validate SCENARIO``).
+
+    The checks: the format (:func:`load_scenario`), the geometry (:mod:`ee_formation_env.validation`, run by
+    :func:`ee_formation_env.task.build_task`), the arms' start contacts, and for a distribution its first draw
+    (:func:`ee_formation_env.generators.first_draw`). Contacts are a PyBullet collision query, so one headless
+    client loads the arms; no physics step runs, and the client is closed before returning.
+    """
+    from ee_formation_env.generators import first_draw
+    from ee_formation_env.robot import build_world
+    from ee_formation_env.task import build_task
+
+    parsed = load_scenario(scenario, **overrides)
+    world, arm_set = build_world(build_task(parsed))
+    try:
+        if parsed.distribution.active:
+            first_draw(parsed, arm_set)
+    finally:
+        world.close()
+    return parsed
 
 
 def vector_env(scenario: Any = "planar_square", num_envs: int = 1, max_cycles: int | None = None,

@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from ee_formation_env.inputs import excerpt
+from ee_formation_env.scenario_file import BoundedSafeLoader
 
 _FILES = resources.files("ee_formation_env") / "builtin"
 
@@ -34,4 +35,4 @@ def builtin_scenario(name: str) -> dict[str, Any]:
 
 @functools.lru_cache(maxsize=None)
 def _parsed(name: str) -> dict[str, Any]:
-    return yaml.safe_load((_FILES / f"{name}.yaml").read_text(encoding="utf-8"))
+    return yaml.load((_FILES / f"{name}.yaml").read_text(encoding="utf-8"), Loader=BoundedSafeLoader)  # noqa: S506 (a SafeLoader subclass: the one YAML rule of scenario files)

@@ -48,7 +48,11 @@ key                          default           meaning
 Each draw is validated as a fixed scenario is (reachable, rigid at its shape, no singular start), plus the
 margins above and no contact between the arms at the start; a draw that fails is redrawn, at most
 ``max_tries`` times, then ``ValueError`` names the distribution and the last reason. The env draws one sample
-at construction (generator seeded 0), so an infeasible distribution is refused before any episode. The
+at construction (generator seeded 0), so an infeasible distribution is refused before any episode; that first
+draw also stops after :data:`FIRST_DRAW_DEADLINE_SECONDS` of rejected draws (a draw the reach check refuses
+outright costs microseconds, one that needs the full placement search a fraction of a second), so that
+``max_tries: 10000`` on an infeasible distribution is refused in bounded time. Later draws (at reset) have no
+deadline: their outcome depends only on the seed. The
 sampling itself lives in :mod:`ee_formation_env.generators` (the one home of scenario generation).
 """
 
@@ -58,12 +62,14 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
-from ee_formation_env.inputs import excerpt, is_real_number
+from ee_formation_env.inputs import check_known_keys, excerpt, is_real_number
 
 INITIAL_Q_MODES = ("scenario", "random")
 SHAPE_MODES = ("scenario", "regular", "reachable")
 GRAPH_MODES = ("scenario", "trilateration", "complete")
 MAX_TRIES = 10_000
+#: Wall-clock bound (s) on the env's first draw of a distribution, the one that decides it is feasible.
+FIRST_DRAW_DEADLINE_SECONDS = 10.0
 
 Range = tuple[float, float]
 
@@ -112,10 +118,7 @@ def parse_distribution(value: Any, dim: int) -> DistributionConfig:
     if not isinstance(value, Mapping):
         raise ValueError(f"distribution: expected a dict with keys among {list(DISTRIBUTION_KEYS)}, got "
                          f"{excerpt(value)}")
-    unknown = set(value) - set(DISTRIBUTION_KEYS)
-    if unknown:
-        raise ValueError(f"distribution: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: "
-                         f"{list(DISTRIBUTION_KEYS)}")
+    check_known_keys("distribution", value, list(DISTRIBUTION_KEYS))
     defaults = DistributionConfig()
     parsed: dict[str, Any] = {"active": True}
     radius = value.get("ring_radius")

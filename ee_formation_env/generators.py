@@ -20,6 +20,7 @@ of them.
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from typing import Any, Callable
 
@@ -28,6 +29,8 @@ import pybullet
 
 from ee_formation_env.robots import RANDOM_SPATIAL_ROBOTS, ROBOTS, SPATIAL_INITIAL_Q
 from ee_formation_env.kinematics import chain_model, rpy_to_matrix, singularity_margins
+from ee_formation_env.distribution import FIRST_DRAW_DEADLINE_SECONDS
+from ee_formation_env.robot import start_problem
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.task import build_task
 
@@ -262,16 +265,19 @@ def _pose_arms(robots: list[str], radius: float, offset: float, rng: np.random.G
 
 
 # -- scenario distributions (ee_formation_env.distribution): one validated draw per reset ------------------
-def sample_task(scenario: Any, rng: np.random.Generator, accept: Callable[[Any], str | None] | None = None) -> Any:
+def sample_task(scenario: Any, rng: np.random.Generator, accept: Callable[[Any], str | None] | None = None,
+                deadline_seconds: float | None = None) -> Any:
     """One validated draw of ``scenario``'s distribution (:mod:`ee_formation_env.distribution`): a
     :class:`~ee_formation_env.task.FormationTask` of a fixed scenario with the same team. ``rng`` supplies every
     random number (the env's generator: the reset seed fixes the draw). ``accept(task)`` may reject a draw that
     passed the geometric checks (the env's start-contact check in its world): it returns the reason, or None.
-    Rejected draws are redrawn; after ``max_tries`` a ``ValueError`` names the distribution and the last reason.
+    Rejected draws are redrawn; after ``max_tries``, or once ``deadline_seconds`` (wall clock; None: no
+    deadline) have passed after a rejection, a ``ValueError`` names the distribution and the last reason.
     """
     config = scenario.distribution
     reason = ""
-    for _ in range(config.max_tries):
+    started = time.monotonic()
+    for tries in range(1, config.max_tries + 1):
         try:
             with warnings.catch_warnings():  # a non-minimal graph warns once at construction, not per draw
                 warnings.simplefilter("ignore", UserWarning)
@@ -282,8 +288,18 @@ def sample_task(scenario: Any, rng: np.random.Generator, accept: Callable[[Any],
         if problem is None:
             return task
         reason = problem
+        if deadline_seconds is not None and time.monotonic() - started >= deadline_seconds:
+            raise ValueError(f"distribution: no valid draw of {scenario.name!r} within {deadline_seconds:g} s "
+                             f"({tries} of max_tries {config.max_tries} tries); last rejection: {reason}")
     raise ValueError(f"distribution: no valid draw of {scenario.name!r} in {config.max_tries} tries (max_tries); "
                      f"last rejection: {reason}")
+
+
+def first_draw(scenario: Any, arm_set: Any) -> Any:
+    """The env's draw at construction (generator seeded 0, start contacts checked in ``arm_set``'s world), within
+    :data:`~ee_formation_env.distribution.FIRST_DRAW_DEADLINE_SECONDS`: it refuses an infeasible distribution."""
+    return sample_task(scenario, np.random.default_rng(0), lambda task: start_problem(arm_set, task),
+                       deadline_seconds=FIRST_DRAW_DEADLINE_SECONDS)
 
 
 def draw_scenario(scenario: Any, rng: np.random.Generator) -> dict[str, Any]:

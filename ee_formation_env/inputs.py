@@ -4,28 +4,49 @@ Rule: bad input is a ``ValueError`` (or ``TypeError``) whose message starts with
 before a PyBullet client connects (or after closing it), that never echoes more than a short excerpt of
 the input. The bounds are documented in ``docs/scenarios.md`` ("Limits"):
 
-- a scenario file is at most :data:`MAX_SCENARIO_FILE_BYTES` bytes;
+- a scenario file is at most :data:`MAX_SCENARIO_FILE_BYTES` bytes (checked before it is parsed);
 - a YAML scenario expands to at most :data:`MAX_SCENARIO_NODES` nodes, counted on the composed document
   before anything is constructed (each use of an alias counts its anchor's nodes again), so that a few
   hundred bytes of nested aliases ("billion laughs") are refused without being expanded;
+- scenario data (a file's or a dict's) nests lists and dicts at most :data:`MAX_NESTING_DEPTH` deep;
+- a scenario has at most :data:`MAX_ARMS` arms (checked before any arm is parsed);
+- a key given twice in one YAML or JSON mapping is refused (naming the key, and for YAML its lines);
+- YAML files are read with the YAML 1.2 core schema (:mod:`ee_formation_env.scenario_file`): ``010`` is 10,
+  ``1e3`` is 1000.0, ``1:30`` and ``yes`` are strings (then refused by the field that expects a number or a
+  boolean);
 - ``episode_seconds`` <= :data:`MAX_EPISODE_SECONDS`, ``physics_hz`` <= :data:`MAX_PHYSICS_HZ` and
   ``frame_skip`` <= :data:`MAX_FRAME_SKIP`, so that every derived count (``max_steps``) is a finite int;
+- a batched env has at most :data:`MAX_NUM_ENVS` copies, and no more than the machine's physical memory holds
+  at :data:`COPY_BYTES_ESTIMATE` bytes each (checked before the first PyBullet client connects);
 - a seed is ``None`` or an integer >= 0 (Python or numpy); booleans are not numbers anywhere.
 """
 
 from __future__ import annotations
 
+import difflib
+import os
 import reprlib
-from typing import Any, Mapping
+import warnings
+from typing import Any, Iterable, Mapping
 
 import numpy as np
-import yaml
 
-#: Largest scenario file (YAML or JSON) read, bytes.
-MAX_SCENARIO_FILE_BYTES = 1_000_000
+#: Largest scenario file (YAML or JSON) read, bytes. A scenario of :data:`MAX_ARMS` arms with every key and
+#: comments is under 64 kB; at this size the YAML parser takes about a second before any bound below applies.
+MAX_SCENARIO_FILE_BYTES = 256_000
 #: Largest number of YAML nodes (scalars, sequences, mappings, keys included) a scenario file may expand
 #: to, aliases expanded. The built-in scenarios have fewer than 300.
 MAX_SCENARIO_NODES = 100_000
+#: Deepest nesting of lists and dicts in scenario data; the format needs 4 (arms, a list of dicts of lists).
+MAX_NESTING_DEPTH = 32
+#: Most arms in a scenario. Building a task checks every pair of arms (start contacts, reach), so the cost
+#: grows with the square of the count (500 arms take seconds, 2,000 tens of seconds); 64 arms, far more than a
+#: formation study needs, build in a fraction of a second.
+MAX_ARMS = 64
+#: Most copies of a batched env: PyBullet holds at most 1024 clients per process (its MAX_PHYSICS_CLIENTS).
+MAX_NUM_ENVS = 1024
+#: Resident memory of one copy (one PyBullet client with a scenario's arms), bytes, for the estimate below.
+COPY_BYTES_ESTIMATE = 30_000_000
 #: Longest episode, simulated seconds (11.6 days).
 MAX_EPISODE_SECONDS = 1.0e6
 #: Fastest physics rate, Hz.
@@ -62,54 +83,57 @@ def check_seed(seed: Any) -> int | None:
     return int(seed)
 
 
-class BoundedSafeLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that refuses a document expanding to more than :data:`MAX_SCENARIO_NODES` nodes.
-
-    The count is made on the composed node graph, before construction: each node's expanded size is
-    computed once (memoized by identity), so counting is linear in the file's size even when the expansion
-    is exponential.
-    """
-
-    max_nodes = MAX_SCENARIO_NODES
-
-    def compose_document(self) -> yaml.Node:
-        node = super().compose_document()
-        count = expanded_node_count(node, self.max_nodes)
-        if count > self.max_nodes:
-            raise ValueError(f"scenario: the YAML document expands to more than {self.max_nodes} nodes "
-                             "(aliases expanded); a scenario needs far fewer")
-        return node
+def check_num_envs(num_envs: Any) -> int:
+    """``num_envs`` as an int within :data:`MAX_NUM_ENVS` and the memory estimate; ``ValueError`` naming it."""
+    if isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+        raise ValueError(f"num_envs: expected an integer >= 1 (copies of the scenario), got {excerpt(num_envs)}")
+    if num_envs > MAX_NUM_ENVS:
+        raise ValueError(f"num_envs: expected at most {MAX_NUM_ENVS} copies (PyBullet's clients per process), got "
+                         f"{int(num_envs)}; run more processes instead")
+    memory = _physical_memory_bytes()
+    if memory is not None and num_envs * COPY_BYTES_ESTIMATE > memory:
+        raise ValueError(f"num_envs: {int(num_envs)} copies need about {num_envs * COPY_BYTES_ESTIMATE / 1e9:.1f} GB "
+                         f"({COPY_BYTES_ESTIMATE / 1e6:.0f} MB each); this machine has {memory / 1e9:.1f} GB")
+    return int(num_envs)
 
 
-def expanded_node_count(root: yaml.Node, limit: int) -> int:
-    """Nodes of ``root`` with aliases expanded (stops counting once past ``limit``)."""
-    sizes: dict[int, int] = {}
-    on_path: set[int] = set()
-    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+def _physical_memory_bytes() -> int | None:
+    """The machine's physical memory (bytes), or None where the platform does not say."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def check_known_keys(where: str, keys: Iterable[Any], allowed: Iterable[str]) -> None:
+    """Refuse keys of ``where`` outside ``allowed``: ``ValueError`` starting with ``where``, listing the allowed
+    keys and, for a key close to an allowed one, the likely intended key ("did you mean")."""
+    allowed = list(allowed)
+    unknown = sorted(str(key) for key in keys if key not in allowed)
+    if not unknown:
+        return
+    hints = [f"{close[0]!r} for {key!r}" for key in unknown[:12]
+             for close in [difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)] if close]
+    hint = f" (did you mean {', '.join(hints)}?)" if hints else ""
+    raise ValueError(f"{where}: unknown key(s) {excerpt(unknown)}{hint}; allowed: {allowed}")
+
+
+def check_nesting(where: str, value: Any, limit: int = MAX_NESTING_DEPTH) -> None:
+    """Refuse data whose lists/tuples/dicts nest more than ``limit`` deep (checked without recursion):
+    ``ValueError`` starting with ``where``."""
+    stack = [(value, 0)]
     while stack:
-        node, children_done = stack.pop()
-        key = id(node)
-        if key in sizes and not children_done:
+        item, depth = stack.pop()
+        if isinstance(item, Mapping):
+            children = list(item.values())
+        elif isinstance(item, (list, tuple)):
+            children = list(item)
+        else:
             continue
-        children = _children(node)
-        if not children_done:
-            if key in on_path:
-                raise ValueError("scenario: the YAML document contains a recursive alias")
-            on_path.add(key)
-            stack.append((node, True))
-            stack.extend((child, False) for child in children if id(child) not in sizes)
-            continue
-        on_path.discard(key)
-        sizes[key] = min(1 + sum(sizes[id(child)] for child in children), limit + 1)
-    return sizes[id(root)]
-
-
-def _children(node: yaml.Node) -> list[yaml.Node]:
-    if isinstance(node, yaml.SequenceNode):
-        return list(node.value)
-    if isinstance(node, yaml.MappingNode):
-        return [item for pair in node.value for item in pair]
-    return []
+        if depth + 1 > limit:
+            raise ValueError(f"{where}: lists and dicts nest more than {limit} levels deep (the scenario format "
+                             "needs 4)")
+        stack.extend((child, depth + 1) for child in children)
 
 
 def numeric_action(agent: str, action: Any, shape: tuple[int, ...]) -> np.ndarray:
@@ -146,13 +170,27 @@ def copy_seeds(seed: Any, copies: int) -> list[int | None]:
     return [None if first is None else first + k for k in range(copies)]
 
 
+#: The keys ``reset(options=...)`` accepts.
+RESET_OPTIONS = ("reset_mask",)
+
+
 def reset_rows(options: Any, copies: int, first_reset: bool) -> np.ndarray:
-    """The copies a batched ``reset`` resets: all, or ``options["reset_mask"]``'s (a (copies,) bool array; the
-    first reset must reset every copy)."""
-    if options is None or "reset_mask" not in options:
+    """The copies a ``reset`` resets (the batched env's, and the parallel env's, its one-copy view): all, or
+    ``options["reset_mask"]``'s (a (copies,) bool array; the first reset must reset every copy). ``options`` is
+    None or a dict (else ``TypeError`` naming it); a key outside :data:`RESET_OPTIONS` is ignored with a
+    ``UserWarning`` naming it and the accepted keys, not refused: PettingZoo's API conformance test resets with
+    ``options={"options": 1}`` and requires it to be accepted."""
+    if options is None:
         return np.arange(copies)
     if not isinstance(options, Mapping):
-        raise TypeError(f"options: expected a dict, got {type(options).__name__}")
+        raise TypeError(f"options: expected None or a dict with keys among {list(RESET_OPTIONS)}, got "
+                        f"{type(options).__name__} {excerpt(options)}")
+    try:
+        check_known_keys("options", options, RESET_OPTIONS)
+    except ValueError as unknown:
+        warnings.warn(f"{unknown} (ignored)", UserWarning, stacklevel=4)
+    if "reset_mask" not in options:
+        return np.arange(copies)
     mask = options["reset_mask"]
     array = np.asarray(mask)
     if array.dtype != bool or array.shape != (copies,):

@@ -3,9 +3,12 @@
 Scenario key ``manoeuvre`` = ``{"start": t0, "duration": T, "translation": A, "rotation": r, "axis": u}``:
 
 - ``start`` t0 (s, default 5): the hold time before the motion starts;
-- ``duration`` T (s, default 20): the length of the motion, T > 0 (an episode shorter than t0 + T ends
-  during it);
-- ``translation`` A (m, ``dim`` numbers, default zeros): the out-and-back displacement amplitude;
+- ``duration`` T (s, default 20): the length of the motion, at least :data:`MIN_DURATION_CONTROL_STEPS`
+  control periods (``frame_skip / physics_hz`` s each), so that the arms are commanded along it rather than
+  shown a jump (an episode shorter than t0 + T ends during it);
+- ``translation`` A (m, ``dim`` numbers, default zeros): the out-and-back displacement amplitude; |A| is at
+  most twice the shortest arm's reach (the diameter of its workspace: no end-effector can follow farther),
+  checked with the robots' models (:func:`ee_formation_env.validation.check_task`);
 - ``rotation`` r (rad, default 0): the amplitude of the out-and-back turn about the centroid; distance
   formations only (a displacement formation's shape is fixed in the world's orientation);
 - ``axis`` u (``dim`` 3 only; world frame, default [0, 0, 1]): the turn's axis (normalized).
@@ -37,11 +40,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ee_formation_env.inputs import excerpt
+from ee_formation_env.inputs import check_known_keys, excerpt
 
 MANOEUVRE_KEYS = ("start", "duration", "translation", "rotation", "axis")
 DEFAULT_START_SECONDS = 5.0
 DEFAULT_DURATION_SECONDS = 20.0
+#: Shortest manoeuvre, in control periods: 4 steps sample the profile at its start, peak speed (T/4), turning
+#: point (T/2) and return (3T/4); at fewer the arms are shown a jump, not a motion to follow.
+MIN_DURATION_CONTROL_STEPS = 4
 _BOUND_MARGIN = 1.001  # observation bounds: a little above the largest value the reference can take
 
 
@@ -90,23 +96,24 @@ class ManoeuvreConfig:
         return data
 
 
-def parse_manoeuvre(value: Any, dim: int, formation_kind: str) -> ManoeuvreConfig:
-    """``manoeuvre`` from scenario data, for a ``dim``-dimensional formation of kind ``formation_kind``;
-    ``ValueError`` naming the field on bad input."""
+def parse_manoeuvre(value: Any, dim: int, formation_kind: str, control_dt: float) -> ManoeuvreConfig:
+    """``manoeuvre`` from scenario data, for a ``dim``-dimensional formation of kind ``formation_kind`` whose
+    env steps last ``control_dt`` s; ``ValueError`` naming the field on bad input."""
     if isinstance(value, ManoeuvreConfig):
         value = value.to_dict()
     if value is None:
         return ManoeuvreConfig()
     if not isinstance(value, Mapping):
         raise ValueError(f"manoeuvre: expected a dict with keys {list(MANOEUVRE_KEYS)} or null, got {excerpt(value)}")
-    unknown = set(value) - set(MANOEUVRE_KEYS)
-    if unknown:
-        raise ValueError(f"manoeuvre: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: "
-                         f"{list(MANOEUVRE_KEYS)}")
+    check_known_keys("manoeuvre", value, list(MANOEUVRE_KEYS))
     start = _number("manoeuvre.start", value.get("start", DEFAULT_START_SECONDS), "a time >= 0 (s)",
                     lambda x: x >= 0)
     duration = _number("manoeuvre.duration", value.get("duration", DEFAULT_DURATION_SECONDS), "a time > 0 (s)",
                        lambda x: x > 0)
+    if duration < MIN_DURATION_CONTROL_STEPS * control_dt:
+        raise ValueError(f"manoeuvre.duration: expected at least {MIN_DURATION_CONTROL_STEPS} control periods "
+                         f"({MIN_DURATION_CONTROL_STEPS * control_dt:g} s at {control_dt:g} s per env step) for the "
+                         f"arms to follow the motion, got {duration:g} s")
     translation = _vector("manoeuvre.translation", value.get("translation", [0.0] * dim), dim, "m")
     rotation = _number("manoeuvre.rotation", value.get("rotation", 0.0), "an angle (rad)", lambda x: True)
     if rotation != 0 and formation_kind != "distance":

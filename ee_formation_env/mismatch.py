@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ee_formation_env.inputs import excerpt
+from ee_formation_env.inputs import check_known_keys, excerpt
 
 
 @dataclass(frozen=True)
@@ -45,9 +45,7 @@ def parse_mismatch(value: Any) -> MismatchConfig:
         return MismatchConfig()
     if not isinstance(value, Mapping):
         raise ValueError(f"model_mismatch: expected a dict with keys length, mass, seed; got {excerpt(value)}")
-    unknown = set(value) - {"length", "mass", "seed"}
-    if unknown:
-        raise ValueError(f"model_mismatch: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: ['length', 'mass', 'seed']")
+    check_known_keys("model_mismatch", value, ['length', 'mass', 'seed'])
     parsed: dict[str, Any] = {}
     for key in ("length", "mass"):
         if key in value:

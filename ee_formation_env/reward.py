@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ee_formation_env.inputs import excerpt
+from ee_formation_env.inputs import check_known_keys, excerpt
 
 DEFAULT_POSITION_TOLERANCE = 0.01  # m: the edge-length accuracy that counts as "in formation"
 
@@ -59,9 +59,7 @@ def parse_reward(value: Any) -> RewardConfig:
     if not isinstance(value, Mapping):
         raise ValueError(f"reward: expected a dict of RewardConfig fields, got {excerpt(value)}")
     allowed = sorted(f.name for f in fields(RewardConfig))
-    unknown = set(value) - set(allowed)
-    if unknown:
-        raise ValueError(f"reward: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {allowed}")
+    check_known_keys("reward", value, allowed)
     parsed: dict[str, Any] = {}
     for key, number in value.items():
         if key == "team":

@@ -4,8 +4,6 @@
 from __future__ import annotations
 
 import tempfile
-import xml.etree.ElementTree as ElementTree
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -16,6 +14,7 @@ from ee_formation_env.gravity import GravityTorque, gravity_torques
 from ee_formation_env.mismatch import write_perturbed_urdf
 from ee_formation_env.scenario import ArmConfig
 from ee_formation_env.task import FormationTask
+from ee_formation_env.validation import missing_meshes
 from ee_formation_env.world import PhysicsWorld
 
 # PyBullet clamps joint speeds at 100 rad/s by default, which would hide a blow-up; lift it far above
@@ -212,18 +211,6 @@ def _loaded(index: int, config: ArmConfig, load: Callable[[], Arm]) -> Arm:
         missing = missing_meshes(config.urdf)
         hint = f"; mesh files not found next to it: {missing[:5]}" if missing else ""
         raise ValueError(f"arms[{index}].urdf: PyBullet could not load {config.urdf} ({error}){hint}") from None
-
-
-def missing_meshes(urdf: str) -> list[str]:
-    """The ``<mesh filename>`` entries of ``urdf`` (not ``package://``) that name no file next to it."""
-    try:
-        root = ElementTree.parse(urdf).getroot()
-    except (ElementTree.ParseError, OSError):
-        return []
-    folder = Path(urdf).parent
-    names = [mesh.get("filename", "") for mesh in root.iter("mesh")]
-    return sorted({name for name in names
-                   if name and "://" not in name and not (folder / name).is_file()})
 
 
 def check_start_contacts(arm_set: ArmSet) -> None:

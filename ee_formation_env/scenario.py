@@ -25,7 +25,6 @@ all zeros for an arm given by ``urdf``).
 from __future__ import annotations
 
 import copy
-import json
 import math
 import os
 from dataclasses import MISSING, dataclass, field, fields
@@ -33,14 +32,14 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import yaml
 
 # Re-exported for compatibility (plain re-exports, defined once): the built-in scenarios live in
 # ee_formation_env.builtin, the robots in ee_formation_env.robots.
 from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario  # noqa: F401
 from ee_formation_env.formation import FORMATION_KINDS
-from ee_formation_env.inputs import (MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PHYSICS_HZ, MAX_SCENARIO_FILE_BYTES,
-                                     BoundedSafeLoader, excerpt, is_real_number)
+from ee_formation_env.inputs import (MAX_ARMS, MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PHYSICS_HZ, check_known_keys,
+                                     check_nesting, excerpt, is_real_number)
+from ee_formation_env.scenario_file import read_scenario_file
 from ee_formation_env.manoeuvre import ManoeuvreConfig, parse_manoeuvre
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
 from ee_formation_env.reward import RewardConfig, parse_reward
@@ -240,37 +239,50 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
                   **overrides: Any) -> Scenario:
     """Parse a scenario (built-in name, YAML/JSON path, dict or parsed :class:`Scenario`) plus overrides.
 
-    ``reward``, ``model_mismatch``, ``sensing``, ``distribution`` and ``manoeuvre`` overrides are merged into the scenario's. Raises ``ValueError``
-    naming the offending field, or ``TypeError`` for a scenario argument of the wrong type.
+    ``reward``, ``model_mismatch``, ``sensing``, ``distribution`` and ``manoeuvre`` overrides are merged into
+    the scenario's. It checks the format: every field's type, range and the limits of
+    :mod:`ee_formation_env.inputs` (file size, nesting, arm count), and that every URDF exists. It does not
+    read the robots' models, so it does not check links, meshes, joint limits, reachability, rigidity,
+    singular starts or start contacts: :func:`ee_formation_env.validate_scenario` runs those too (every check
+    ``parallel_env`` runs, without stepping physics). Raises ``ValueError`` naming the
+    offending field, or ``TypeError`` for an argument of the wrong type.
     """
     if isinstance(scenario, Scenario):
         if not overrides:
             return scenario
         scenario = scenario.to_dict()
+    check_nesting("overrides", overrides)
     base_dir = Path.cwd()
     if isinstance(scenario, Mapping):
+        check_nesting("scenario", scenario)
         data = copy.deepcopy(dict(scenario))
-        name = str(data.pop("name", "custom"))
+        name = _name(data.pop("name", "custom"))
     elif isinstance(scenario, (str, os.PathLike)):
         text = os.fspath(scenario)
         if text in BUILTIN_SCENARIOS:
             data, name = builtin_scenario(text), text
         elif text.endswith((".yaml", ".yml", ".json")):
             path = Path(text)
+            if path.is_dir():
+                raise ValueError(f"scenario: {excerpt(text)} is a directory, not a scenario file")
             if not path.is_file():
                 raise ValueError(f"scenario: file not found: {excerpt(text)}")
-            data = _read_scenario_file(path)
+            data = read_scenario_file(path)
             if not isinstance(data, dict):
                 raise ValueError(f"scenario: {excerpt(text)} must contain a mapping, got {type(data).__name__}")
-            name = str(data.pop("name", path.stem))
+            check_nesting(f"scenario: {excerpt(text)}", data)
+            name = _name(data.pop("name", path.stem))
             base_dir = path.resolve().parent
         else:
             raise ValueError(
                 f"scenario: {excerpt(text)} is neither a built-in scenario {sorted(BUILTIN_SCENARIOS)} "
-                "nor a .yaml/.yml/.json file"
+                "nor a .yaml/.yml/.json file" + (" (it is a directory)" if Path(text).is_dir() else "")
             )
     else:
         raise TypeError(f"scenario: expected a name, a path or a dict, got {type(scenario).__name__}")
+    if "name" in overrides:
+        name = _name(overrides["name"])
+        overrides = {key: value for key, value in overrides.items() if key != "name"}
 
     physics_changed = any(
         key not in GAIN_NEUTRAL_FIELDS and _plain(value) != _plain(data.get(key, SCENARIO_FIELDS[key].default
@@ -286,33 +298,17 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
     return _parse(name, data, base_dir)
 
 
-def _read_scenario_file(path: Path) -> Any:
-    """The plain data of a YAML/JSON scenario file, within :data:`MAX_SCENARIO_FILE_BYTES` and (YAML) the
-    alias-expansion bound of :class:`~ee_formation_env.inputs.BoundedSafeLoader`."""
-    size = path.stat().st_size
-    if size > MAX_SCENARIO_FILE_BYTES:
-        raise ValueError(f"scenario: {excerpt(str(path))} is {size} bytes; a scenario file is at most "
-                         f"{MAX_SCENARIO_FILE_BYTES} bytes")
-    with open(path, "rb") as handle:
-        raw = handle.read(MAX_SCENARIO_FILE_BYTES + 1)
-    if len(raw) > MAX_SCENARIO_FILE_BYTES:  # grew since stat
-        raise ValueError(f"scenario: {excerpt(str(path))} is over {MAX_SCENARIO_FILE_BYTES} bytes")
-    try:
-        text = raw.decode("utf-8")
-        if path.suffix == ".json":
-            return json.loads(text)
-        return yaml.load(text, Loader=BoundedSafeLoader)  # noqa: S506 (a SafeLoader subclass)
-    except RecursionError:
-        raise ValueError(f"scenario: {excerpt(str(path))} is nested too deeply") from None
-    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as error:
-        raise ValueError(f"scenario: {excerpt(str(path))} is not valid {'JSON' if path.suffix == '.json' else 'YAML'}: "
-                         f"{excerpt(str(error))}") from None
+def _name(value: Any) -> str:
+    """The scenario's ``name``: a non-empty string."""
+    if not isinstance(value, str):
+        raise TypeError(f"name: expected a string (the scenario's name), got {type(value).__name__} {excerpt(value)}")
+    if not value:
+        raise ValueError("name: expected a non-empty string")
+    return value
 
 
 def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
-    unknown = set(data) - _TOP_LEVEL_KEYS
-    if unknown:
-        raise ValueError(f"scenario: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {sorted(_TOP_LEVEL_KEYS)}")
+    check_known_keys("scenario", data, sorted(_TOP_LEVEL_KEYS))
     for required in ("arms", "shape"):
         if required not in data:
             raise ValueError(f"scenario: missing required key {excerpt(required)}")
@@ -320,6 +316,8 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     arms_data = data["arms"]
     if not isinstance(arms_data, (list, tuple)) or len(arms_data) < 2:
         raise ValueError(f"arms: expected a list of at least 2 arm dicts, got {excerpt(arms_data)}")
+    if len(arms_data) > MAX_ARMS:
+        raise ValueError(f"arms: expected at most {MAX_ARMS} arms, got {len(arms_data)}")
     arms = tuple(_parse_arm(i, arm, base_dir) for i, arm in enumerate(arms_data))
     n_agents = len(arms)
 
@@ -378,7 +376,8 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["reward"] = parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))
     kwargs["sensing"] = parse_sensing(data.get("sensing"), len(arms), int(dim))
-    kwargs["manoeuvre"] = parse_manoeuvre(data.get("manoeuvre"), int(dim), formation)
+    kwargs["manoeuvre"] = parse_manoeuvre(data.get("manoeuvre"), int(dim), formation,
+                                           kwargs["frame_skip"] / kwargs["physics_hz"])
     kwargs["distribution"] = parse_distribution(data.get("distribution"), int(dim))
     if kwargs["distribution"].active and kwargs["sensing"].active:
         raise ValueError("distribution: a scenario distribution cannot be combined with sensing imperfections "
@@ -398,9 +397,7 @@ def _parse_arm(index: int, arm: Any, base_dir: Path) -> ArmConfig:
     where = f"arms[{index}]"
     if not isinstance(arm, Mapping):
         raise ValueError(f"{where}: expected a dict, got {excerpt(arm)}")
-    unknown = set(arm) - _ARM_KEYS
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {sorted(_ARM_KEYS)}")
+    check_known_keys(where, arm, sorted(_ARM_KEYS))
     if ("robot" in arm) == ("urdf" in arm):
         raise ValueError(f"{where}: give exactly one of 'robot' (one of {sorted(ROBOTS)}) or 'urdf'")
     robot = arm.get("robot")

@@ -31,7 +31,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ee_formation_env.inputs import excerpt
+from ee_formation_env.inputs import check_known_keys, excerpt
 
 SENSING_KEYS = ("noise", "delay", "bias", "yaw", "seed")
 MAX_DELAY_STEPS = 1000
@@ -76,9 +76,7 @@ def parse_sensing(value: Any, n_agents: int, dim: int) -> SensingConfig:
         return SensingConfig()
     if not isinstance(value, Mapping):
         raise ValueError(f"sensing: expected a dict with keys {list(SENSING_KEYS)}, got {excerpt(value)}")
-    unknown = set(value) - set(SENSING_KEYS)
-    if unknown:
-        raise ValueError(f"sensing: unknown key(s) {excerpt(sorted(map(str, unknown)))}; allowed: {list(SENSING_KEYS)}")
+    check_known_keys("sensing", value, list(SENSING_KEYS))
     parsed: dict[str, Any] = {}
     if "noise" in value:
         parsed["noise"] = _number("sensing.noise", value["noise"], "a standard deviation >= 0 (m)", lambda x: x >= 0)

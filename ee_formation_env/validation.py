@@ -7,15 +7,18 @@ described with the scenario format in ``docs/scenarios.md``.
 
 Checks, each failure a ``ValueError`` naming the problem:
 
-- every arm's URDF parses, its end-effector link exists and the chain is serial and revolute; no link has a
-  negative mass or an inertia tensor that is not positive semi-definite;
+- every arm's URDF parses and the mesh files it names exist (PyBullet ends the whole process on a missing
+  visual mesh, so this is checked before any client connects); its end-effector link exists and the chain
+  is serial and revolute; no link has a negative mass or an inertia tensor that is not positive
+  semi-definite;
 - ``initial_q`` has one entry per joint and lies within the joint limits;
 - planar (``dim = 2``) scenarios use arms that move in their base x-y plane, with yaw-only bases;
 - the graph is connected; for distance formations it is infinitesimally rigid at the shape (a
   ``UserWarning`` says when it is rigid but not minimally rigid, the paper's assumption);
 - the shape is reachable: some placement of it (translations, and for distance formations rotations and
   reflections) puts every vertex inside its arm's sampled workspace;
-- no initial configuration is at a kinematic singularity.
+- no initial configuration is at a kinematic singularity;
+- a manoeuvre's translation is at most twice the shortest arm's reach (no end-effector follows farther).
 """
 
 from __future__ import annotations
@@ -24,10 +27,11 @@ import math
 import os
 import warnings
 import xml.etree.ElementTree as ElementTree
+from pathlib import Path
 
 import numpy as np
 
-from typing import Sequence
+from typing import Any, Sequence
 
 from ee_formation_env.formation import FormationGraph, check_rigidity
 from ee_formation_env.inputs import excerpt
@@ -70,6 +74,8 @@ def find_reachable_placement(scenario: Scenario) -> np.ndarray | None:
     spaces = [workspace(arm.urdf, arm.ee_link, dim) for arm in scenario.arms]
     rotations_to_base = [rpy_to_matrix(arm.base_rpy)[:dim, :dim] for arm in scenario.arms]
     bases = [np.asarray(arm.base_position)[:dim] for arm in scenario.arms]
+    if not _pairs_can_reach(shape, np.asarray(bases), spaces):
+        return None
     # Candidate positions of vertex 0: the centres of arm 0's workspace cells, in the world frame.
     anchors = spaces[0].cell_centres() @ rotations_to_base[0].T + bases[0]
     for rotation in _candidate_rotations(dim, scenario.formation == "distance"):
@@ -85,6 +91,18 @@ def find_reachable_placement(scenario: Scenario) -> np.ndarray | None:
         if feasible.any():
             return placed_shape + translations[np.flatnonzero(feasible)[0]]
     return None
+
+
+def _pairs_can_reach(shape: np.ndarray, bases: np.ndarray, spaces: Sequence[Any]) -> bool:
+    """A necessary condition of a placement, checked in microseconds before the search: every point of arm i's
+    (dilated) workspace lies within ``reach_i + 3 cells`` of its base, and placements preserve the shape's
+    distances, so each pair's target distance d_ij must be within the bases' distance plus or minus the two
+    bounds. False means no placement exists."""
+    bounds = np.array([space.reach + 3.0 * space.cell for space in spaces])
+    targets = np.linalg.norm(shape[:, None, :] - shape[None, :, :], axis=-1)
+    apart = np.linalg.norm(bases[:, None, :] - bases[None, :, :], axis=-1)
+    slack = bounds[:, None] + bounds[None, :]
+    return bool(np.all(np.abs(targets - apart) <= slack))
 
 
 def check_task(scenario: Scenario, models: Sequence[SerialChain], initial_q: Sequence[np.ndarray],
@@ -114,6 +132,12 @@ def check_task(scenario: Scenario, models: Sequence[SerialChain], initial_q: Seq
                 f"{report.required_rank} suffice); the paper's convergence proof assumes minimal rigidity",
                 UserWarning, stacklevel=4,
             )
+
+    translation = float(np.linalg.norm(scenario.manoeuvre.translation)) if scenario.manoeuvre.active else 0.0
+    if translation > 2.0 * min(reaches):
+        raise ValueError(
+            f"manoeuvre.translation: |A| = {translation:g} m is beyond what the arms can follow: an end-effector "
+            f"moves at most across its workspace, twice its reach (shortest reach {min(reaches):.3f} m)")
 
     if find_reachable_placement(scenario) is None:
         raise ValueError(
@@ -164,10 +188,26 @@ def _urdf_number(text: str) -> float:
         return math.nan
 
 
+def missing_meshes(urdf: str) -> list[str]:
+    """The ``<mesh filename>`` entries of ``urdf`` (not ``package://``) that name no file next to it."""
+    try:
+        root = ElementTree.parse(urdf).getroot()
+    except (ElementTree.ParseError, OSError):
+        return []
+    folder = Path(urdf).parent
+    names = [mesh.get("filename", "") for mesh in root.iter("mesh")]
+    return sorted({name for name in names
+                   if name and "://" not in name and not (folder / name).is_file()})
+
+
 def _check_arm(index: int, q0: np.ndarray, model: SerialChain, scenario: Scenario) -> None:
     where = f"arms[{index}]"
     arm = scenario.arms[index]
     check_inertials(arm.urdf, f"{where}.urdf")
+    missing = missing_meshes(arm.urdf)
+    if missing:
+        raise ValueError(f"{where}.urdf: {arm.urdf} names mesh files that do not exist next to it: "
+                         f"{excerpt(missing)}")
     if q0.shape != (model.n_joints,):
         raise ValueError(
             f"{where}.initial_q: expected {model.n_joints} values (joints {list(model.joint_names)}), "

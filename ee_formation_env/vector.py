@@ -54,7 +54,8 @@ Arguments of ``ee_formation_env.vector_env``:
 argument           meaning
 ================== ========================================================================================
 ``scenario``       a built-in name, a YAML/JSON path, a dict or a :class:`~ee_formation_env.scenario.Scenario`
-``num_envs``       K >= 1, the number of copies (each one PyBullet client, about 30 MB resident)
+``num_envs``       1 <= K <= 1024, the number of copies (each one PyBullet client, about 30 MB resident:
+                   :func:`ee_formation_env.inputs.check_num_envs` refuses more than memory holds)
 ``max_cycles``     truncate episodes after this many env steps (as :func:`ee_formation_env.parallel_env`)
 ``autoreset_mode`` ``gymnasium.vector.AutoresetMode.SAME_STEP`` (default) or ``DISABLED``
 ``render_mode``    None, ``"human"`` or ``"rgb_array"`` (``num_envs=1`` only); ``render_width``,
@@ -75,9 +76,9 @@ from gymnasium.vector.utils import batch_space
 
 from ee_formation_env.actions import ActionCheck
 from ee_formation_env.formation import formation_errors_from_squares
-from ee_formation_env.generators import distribution_bounds, sample_task
+from ee_formation_env.generators import distribution_bounds, first_draw, sample_task
 from ee_formation_env.infos import PER_AGENT_INFO, PER_COPY_INFO, copies_info_dicts
-from ee_formation_env.inputs import copy_seeds, excerpt, reset_rows
+from ee_formation_env.inputs import check_num_envs, copy_seeds, excerpt, reset_rows
 from ee_formation_env.manoeuvre import ReferenceMotion
 from ee_formation_env.measurement import PHYSICS_FAULTS, Measurement, measure, physics_faults, reward_array
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
@@ -122,8 +123,7 @@ class VectorFormationEnv:
                  num_envs: int = 1, autoreset_mode: AutoresetMode = AutoresetMode.SAME_STEP,
                  render_mode: str | None = None, render_width: int = 480, render_height: int = 360,
                  real_time: bool = False, **overrides: Any):
-        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs: expected an integer >= 1 (copies of the scenario), got {excerpt(num_envs)}")
+        num_envs = check_num_envs(num_envs)
         if autoreset_mode not in (AutoresetMode.SAME_STEP, AutoresetMode.DISABLED):
             raise ValueError(f"autoreset_mode: expected AutoresetMode.SAME_STEP or AutoresetMode.DISABLED, got "
                              f"{excerpt(autoreset_mode)}")
@@ -150,8 +150,7 @@ class VectorFormationEnv:
             self._bounds = None
             self._sampled = self.scenario.distribution.active
             if self._sampled:  # one draw now: an infeasible distribution is refused here
-                self.task = sample_task(self.scenario, np.random.default_rng(0),
-                                        lambda task: start_problem(self._arm_sets[0], task))
+                self.task = first_draw(self.scenario, self._arm_sets[0])
                 self._bounds = distribution_bounds(self.scenario, self.task)
         except BaseException:
             self.close()

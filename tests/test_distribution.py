@@ -152,3 +152,29 @@ def test_bad_distributions_name_their_field(distribution, message):
 def test_a_distribution_with_sensing_is_refused():
     with pytest.raises(ValueError, match="distribution: a scenario distribution cannot be combined with sensing"):
         load_scenario("planar_random", sensing={"noise": 0.01})
+
+
+def test_an_infeasible_distribution_is_refused_without_one_placement_search(monkeypatch):
+    """Bases 100 m apart cannot hold a shape of a few metres: the pair-distance bound refuses each draw at once,
+    so the tries do not run the placement search (a fraction of a second each) at all."""
+    import ee_formation_env.validation as validation
+    from ee_formation_env.generators import sample_task
+
+    MAX_TRIES = 300
+
+    searches = []
+    monkeypatch.setattr(validation, "_candidate_rotations", lambda *args: searches.append(args) or [])
+    scenario = load_scenario("planar_random", distribution={"ring_radius": 50.0, "max_tries": MAX_TRIES})
+    with pytest.raises(ValueError, match=rf"^distribution: no valid draw of 'planar_random' in {MAX_TRIES} tries"
+                                         r".*out of reach"):
+        sample_task(scenario, np.random.default_rng(0), deadline_seconds=None)
+    assert searches == []
+
+
+def test_the_first_draw_stops_at_its_deadline_naming_the_distribution_and_the_tries_made():
+    from ee_formation_env.generators import sample_task
+
+    scenario = load_scenario("planar_random", distribution={"vertex_spacing": 100.0, "max_tries": 10_000})
+    with pytest.raises(ValueError, match=r"^distribution: no valid draw of 'planar_random' within 0 s \(1 of "
+                                         r"max_tries 10000 tries\); last rejection: .*vertex"):
+        sample_task(scenario, np.random.default_rng(0), deadline_seconds=0.0)

@@ -133,3 +133,21 @@ def test_api_page_lists_every_deprecated_path():
         match = re.search(r'forward\(__name__, "([\w.]+)"\)', module.read_text(encoding="utf-8"))
         if match:
             assert f"| `ee_formation_env.{module.stem}` | `{match.group(1)}` |" in api, module.name
+
+
+def test_the_api_reference_shows_field_defaults_as_values_not_private_helper_calls():
+    """mkdocstrings renders a dataclass field's default from its source: the docs' griffe extension turns
+    ``_key("distance", ...)`` (and ``_option``) into the value, so no signature shows a private call."""
+    griffe = pytest.importorskip("griffe")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("griffe_layout", DOCS / "hooks" / "griffe_layout.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    loaded = griffe.load("ee_formation_env.scenario", search_paths=[str(ROOT)],
+                         extensions=griffe.load_extensions(hooks.PublicDefaults))
+    members = loaded["Scenario"].members
+    assert str(members["formation"].value) == "'distance'"
+    assert str(members["reward"].value) == "RewardConfig()" and str(members["controller_gains"].value) == "None"
+    assert not [name for name, member in members.items()
+                if getattr(member, "value", None) is not None and str(member.value).startswith("_")]

@@ -78,7 +78,7 @@ def test_rotation_refusals(scenario, manoeuvre, message):
     with pytest.raises(ValueError) as raised:
         load_scenario(scenario, manoeuvre=manoeuvre)
     assert message in str(raised.value)
-    assert parse_manoeuvre({"translation": [0.1, 0.0]}, 2, "displacement").active  # translating is fine
+    assert parse_manoeuvre({"translation": [0.1, 0.0]}, 2, "displacement", 0.01).active  # translating is fine
 
 
 def test_an_inactive_manoeuvre_leaves_everything_bit_identical(open_loop):
@@ -111,7 +111,7 @@ def test_an_active_manoeuvre_changes_only_the_reference_block(open_loop):
 
 def test_the_reference_signal_is_the_out_and_back_profile():
     config = parse_manoeuvre({"start": 2.0, "duration": 4.0, "translation": [0.3, 0.0, -0.4], "rotation": 0.5,
-                              "axis": [1.0, 0.0, 0.0]}, 3, "distance")
+                              "axis": [1.0, 0.0, 0.0]}, 3, "distance", 0.01)
     motion = ReferenceMotion(config, build_task(load_scenario("spatial_tetrahedron")))
     c0 = np.array([[0.25, 0.25, -0.5]])
     t = np.array([0.0, 1.9, 2.0, 3.0, 4.0, 5.0, 6.0, 6.5])
@@ -323,3 +323,19 @@ def test_the_reference_hold_turns_the_tetrahedron(make_env, law, without_bound, 
             observations, *_ = env.step(team(observations))
         errors.append(env.orientation_tracking_error())
     assert errors[0] > without_bound and errors[1] < with_bound and errors[1] < 0.5 * errors[0]
+
+
+def test_a_manoeuvre_shorter_than_four_control_periods_is_refused_naming_duration():
+    # planar_square steps at 100 Hz: 4 control periods are 0.04 s.
+    for duration in (1e-300, 0.039):
+        with pytest.raises(ValueError, match=r"^manoeuvre\.duration: expected at least 4 control periods \(0\.04 s"):
+            load_scenario("planar_square_transport", manoeuvre={"duration": duration})
+    assert load_scenario("planar_square_transport", manoeuvre={"duration": 0.04}).manoeuvre.duration == 0.04
+
+
+def test_a_translation_no_end_effector_can_follow_is_refused_naming_translation_before_physics():
+    # The planar arms reach 3 m: no end-effector moves farther than 6 m, across its workspace.
+    with pytest.raises(ValueError, match=r"^manoeuvre\.translation: \|A\| = 1e\+06 m is beyond what the arms can "
+                                         r"follow.*shortest reach 3\.000 m"):
+        build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [1e6, 0.0]}))
+    build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [5.9, 0.0]}))  # within

@@ -14,14 +14,15 @@ from pathlib import Path
 
 import gymnasium
 import numpy as np
+import pybullet
 import pytest
 import yaml
 
 import ee_formation_env
 from benchmarks.soak import connected_clients
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
-from ee_formation_env.inputs import (MAX_EPISODE_SECONDS, MAX_EXCERPT_CHARS, MAX_SCENARIO_FILE_BYTES,
-                                     MAX_SCENARIO_NODES, BoundedSafeLoader, expanded_node_count)
+from ee_formation_env.inputs import MAX_EPISODE_SECONDS, MAX_EXCERPT_CHARS, MAX_SCENARIO_FILE_BYTES, MAX_SCENARIO_NODES
+from ee_formation_env.scenario_file import BoundedSafeLoader, expanded_node_count
 from ee_formation_env.kinematics import chain_model, singularity_margins
 from ee_formation_env.robots import ROBOTS
 from ee_formation_env.scenario import SCENARIO_FIELDS, builtin_scenario, load_scenario, resolve_urdf
@@ -137,12 +138,19 @@ def test_time_fields_are_bounded_at_parse_time_so_no_step_overflows():
 
 
 # ------------------------------------------------------------------------------------ D: URDFs PyBullet rejects
-def test_a_urdf_pybullet_rejects_is_a_value_error_naming_the_arm_with_no_client_left(tmp_path):
+def test_a_urdf_with_a_missing_mesh_is_refused_naming_urdf_and_mesh_before_any_client_connects(tmp_path,
+                                                                                                monkeypatch):
+    """PyBullet ends the whole process on a missing visual mesh, so the check runs before it is asked."""
     urdf = tmp_path / "mesh_arm.urdf"
     urdf.write_text(PLANAR_URDF.read_text().replace('<geometry><box size="1.3 0.08 0.08"/></geometry>',
                                                     '<geometry><mesh filename="meshes/missing.stl"/></geometry>'))
     arms = [_planar_urdf_arm(urdf, 0)] + builtin_scenario("planar_square")["arms"][1:]
-    error = _refused(ValueError, r"^arms\[0\]\.urdf: PyBullet could not load",
+
+    def no_connect(*args, **kwargs):
+        raise AssertionError("a PyBullet client was asked for before the mesh check")
+
+    monkeypatch.setattr(pybullet, "connect", no_connect)
+    error = _refused(ValueError, r"^arms\[0\]\.urdf: .*names mesh files that do not exist next to it",
                      lambda: ee_formation_env.parallel_env(scenario_dict(arms=arms)))
     assert str(urdf) in str(error) and "meshes/missing.stl" in str(error)
 

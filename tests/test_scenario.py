@@ -276,3 +276,61 @@ def test_unknown_scenario_name_and_missing_file(tmp_path):
         load_scenario(bad)
     with pytest.raises(TypeError):
         load_scenario(42)
+
+
+# ------------------------------------------------------------------------------------------ refusals at the door
+def test_a_null_name_is_a_type_error_naming_name_not_the_string_none():
+    with pytest.raises(TypeError, match=r"^name: expected a string"):
+        load_scenario({**scenario_dict(), "name": None})
+    with pytest.raises(TypeError, match=r"^name: expected a string"):
+        load_scenario("planar_square", name=None)
+
+
+def test_a_name_override_is_the_scenario_name():
+    assert load_scenario("planar_square", name="renamed").name == "renamed"
+
+
+def test_a_directory_given_as_the_scenario_is_called_a_directory_not_a_missing_file(tmp_path):
+    folder = tmp_path / "scenario.yaml"
+    folder.mkdir()
+    with pytest.raises(ValueError, match=r"^scenario: .*scenario\.yaml' is a directory, not a scenario file"):
+        load_scenario(folder)
+    with pytest.raises(ValueError, match=r"\(it is a directory\)"):
+        load_scenario(tmp_path)
+
+
+def test_more_arms_than_the_cap_are_refused_before_any_arm_is_parsed():
+    from ee_formation_env.inputs import MAX_ARMS
+
+    arms = [{"robot": "no_such_robot"}] * (MAX_ARMS + 1)  # never parsed: the count is refused first
+    with pytest.raises(ValueError, match=rf"^arms: expected at most {MAX_ARMS} arms, got {MAX_ARMS + 1}"):
+        load_scenario(scenario_dict(arms=arms))
+
+
+def test_a_dict_nested_20000_deep_is_a_value_error_about_nesting_not_a_recursion_error():
+    from ee_formation_env.inputs import MAX_NESTING_DEPTH
+
+    nested: list = []
+    for _ in range(20_000):
+        nested = [nested]
+    with pytest.raises(ValueError, match=rf"^scenario: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+        load_scenario(scenario_dict(arms=nested))
+    with pytest.raises(ValueError, match=rf"^overrides: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+        load_scenario("planar_square", gravity=nested)
+
+
+@pytest.mark.parametrize("data, hint", [
+    (scenario_dict(shpe=[[0.0, 0.0]]), r"^scenario: unknown key\(s\) \['shpe'\] \(did you mean 'shape' for 'shpe'\?\)"),
+    (_with_arm(0, base_positon=[0.0, 0.0, 0.0]), r"^arms\[0\]: unknown key\(s\) .*did you mean 'base_position'"),
+    (scenario_dict(reward={"in_tolerence": 1.0}), r"^reward: unknown key\(s\) .*did you mean 'in_tolerance'"),
+    (scenario_dict(sensing={"nosie": 0.01}), r"^sensing: unknown key\(s\) .*did you mean 'noise'"),
+])
+def test_a_misspelt_key_is_refused_with_the_key_it_likely_meant(data, hint):
+    with pytest.raises(ValueError, match=hint):
+        load_scenario(data)
+
+
+def test_a_key_far_from_every_allowed_one_gets_no_guess():
+    with pytest.raises(ValueError) as info:
+        load_scenario(scenario_dict(zzzzzz=1))
+    assert "did you mean" not in str(info.value) and "allowed: [" in str(info.value)

@@ -14,6 +14,7 @@ from ee_formation_env.scenario import ROBOTS, load_scenario
 from ee_formation_env.task import build_task
 from ee_formation_env.validation import find_reachable_placement
 
+from benchmarks.soak import connected_clients
 from conftest import scenario_dict
 
 KUKA = {"urdf": "kuka_iiwa/model.urdf", "ee_link": "lbr_iiwa_link_7"}
@@ -222,3 +223,65 @@ def test_valid_builtins_pass_validation():
         assert len(models) == 4
         assert all(model.n_joints == (2 if name.startswith("planar") else 7) for model in models)
         assert find_reachable_placement(load_scenario(name)) is not None
+
+
+# ------------------------------------------------------------------------------------------ validate_scenario
+def _stretched(index: int) -> dict:
+    data = scenario_dict()
+    data["arms"][index]["initial_q"] = [0.0, 0.0]
+    return data
+
+
+def _touching() -> dict:
+    data = scenario_dict()
+    data["arms"][1]["base_position"] = [0.3, 0.0, 0.0]
+    data["arms"][1]["initial_q"] = data["arms"][0]["initial_q"]
+    return data
+
+
+@pytest.mark.parametrize("data, pattern", [
+    (scenario_dict(shape=_square(0.4)), r"^shape: the formation is out of reach"),
+    (_stretched(2), r"^arms\[2\]\.initial_q: .* kinematic singularity"),
+    (_touching(), r"^arms: arm_0 and arm_1 are in contact at their initial configurations"),
+    (scenario_dict("planar_random", distribution={"shape_scale": [40.0, 50.0], "max_tries": 3}),
+     r"^distribution: no valid draw of 'custom'"),
+])
+def test_validate_scenario_refuses_what_parallel_env_refuses_without_a_physics_step(data, pattern, monkeypatch):
+    """``load_scenario`` checks the format only: these pass it, and both validate_scenario and the env refuse
+    them with the same message; validate_scenario never steps physics and leaves no client connected."""
+    import pybullet
+
+    from ee_formation_env import validate_scenario
+
+    load_scenario(data)  # the format is fine
+    with pytest.raises(ValueError, match=pattern) as from_env:
+        ee_formation_env.parallel_env(data)
+
+    def no_step(*args, **kwargs):
+        raise AssertionError("validate_scenario stepped physics")
+
+    monkeypatch.setattr(pybullet, "stepSimulation", no_step)
+    before = connected_clients()
+    with pytest.raises(ValueError, match=pattern) as from_validate:
+        validate_scenario(data)
+    assert str(from_validate.value) == str(from_env.value)
+    assert connected_clients() == before
+
+
+def test_validate_scenario_returns_the_parsed_scenario_of_a_valid_one():
+    from ee_formation_env import validate_scenario
+
+    assert validate_scenario("planar_random") == load_scenario("planar_random")
+    assert validate_scenario("planar_square", episode_seconds=2.0).episode_seconds == 2.0
+
+
+@pytest.mark.parametrize("name", ["planar_square", "spatial_tetrahedron", "planar_square_rotated"])
+def test_the_pair_distance_bound_never_refuses_a_reachable_shape(name):
+    from ee_formation_env.validation import _pairs_can_reach
+    from ee_formation_env.workspace import workspace
+
+    scenario = load_scenario(name)
+    spaces = [workspace(arm.urdf, arm.ee_link, scenario.dim) for arm in scenario.arms]
+    bases = np.array([arm.base_position[:scenario.dim] for arm in scenario.arms])
+    assert _pairs_can_reach(np.asarray(scenario.shape), bases, spaces)
+    assert find_reachable_placement(scenario) is not None

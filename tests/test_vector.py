@@ -383,3 +383,37 @@ def test_the_batched_env_renders_one_copy_and_refuses_rendering_several(closer):
     for name in ("num_envs", "autoreset_mode"):
         with pytest.raises(ValueError, match=rf"^{name}: not an argument of the parallel env"):
             ee_formation_env.parallel_env("planar_square", **{name: 2})
+
+
+def test_reset_options_that_are_not_a_dict_are_refused_and_unknown_keys_named_in_a_warning_in_both_envs(closer):
+    """Unknown keys warn rather than raise: PettingZoo's API test resets with options={"options": 1}."""
+    batched = closer(ee_formation_env.vector_env("planar_square", num_envs=2))
+    single = closer(ee_formation_env.parallel_env("planar_square"))
+    for env in (batched, single):
+        env.reset(seed=3)
+        state = env.state().copy()
+        with pytest.raises(TypeError, match=r"^options: expected None or a dict with keys among \['reset_mask'\], "
+                                            r"got list"):
+            env.reset(seed=4, options=["reset_mask"])
+        assert np.array_equal(env.state(), state)  # nothing was reset
+        with pytest.warns(UserWarning, match=r"^options: unknown key\(s\) \['reset_maks'\] \(did you mean "
+                                             r"'reset_mask' for 'reset_maks'\?\); allowed: \['reset_mask'\] \(ignored\)"):
+            env.reset(seed=4, options={"reset_maks": np.ones(2, dtype=bool)})
+
+
+def test_more_copies_than_pybullet_or_memory_holds_are_refused_naming_num_envs_before_any_client(monkeypatch):
+    import pybullet
+
+    import ee_formation_env.inputs as inputs
+
+    def no_connect(*args, **kwargs):
+        raise AssertionError("a PyBullet client was asked for")
+
+    monkeypatch.setattr(pybullet, "connect", no_connect)
+    with pytest.raises(ValueError, match=r"^num_envs: expected at most 1024 copies \(PyBullet's clients per process\), "
+                                         r"got 10000000"):
+        ee_formation_env.vector_env("planar_square", num_envs=10**7)
+    monkeypatch.setattr(inputs, "_physical_memory_bytes", lambda: 2_000_000_000)  # a 2 GB machine
+    with pytest.raises(ValueError, match=r"^num_envs: 100 copies need about 3\.0 GB \(30 MB each\); this machine has "
+                                         r"2\.0 GB"):
+        ee_formation_env.vector_env("planar_square", num_envs=100)

@@ -30,12 +30,16 @@ class StopRequest:
 
 
 class TrainingInterrupted(Exception):
-    """A run stopped by a signal after saving its model; ``run_dir`` continues with ``--resume``."""
+    """A run stopped by a signal after saving its model; ``run_dir`` continues with ``--resume``. ``command`` is
+    the program the message tells to run (the command that trained sets its own name)."""
 
-    def __init__(self, run_dir: object, signal_name: str, agent_steps: int):
-        super().__init__(f"training: stopped by {signal_name} at {agent_steps} agent steps; the model and its "
-                         f"normalization are saved in {run_dir}: `python train.py --resume {run_dir}` continues it")
-        self.run_dir, self.signal_name, self.agent_steps = run_dir, signal_name, agent_steps
+    def __init__(self, run_dir: object, signal_name: str, agent_steps: int, command: str = "python train.py"):
+        super().__init__(run_dir, signal_name, agent_steps)
+        self.run_dir, self.signal_name, self.agent_steps, self.command = run_dir, signal_name, agent_steps, command
+
+    def __str__(self) -> str:
+        return (f"training: stopped by {self.signal_name} at {self.agent_steps} agent steps; the model and its "
+                f"normalization are saved in {self.run_dir}: `{self.command} --resume {self.run_dir}` continues it")
 
     @property
     def exit_code(self) -> int:

@@ -1,4 +1,5 @@
-"""Griffe extension for the docs build: ``baselines/`` is installed as ``ee_formation_env.baselines``.
+"""Griffe extensions for the docs build: ``baselines/`` is installed as ``ee_formation_env.baselines``; field
+defaults written through a private helper are shown as their values.
 
 The repository keeps the package at the top (``pyproject.toml``'s ``package-dir``), so a static loader that
 reads ``ee_formation_env/`` does not find it; this extension loads ``baselines/`` and attaches it to the
@@ -7,6 +8,7 @@ package under its installed name, so that ``::: ee_formation_env.baselines...`` 
 
 from __future__ import annotations
 
+import ast
 import re
 from typing import Any
 
@@ -41,3 +43,29 @@ class MarkdownDocstrings(griffe.Extension):
 
     def on_package(self, *, pkg: griffe.Module, **kwargs: Any) -> None:
         self.on_object(obj=pkg)
+
+
+#: Private helpers that declare a dataclass field, and the index of their positional argument that is the default
+#: (a ``default_factory=`` keyword, when given, wins: the default is shown as ``factory()``).
+_FIELD_HELPERS = {"_key": 0, "_option": 0}
+
+
+class PublicDefaults(griffe.Extension):
+    """Show a field declared through a private helper (``formation: str = _key("distance", "meaning")``) with its
+    default (``formation: str = 'distance'``), so signatures and attribute lines never show a private call."""
+
+    def on_attribute_instance(self, *, attr: griffe.Attribute, **kwargs: Any) -> None:
+        if attr.value is None:
+            return
+        try:
+            call = ast.parse(str(attr.value), mode="eval").body
+        except SyntaxError:
+            return
+        if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Name) and call.func.id in _FIELD_HELPERS):
+            return
+        factory = next((keyword.value for keyword in call.keywords if keyword.arg == "default_factory"), None)
+        index = _FIELD_HELPERS[call.func.id]
+        if factory is not None and not (isinstance(factory, ast.Constant) and factory.value is None):
+            attr.value = f"{ast.unparse(factory)}()"
+        elif len(call.args) > index:
+            attr.value = ast.unparse(call.args[index])

@@ -49,8 +49,12 @@ class CentralizedFormationEnv(gymnasium.Env):
 
     def step(self, action: np.ndarray):
         agents = self.parallel_env.agents
-        # Split as given: the parallel env checks each part (numeric, shape, finite) before anything changes.
-        actions = dict(zip(agents, np.split(np.asarray(action), self._splits)))
+        array = np.asarray(action)
+        if array.shape != self.action_space.shape:  # the joint shape the caller gave wrong, before any split
+            raise ValueError(f"action: expected the joint action of shape {self.action_space.shape} (every agent's "
+                             f"joints in agent order), got shape {array.shape}")
+        # Split as given: the parallel env checks each part (numeric, finite) before anything changes.
+        actions = dict(zip(agents, np.split(array, self._splits)))
         observations, rewards, terminations, truncations, infos = self.parallel_env.step(actions)
         reward = float(np.mean(list(rewards.values())))
         return (self._joint(observations), reward, any(terminations.values()), any(truncations.values()),

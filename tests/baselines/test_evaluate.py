@@ -93,3 +93,27 @@ def test_faulted_episodes_are_counted_and_explained_under_the_table(capsys):
     note = next(line for line in output.splitlines() if line.startswith("- random:"))
     assert note.startswith("- random: 2 of 2 episodes ended in a physics fault: arm_")
     assert "joint speed" in note and "exceeds max_joint_velocity" in note
+
+
+def test_progress_shows_each_round_as_it_starts_and_each_episode_on_stderr_unless_quiet(capsys, monkeypatch):
+    import ee_formation_env.baselines.evaluate as evaluate
+
+    monkeypatch.setattr(evaluate, "DEFAULT_EVALUATION_COPIES", 2)  # rounds of two episodes
+    assert main(["--policy", "zero", "--episodes", "3", "--set", "episode_seconds=0.05"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "  zero: running episodes 1-2/3 together ..."
+    assert err[1].startswith("  zero: episode 1/3 (seed 0) ") and err[2].startswith("  zero: episode 2/3 (seed 1) ")
+    assert err[3] == "  zero: running episodes 3-3/3 together ..." and err[4].startswith("  zero: episode 3/3 (seed 2)")
+    assert main(["--policy", "zero", "--episodes", "3", "--set", "episode_seconds=0.05", "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_rounds_give_the_metrics_of_one_batched_call(monkeypatch):
+    import ee_formation_env.baselines.evaluate as evaluate
+    from ee_formation_env.baselines.metrics import run_episodes
+
+    overrides = {"episode_seconds": 0.05}
+    monkeypatch.setattr(evaluate, "DEFAULT_EVALUATION_COPIES", 2)
+    rounds = evaluate.evaluate_policy("planar_square", "gradient", 3, 5, overrides=overrides)["per_episode"]
+    together = [m.as_dict() for m in run_episodes("planar_square", "gradient", [5, 6, 7], overrides=overrides)]
+    assert rounds == together

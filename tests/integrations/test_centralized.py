@@ -63,11 +63,14 @@ def test_joint_view_matches_parallel_env(closer, scenario):
     assert steps == parallel.scenario.max_steps
 
 
-def test_bad_joint_action_raises(closer):
+def test_a_joint_action_of_the_wrong_shape_names_the_full_joint_shape_and_a_bad_value_its_agent(closer):
     central = closer(CentralizedFormationEnv("planar_square", episode_seconds=0.1))
     central.reset(seed=0)
-    with pytest.raises(ValueError, match="arm_3"):
+    with pytest.raises(ValueError, match=r"^action: expected the joint action of shape \(8,\) \(every agent's "
+                                         r"joints in agent order\), got shape \(7,\)"):
         central.step(np.zeros(7))
+    with pytest.raises(ValueError, match=r"got shape \(2, 4\)"):
+        central.step(np.zeros((2, 4)))
     with pytest.raises(ValueError, match="arm_1"):
         central.step(np.array([0, 0, np.nan, 0, 0, 0, 0, 0]))
     obs, *_ = central.step(np.zeros(8))
@@ -79,3 +82,4 @@ def test_close_disconnects(closer):
     central.close()
     assert not central.parallel_env.world.connected
     central.close()
+
