@@ -87,14 +87,43 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         results[name] = summarize(runs)
         results[name]["per_episode"] = [e.as_dict() for e in runs]
     label = f"learned ({config['mode']})"
-    comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results}
+    shortfall = learned_shortfall(results)
+    comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results,
+                  "shortfall": shortfall}
     (results_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
     (results_dir / "comparison.md").write_text(
         f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
     _plot(run_dir, results_dir, results, label, error_unit)
     print(table)
+    if shortfall:
+        print(f"warning: {shortfall}", flush=True)
     return comparison
+
+
+def learned_shortfall(results: dict[str, Any]) -> str | None:
+    """One line saying how the learned policy is worse than the best reference policy, or None when it is not.
+
+    The best reference has the highest success rate, then the shortest mean settling time (over its successes).
+    The learned policy is worse when its success rate is lower, or equal with a longer settling time."""
+    learned = results["learned"]
+    references = [name for name in results if name != "learned"]
+    if not references:
+        return None
+
+    def settling(summary: dict[str, Any]) -> float:
+        value = summary["settling_time"]
+        return value if np.isfinite(value) else np.inf
+
+    best = min(references, key=lambda name: (-results[name]["success_rate"], settling(results[name])))
+    reference = results[best]
+    if learned["success_rate"] < reference["success_rate"]:
+        return (f"the learned policy succeeds in {learned['success_rate']:.0%} of the episodes, the best reference "
+                f"{best!r} in {reference['success_rate']:.0%}")
+    if learned["success_rate"] == reference["success_rate"] and settling(learned) > settling(reference):
+        return (f"the learned policy settles in {settling(learned):.2f} s on average, the best reference {best!r} in "
+                f"{settling(reference):.2f} s (both succeed in {learned['success_rate']:.0%} of the episodes)")
+    return None
 
 
 _EVALUATION: dict[str, Any] = {}  # one evaluation worker's settings
