@@ -106,6 +106,9 @@ METHODS: dict[str, Method] = {
         "--mode", "residual", "--obs-features", "log-error", "--contact-penalty", "1.0")),
     "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
         "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
+    # The correction on the law that settles fastest on the spatial tasks (Theorem 3.1), not on the default.
+    "residual-ppo-gradient": Method("residual-ppo-gradient", train_flags=(
+        "--mode", "residual", "--reference", "gradient")),
     # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
     "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(
