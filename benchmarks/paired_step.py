@@ -1,0 +1,84 @@
+"""Paired before/after timing of the parallel env's ``step`` (zero actions), two source trees run alternately.
+
+    python -m benchmarks.paired_step --before OLD_TREE [--pairs 5] [--steps 4000]
+
+``OLD_TREE``: an export of the old code with the two symlinks of :mod:`benchmarks.paired_evaluation`, so that
+``PYTHONPATH=OLD_TREE`` imports the old package. Each measurement is a fresh process per tree that builds the
+env through the public API (``ee_formation_env.parallel_env(name, frame_skip=...)``, the same call in both
+trees), steps it 200 times to warm up, then times ``--steps`` steps from a fixed reset three times and keeps
+the fastest; the trees alternate, pair after pair, so that both see the same phase of the machine. The table
+gives env steps/s of each tree (median over pairs) and the ratio after / before of each pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parents[1]
+CASES = (("planar_square", 1), ("planar_square", 10), ("spatial_tetrahedron", 1), ("spatial_tetrahedron", 5))
+
+# Run in the child process: the steps/s of one (scenario, frame_skip) case, printed as JSON.
+CHILD = """
+import json, sys, time
+import numpy as np
+import ee_formation_env
+name, frame_skip, steps = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+env = ee_formation_env.parallel_env(name, frame_skip=frame_skip)
+zero = {a: np.zeros(env.action_space(a).shape, dtype=np.float32) for a in env.possible_agents}
+best = float("inf")
+for repeat in range(4):
+    env.reset(seed=0)
+    count = 200 if repeat == 0 else steps
+    start = time.perf_counter()
+    for _ in range(count):
+        env.step(zero)
+        if not env.agents:
+            env.reset(seed=0)
+    if repeat:
+        best = min(best, time.perf_counter() - start)
+env.close()
+print(json.dumps(steps / best))
+"""
+
+
+def steps_per_second(tree: Path, name: str, frame_skip: int, steps: int) -> float:
+    env = dict(os.environ)
+    if tree != HERE:
+        env["PYTHONPATH"] = str(tree)
+    result = subprocess.run([sys.executable, "-c", CHILD, name, str(frame_skip), str(steps)], env=env,
+                            cwd=str(tree), check=True, capture_output=True, text=True)
+    return float(json.loads(result.stdout.strip().splitlines()[-1]))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.paired_step", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--before", type=Path, required=True, help="the old source tree (module docstring)")
+    parser.add_argument("--pairs", type=int, default=5, help="before/after pairs per case")
+    parser.add_argument("--steps", type=int, default=4000, help="env steps per timed run")
+    args = parser.parse_args(argv)
+    before_tree = args.before.resolve()
+    if not (before_tree / "ee_formation_env" / "__init__.py").is_file():
+        raise ValueError(f"--before: {before_tree} holds no ee_formation_env package")
+    if args.pairs < 1 or args.steps < 1:
+        raise ValueError("--pairs and --steps: expected integers >= 1")
+    print("| case | before, steps/s | after, steps/s | after / before, each pair | median |")
+    print("|---|---:|---:|---|---:|")
+    for name, frame_skip in CASES:
+        before, after = [], []
+        for _ in range(args.pairs):
+            before.append(steps_per_second(before_tree, name, frame_skip, args.steps))
+            after.append(steps_per_second(HERE, name, frame_skip, args.steps))
+        ratios = [a / b for a, b in zip(after, before)]
+        print(f"| {name}, frame_skip {frame_skip} | {statistics.median(before):,.0f} | "
+              f"{statistics.median(after):,.0f} | {', '.join(f'{r:.2f}' for r in ratios)} | "
+              f"{statistics.median(ratios):.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
