@@ -19,8 +19,10 @@ robot kind (one BenchMARL group).
 
 **Config.** A task's config is one dict: the fields of :class:`TrainingTaskOptions` (the training options,
 :class:`~ee_formation_env.baselines.learned.options.TrainingOptions`; missing ones take their
-defaults), optionally ``scenario`` (a scenario file or dict instead of the member's built-in scenario), and
-scenario overrides: every other key, checked by the scenario loader (an unknown key is its error, naming it).
+defaults), the fields of :class:`TaskTransforms` (the TorchRL transforms the task adds: observation
+normalization and reward scaling, off by default), optionally ``scenario`` (a scenario file or dict instead of
+the member's built-in scenario), and scenario overrides: every other key, checked by the scenario loader (an
+unknown key is its error, naming it).
 The overrides apply to training and evaluation alike; training then sets ``episode_seconds`` to
 ``train_episode_seconds`` and, where the options give one, ``initial_q_noise`` to ``train_initial_q_noise``.
 Everything is checked when the task is made (``get_task``), before any env is built.
@@ -34,17 +36,18 @@ training conditions (training episode length and start noise, shaped rewards): a
 :mod:`ee_formation_env.baselines.metrics` on held-out seeds >= 10,000 (training resets use seeds below), the
 policy deterministic (the Gaussian's mean, through the tanh of BenchMARL's ``TanhNormal``).
 
-**No task YAML.** BenchMARL's ``Task.get_from_yaml()`` reads ``benchmarl/conf/task/<env>/<task>.yaml``
+**Task YAML.** BenchMARL's ``Task.get_from_yaml()`` reads ``benchmarl/conf/task/<env>/<task>.yaml``
 inside BenchMARL's own package and type-checks it with a dataclass it looks up there too; neither fits a task
 defined outside BenchMARL. The defaults are :class:`TrainingTaskOptions`'s, and ``get_from_yaml(path)``
-reads a config dict from a YAML file of yours.
+reads a config dict from a YAML file: the project's own per mode are those of
+:mod:`~ee_formation_env.baselines.learned.benchmarl_configs`.
 
 **Export.** :func:`export_benchmarl_policy` writes a folder (atomically,
 :func:`~ee_formation_env.baselines.learned.checkpoint.atomic_directory`): ``actor.pt``, every group's layer
 weights and biases as plain tensors (``torch.load(weights_only=True)``), and ``actor.json``: per group its
 agents, layer sizes, activation, whether its agents share parameters, the action distribution and bounds and
-the observation normalization (none: the task adds no normalizing transform), plus the task's options,
-scenario and overrides. :func:`load_benchmarl_policy` reads it back into :class:`BenchmarlActors` (numpy),
+the observation normalization (per agent ``loc`` and ``scale`` of the task's
+:class:`RunningObservationNorm`, as training left them; null without it), plus the task's options, transforms, scenario and overrides. :func:`load_benchmarl_policy` reads it back into :class:`BenchmarlActors` (numpy),
 which :func:`evaluate_benchmarl_policy` also accepts.
 """
 
@@ -61,7 +64,8 @@ import torch
 import yaml
 from benchmarl.environments.common import TaskClass
 from benchmarl.models.mlp import Mlp
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, RewardScaling, Transform
+from torchrl.envs.transforms.vecnorm import VecNormV2
 from torchrl.modules.distributions import IndependentNormal, TanhNormal
 
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, load_tensors, read_json, write_json
@@ -90,15 +94,92 @@ def training_env(options: TrainingOptions, scenario: Any, overrides: Mapping[str
     return BatchedTrainingEnv(scenario, {**overrides, **options.training_overrides()}, options, num_envs=num_envs)
 
 
+class RunningObservationNorm(VecNormV2):
+    """TorchRL's ``VecNormV2`` (stateful, infinite memory: ``decay=1``, statistics over the copies) with two
+    changes. Its statistics are made at once from ``env``'s specs and **shared by its clones**: BenchMARL clones
+    a task's transforms into its test env and into every training env it makes, and the task reads the
+    statistics training updated from the one it made (:meth:`statistics`). And its variance
+    ``E[x²] - E[x]²``, which rounds below 0 in float32 for a feature that never changes (a slot's tolerance, a
+    mask entry) and which torchrl 0.11 then turns into NaN through the square root, is held at 0 or above
+    before ``eps`` clamps the scale as ``VecNormV2`` does."""
+
+    def __init__(self, in_keys: List[Any], env: EnvBase):
+        super().__init__(in_keys=in_keys, decay=1.0, reduce_batch_dims=True)
+        sample = env.fake_tensordict().get("next").select(*in_keys, strict=True)
+        sample = sample.mean(dim=tuple(range(sample.ndim))).float()  # one statistic per agent and feature
+        self._loc, self._var = torch.zeros_like(sample), torch.zeros_like(sample)
+        self._count = torch.zeros_like(sample, dtype=torch.float32).mean().to(torch.int64)
+        self.initialized.fill_(True)
+
+    def clone(self) -> "RunningObservationNorm":
+        other = super().clone()
+        other._loc, other._var, other._count = self._loc, self._var, self._count  # shared, not copied
+        return other
+
+    def _norm(self, data: Any, loc: Any, var: Any, count: Any) -> Any:
+        return super()._norm(data, loc, var.apply(lambda second, mean: torch.maximum(second, mean.pow(2)), loc), count)
+
+    def statistics(self, key: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(loc, scale) of ``key`` as :meth:`_norm` applies them, ``(x - loc) / scale``, float64."""
+        loc, second = self._loc[key].detach().cpu(), self._var[key].detach().cpu()
+        scale = (torch.maximum(second, loc.pow(2)) - loc.pow(2)).sqrt().clamp_min(self.eps)
+        return loc.numpy().astype(np.float64), scale.numpy().astype(np.float64)
+
+
+@dataclass(frozen=True)
+class TaskTransforms:
+    """The TorchRL transforms a task adds to its envs (BenchMARL's ``get_env_transforms``), in this order; both
+    off by default, so that a task without them steps exactly the training env. Checked on construction."""
+
+    #: Each group's observations by a running mean and standard deviation per agent and feature, over every
+    #: copy, with infinite memory (:class:`RunningObservationNorm`, TorchRL's ``VecNormV2``): SB3's
+    #: ``VecNormalize`` of observations, without its clipping. The statistics are exported with the actor.
+    observation_normalization: bool = False
+    #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0: returns of a size the critic fits
+    #: well (the env's rewards are in [0, 2] per step).
+    reward_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.observation_normalization, bool):
+            raise TypeError(f"observation_normalization: expected True or False, got {self.observation_normalization!r}")
+        scale = self.reward_scale
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)):
+            raise TypeError(f"reward_scale: expected a number > 0, got {type(scale).__name__} {scale!r}")
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"reward_scale: expected a finite number > 0, got {scale!r}")
+        object.__setattr__(self, "reward_scale", float(scale))
+
+    @classmethod
+    def fields(cls) -> tuple[str, ...]:
+        return tuple(field.name for field in dataclasses.fields(cls))
+
+    def transforms(self, env: EnvBase, groups: Mapping[str, Any]) -> list[Transform]:
+        """The transforms for ``env`` and its agent groups ``groups`` (group -> agents)."""
+        transforms: list[Transform] = []
+        if self.observation_normalization:
+            transforms.append(RunningObservationNorm([(group, "observation") for group in groups], env))
+        if self.reward_scale != 1.0:
+            transforms.append(RewardScaling(loc=0.0, scale=self.reward_scale,
+                                            in_keys=[(group, "reward") for group in groups]))
+        return transforms
+
+
 def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[TrainingOptions, Any, dict[str, Any]]:
     """A task config as (options, scenario, scenario overrides): the option fields, ``scenario`` (default
-    ``default_scenario``) and every other key as an override. Raises naming the first bad option."""
+    ``default_scenario``) and every other key but the :class:`TaskTransforms` fields as an override. Raises naming
+    the first bad option."""
     if not isinstance(config, Mapping):
         raise TypeError(f"config: expected a dict of options and scenario overrides, got {type(config).__name__}")
     names = set(TrainingOptions.fields())
     options = TrainingOptions(**{key: value for key, value in config.items() if key in names})
-    overrides = {key: value for key, value in config.items() if key not in names and key != "scenario"}
+    skipped = names | set(TaskTransforms.fields()) | {"scenario"}
+    overrides = {key: value for key, value in config.items() if key not in skipped}
     return options, config.get("scenario", default_scenario), overrides
+
+
+def task_transforms(config: Mapping[str, Any]) -> TaskTransforms:
+    """The :class:`TaskTransforms` of a task config (its fields; the others are not read here)."""
+    return TaskTransforms(**{key: config[key] for key in TaskTransforms.fields() if key in config})
 
 
 # ------------------------------------------------------------------------------------------ the BenchMARL task
@@ -117,8 +198,29 @@ class TrainingTaskClass(EEFormationTaskClass):
     def check(self) -> None:
         """Raise naming the field for a bad option or scenario override (the scenario loads, no physics)."""
         options, scenario, overrides = self.parts()
+        self.transforms()
         load_scenario(scenario, **overrides)
         load_scenario(scenario, **{**overrides, **options.training_overrides()})
+
+    def transforms(self) -> TaskTransforms:
+        """The config's :class:`TaskTransforms` (raises naming the field of a bad value)."""
+        return task_transforms(self.config)
+
+    def get_env_transforms(self, env: EnvBase) -> List[Transform]:
+        """The config's transforms (:class:`TaskTransforms`); the task keeps the observation normalization,
+        whose statistics its clones in BenchMARL's envs share (:meth:`observation_statistics`)."""
+        transforms = self.transforms().transforms(env, self.group_map(env))
+        norms = [t for t in transforms if isinstance(t, RunningObservationNorm)]
+        self._observation_norm = norms[0] if norms else None
+        return transforms
+
+    def observation_statistics(self, group: str) -> tuple[np.ndarray, np.ndarray]:
+        """(loc, scale) (n_agents, obs_dim) of the group's observation normalization, as training left them."""
+        norm = getattr(self, "_observation_norm", None)
+        if norm is None:
+            raise ValueError("observation_normalization: the task made no normalization transform (BenchMARL "
+                             "calls get_env_transforms when an Experiment is built)")
+        return norm.statistics((group, "observation"))
 
     def _scenario_and_overrides(self) -> tuple[Any, dict[str, Any]]:
         """The scenario and its overrides as evaluation uses them (without the training options)."""
@@ -191,7 +293,9 @@ class GroupActor:
     (``"normal"``).
 
     ``weights[l]`` (A, in, out) and ``biases[l]`` (A, out) of the l-th linear layer, with ``activation`` between
-    layers; A = 1 when the group's agents share parameters, else one row per agent of ``agents``."""
+    layers; A = 1 when the group's agents share parameters, else one row per agent of ``agents``.
+    ``observation_loc`` and ``observation_scale`` (n_agents, obs_dim): the task's observation normalization,
+    ``(observation - loc) / scale`` per agent before the MLP, or None without it."""
 
     agents: List[str]
     weights: List[np.ndarray]
@@ -200,6 +304,8 @@ class GroupActor:
     distribution: str
     low: np.ndarray  # (n,) the action bounds of the distribution
     high: np.ndarray
+    observation_loc: Optional[np.ndarray] = None
+    observation_scale: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         if self.activation not in ACTIVATIONS:
@@ -209,6 +315,26 @@ class GroupActor:
         rows = {len(w) for w in self.weights} | {len(b) for b in self.biases}
         if rows not in ({1}, {len(self.agents)}):
             raise ValueError(f"weights: expected 1 (shared) or {len(self.agents)} rows per layer, got {sorted(rows)}")
+        if (self.observation_loc is None) != (self.observation_scale is None):
+            raise ValueError("observation_normalization: expected both loc and scale, or neither")
+        if self.observation_loc is not None:
+            shape = (len(self.agents), self.layer_sizes[0])
+            for name in ("observation_loc", "observation_scale"):
+                value = np.asarray(getattr(self, name), dtype=np.float64)
+                if value.shape != shape or not np.all(np.isfinite(value)):
+                    raise ValueError(f"observation_normalization: {name[12:]} must be finite of shape {shape} (agents "
+                                     f"x observation size), got {value.shape}")
+                setattr(self, name, value)
+            if np.any(self.observation_scale <= 0):
+                raise ValueError("observation_normalization: scale must be > 0")
+
+    def normalizer(self, agent: str) -> ObservationNormalizer:
+        """What the agent's observation goes through before the MLP (the identity without normalization)."""
+        if self.observation_loc is None:
+            return ObservationNormalizer.identity(self.layer_sizes[0])
+        row = self.agents.index(agent)
+        return ObservationNormalizer(self.observation_loc[row], self.observation_scale[row] ** 2, clip=np.inf,
+                                     epsilon=0.0)
 
     @property
     def shared(self) -> bool:
@@ -226,9 +352,12 @@ class GroupActor:
         return (self.high + self.low) / 2 + (self.high - self.low) / 2 * np.tanh(loc)
 
     def act(self, observations: np.ndarray) -> np.ndarray:
-        """The deterministic actions (..., n_agents, n) of the group's agents for observations (..., n_agents,
-        obs_dim), agents in the order of ``agents``."""
-        hidden = np.asarray(observations, dtype=np.float64)[..., None, :]  # (..., A, 1, in) against (A, in, out)
+        """The deterministic actions (..., n_agents, n) of the group's agents for raw observations (..., n_agents,
+        obs_dim), agents in the order of ``agents`` (normalized first, where the task normalizes)."""
+        hidden = np.asarray(observations, dtype=np.float64)
+        if self.observation_loc is not None:
+            hidden = (hidden - self.observation_loc) / self.observation_scale
+        hidden = hidden[..., None, :]  # (..., A, 1, in) against (A, in, out)
         activation = ACTIVATIONS[self.activation]
         for layer, (weight, bias) in enumerate(zip(self.weights, self.biases)):
             hidden = hidden @ weight + bias[:, None, :]
@@ -237,7 +366,8 @@ class GroupActor:
         return self._action(hidden[..., 0, :])
 
     def predict(self, agent: str) -> Callable[[np.ndarray], np.ndarray]:
-        """``observation (obs_dim,) or stack (k, obs_dim) -> action`` of one agent. A stack gives each row's
+        """``normalized observation (obs_dim,) or stack (k, obs_dim) -> action`` of one agent (its
+        :meth:`normalizer` applied before, by the :class:`LearnedPolicy` around it). A stack gives each row's
         action bit for bit (``predict.stacks``, :class:`~ee_formation_env.baselines.learned.policy.LearnedPolicy`)."""
         row = 0 if self.shared else self.agents.index(agent)
         steps = [(weight[row], bias[row]) for weight, bias in zip(self.weights, self.biases)]
@@ -268,16 +398,19 @@ class BenchmarlActors:
     scenario: Any
     overrides: Dict[str, Any]
     task: str = ""  # the task member's name, e.g. "PLANAR_SQUARE"
+    transforms: TaskTransforms = TaskTransforms()
 
     def learned_policies(self) -> dict[str, LearnedPolicy]:
-        """Agent -> its learned part on the observation the learner saw (featured), output clipped to
-        [-1, 1]; the agents of a group that share parameters share one policy object (one stacked call)."""
+        """Agent -> its learned part on the observation the learner saw (featured, then normalized where the task
+        normalizes), output clipped to [-1, 1]; the agents of a group that share parameters and see one
+        normalization (none) share one policy object (one stacked call)."""
         policies = {}
         for actor in self.groups.values():
-            normalizer = ObservationNormalizer.identity(actor.layer_sizes[0])  # BenchMARL adds no normalization
-            shared = LearnedPolicy(actor.predict(actor.agents[0]), normalizer) if actor.shared else None
+            one_policy = actor.shared and actor.observation_loc is None
+            shared = LearnedPolicy(actor.predict(actor.agents[0]), actor.normalizer(actor.agents[0])) if one_policy \
+                else None
             for agent in actor.agents:
-                policies[agent] = shared or LearnedPolicy(actor.predict(agent), normalizer)
+                policies[agent] = shared or LearnedPolicy(actor.predict(agent), actor.normalizer(agent))
         return policies
 
     def policy_factory(self) -> Callable[[Any], dict[str, Any]]:
@@ -290,10 +423,13 @@ class BenchmarlActors:
         """``actor.json``: what rebuilds the actors around ``actor.pt``'s tensors (module docstring)."""
         return {"format": EXPORT_FORMAT, "task": self.task, "scenario": _plain_scenario(self.scenario),
                 "overrides": self.overrides, "options": self.options.to_dict(),
+                "transforms": dataclasses.asdict(self.transforms),
                 "groups": {group: {"agents": actor.agents, "layer_sizes": actor.layer_sizes,
                                    "activation": actor.activation, "shared_parameters": actor.shared,
                                    "distribution": actor.distribution, "action_low": actor.low.tolist(),
-                                   "action_high": actor.high.tolist(), "observation_normalization": None}
+                                   "action_high": actor.high.tolist(),
+                                   "observation_normalization": None if actor.observation_loc is None else
+                                   {"loc": actor.observation_loc.tolist(), "scale": actor.observation_scale.tolist()}}
                            for group, actor in self.groups.items()}}
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -331,6 +467,8 @@ def actors_from_experiment(experiment: Any) -> BenchmarlActors:
         raise ValueError(f"experiment.task: expected a training task (an EEFormationTrainingTask member: the export "
                          f"and the evaluation read its training options), got {type(task).__name__}")
     options, scenario, overrides = task.parts()
+    normalization = ({group: task.observation_statistics(group) for group in experiment.group_map}
+                     if task.transforms().observation_normalization else {})
     groups = {}
     for group, actor in experiment.group_policies.items():
         where = f"experiment.group_policies[{group!r}]"
@@ -370,9 +508,12 @@ def actors_from_experiment(experiment: Any) -> BenchmarlActors:
             if not all(np.all(bound == bound[0]) for bound in bounds):
                 raise ValueError(f"{where}: expected one action range for the group's agents")
             low, high = bounds[0][0], bounds[1][0]
+        loc, scale = normalization.get(group, (None, None))
         groups[group] = GroupActor(list(experiment.group_map[group]), weights, biases,
-                                   activations.pop() if activations else "Tanh", DISTRIBUTIONS[distribution], low, high)
-    return BenchmarlActors(groups, options.resolved(), scenario, overrides, task=task.name)
+                                   activations.pop() if activations else "Tanh", DISTRIBUTIONS[distribution], low, high,
+                                   loc, scale)
+    return BenchmarlActors(groups, options.resolved(), scenario, overrides, task=task.name,
+                           transforms=task.transforms())
 
 
 def export_benchmarl_policy(experiment: Any, path: str | os.PathLike) -> Path:
@@ -396,14 +537,19 @@ def load_benchmarl_policy(path: str | os.PathLike) -> BenchmarlActors:
         for group, entry in description["groups"].items():
             weights = [np.asarray(w.numpy(), dtype=np.float64).transpose(0, 2, 1) for w in tensors[group]["weight"]]
             biases = [np.asarray(b.numpy(), dtype=np.float64) for b in tensors[group]["bias"]]
+            normalization = entry["observation_normalization"]
+            if normalization is not None and not isinstance(normalization, dict):
+                raise TypeError(f"observation_normalization: expected null or {{loc, scale}}, got {normalization!r}")
             actor = GroupActor(list(entry["agents"]), weights, biases, entry["activation"], entry["distribution"],
                                np.asarray(entry["action_low"], dtype=np.float64),
-                               np.asarray(entry["action_high"], dtype=np.float64))
+                               np.asarray(entry["action_high"], dtype=np.float64),
+                               *((None, None) if normalization is None else (normalization["loc"], normalization["scale"])))
             if actor.layer_sizes != list(entry["layer_sizes"]) or actor.shared != entry["shared_parameters"]:
                 raise ValueError(f"group {group!r}: {ACTOR_TENSORS} does not fit {ACTOR_DESCRIPTION}")
             groups[group] = actor
         return BenchmarlActors(groups, options, description["scenario"], dict(description["overrides"]),
-                               task=str(description.get("task", "")))
+                               task=str(description.get("task", "")),
+                               transforms=TaskTransforms(**description.get("transforms", {})))
     except (KeyError, TypeError, AttributeError, IndexError) as error:
         raise ValueError(f"{ACTOR_DESCRIPTION} / {ACTOR_TENSORS}: malformed ({error!r})") from None
 

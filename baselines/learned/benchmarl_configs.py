@@ -1,0 +1,135 @@
+"""The project's BenchMARL configurations for the formation training tasks, as YAML in BenchMARL's layout (the
+``torchrl`` extra).
+
+    from ee_formation_env.baselines.learned.benchmarl_configs import (algorithm_config, experiment_config,
+                                                                      model_config, task_config)
+
+    experiment = Experiment(task=EEFormationTrainingTask.PLANAR_SQUARE.get_task(task_config("torque")),
+                            algorithm_config=algorithm_config("mappo"), model_config=model_config(),
+                            critic_model_config=model_config(), seed=0, config=experiment_config("mappo"))
+
+The files lie in :data:`CONFIG_DIR` as BenchMARL lays out its own ``conf/``: ``algorithm/<name>.yaml``,
+``experiment/on_policy.yaml`` and ``off_policy.yaml`` (every field of BenchMARL's ``base_experiment.yaml``),
+``model/layers/mlp.yaml`` and ``task/ee_formation_training/<mode>.yaml``; each loads with BenchMARL's own
+``get_from_yaml(path)`` (the task's with the task member's). What they set and why: train.py's PPO settings
+where BenchMARL has the knob, the task's TorchRL transforms (observation normalization, reward scale) and
+advantage normalization, which BenchMARL's MAPPO and IPPO hard-code to off: :class:`NormalizedAdvantageMappo`
+and :class:`NormalizedAdvantageIppo` turn it on through their configs' ``normalize_advantage`` field. The
+measurements behind them: docs/training.md ("TorchRL and BenchMARL").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Type
+
+import yaml
+from benchmarl.algorithms import Ippo, IppoConfig, Mappo, MappoConfig, MasacConfig
+from benchmarl.algorithms.common import AlgorithmConfig
+from benchmarl.experiment import ExperimentConfig
+from benchmarl.models.mlp import MlpConfig
+
+from ee_formation_env.baselines.learned.modes import mode_names
+
+#: The folder of the YAML files (installed with the package).
+CONFIG_DIR = Path(__file__).with_name("benchmarl_conf")
+ON_POLICY_ALGORITHMS = ("mappo", "ippo")
+
+
+class _NormalizedAdvantage:
+    """Mixin of an on-policy BenchMARL algorithm whose PPO loss normalizes the advantages of each minibatch when
+    ``normalize_advantage`` (BenchMARL builds the loss with it off)."""
+
+    def __init__(self, normalize_advantage: bool, **kwargs: Any):
+        super().__init__(**kwargs)
+        self.normalize_advantage = normalize_advantage
+
+    def _get_loss(self, group: str, policy_for_loss: Any, continuous: bool) -> Any:
+        loss, done = super()._get_loss(group, policy_for_loss, continuous)
+        loss.normalize_advantage = self.normalize_advantage
+        return loss, done
+
+
+class NormalizedAdvantageMappo(_NormalizedAdvantage, Mappo):
+    """BenchMARL's MAPPO with the advantage normalization of :class:`_NormalizedAdvantage`."""
+
+
+class NormalizedAdvantageIppo(_NormalizedAdvantage, Ippo):
+    """BenchMARL's IPPO with the advantage normalization of :class:`_NormalizedAdvantage`."""
+
+
+def _check_flag(config: Any) -> None:
+    if not isinstance(config.normalize_advantage, bool):
+        raise TypeError(f"normalize_advantage: expected True or False, got {config.normalize_advantage!r}")
+
+
+@dataclass
+class NormalizedAdvantageMappoConfig(MappoConfig):
+    """:class:`~benchmarl.algorithms.MappoConfig` plus ``normalize_advantage``."""
+
+    normalize_advantage: bool = True
+
+    def __post_init__(self) -> None:
+        _check_flag(self)
+
+    @staticmethod
+    def associated_class() -> Type[Mappo]:
+        return NormalizedAdvantageMappo
+
+
+@dataclass
+class NormalizedAdvantageIppoConfig(IppoConfig):
+    """:class:`~benchmarl.algorithms.IppoConfig` plus ``normalize_advantage``."""
+
+    normalize_advantage: bool = True
+
+    def __post_init__(self) -> None:
+        _check_flag(self)
+
+    @staticmethod
+    def associated_class() -> Type[Ippo]:
+        return NormalizedAdvantageIppo
+
+
+#: Algorithm name -> the config class its YAML file loads into.
+ALGORITHM_CONFIGS: Dict[str, Type[AlgorithmConfig]] = {"mappo": NormalizedAdvantageMappoConfig,
+                                                       "ippo": NormalizedAdvantageIppoConfig,
+                                                       "masac": MasacConfig}
+
+
+def _name(value: Any, field: str, choices: Any) -> str:
+    if value not in choices:
+        raise ValueError(f"{field}: expected one of {list(choices)}, got {value!r}")
+    return value
+
+
+def algorithm_config(name: str) -> AlgorithmConfig:
+    """The algorithm's config from ``algorithm/<name>.yaml`` (``mappo``, ``ippo`` or ``masac``)."""
+    name = _name(name, "algorithm", ALGORITHM_CONFIGS)
+    return ALGORITHM_CONFIGS[name].get_from_yaml(str(CONFIG_DIR / "algorithm" / f"{name}.yaml"))
+
+
+def experiment_config(algorithm: str) -> ExperimentConfig:
+    """The experiment config for ``algorithm``: ``experiment/on_policy.yaml`` (MAPPO, IPPO) or ``off_policy.yaml``."""
+    layout = "on_policy" if _name(algorithm, "algorithm", ALGORITHM_CONFIGS) in ON_POLICY_ALGORITHMS else "off_policy"
+    return ExperimentConfig.get_from_yaml(str(CONFIG_DIR / "experiment" / f"{layout}.yaml"))
+
+
+def model_config() -> MlpConfig:
+    """The actor's and critic's MLP from ``model/layers/mlp.yaml``."""
+    return MlpConfig.get_from_yaml(str(CONFIG_DIR / "model" / "layers" / "mlp.yaml"))
+
+
+def task_config_path(mode: str) -> Path:
+    """``task/ee_formation_training/<mode>.yaml`` of a built-in training mode."""
+    return CONFIG_DIR / "task" / "ee_formation_training" / f"{_name(mode, 'mode', mode_names())}.yaml"
+
+
+def task_config(mode: str) -> dict[str, Any]:
+    """The task config dict of ``task_config_path(mode)`` (what ``EEFormationTrainingTask.X.get_from_yaml(path)``
+    reads)."""
+    path = task_config_path(mode)
+    if not path.is_file():
+        raise ValueError(f"mode: no task config for the mode {mode!r} ({path.name}); the built-in modes have one")
+    return yaml.safe_load(path.read_text(encoding="utf-8"))

@@ -1,0 +1,194 @@
+"""The project's BenchMARL configurations (their YAML files, advantage normalization) and the task's TorchRL
+transforms (observation normalization, reward scale), their export and evaluation (the ``torchrl`` extra)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torchrl")
+pytest.importorskip("benchmarl")
+
+import torch  # noqa: E402
+import yaml  # noqa: E402
+from torchrl.envs import Compose, TransformedEnv  # noqa: E402
+from torchrl.envs.utils import check_env_specs  # noqa: E402
+
+from ee_formation_env.baselines.learned import benchmarl_configs, benchmarl_task  # noqa: E402
+from ee_formation_env.baselines.learned.benchmarl_configs import (CONFIG_DIR, algorithm_config,  # noqa: E402
+                                                                  experiment_config, model_config, task_config)
+from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, TaskTransforms,  # noqa: E402
+                                                               actors_from_experiment, evaluate_benchmarl_policy,
+                                                               export_benchmarl_policy, load_benchmarl_policy)
+from ee_formation_env.baselines.learned.modes import mode_names  # noqa: E402
+
+FAST = {"train_episode_seconds": 0.05, "episode_seconds": 0.3}
+
+
+def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
+    from benchmarl.experiment import ExperimentConfig
+
+    base = set(ExperimentConfig.get_from_yaml().__dict__)
+    for algorithm in benchmarl_configs.ALGORITHM_CONFIGS:
+        config = algorithm_config(algorithm)
+        assert type(config) is benchmarl_configs.ALGORITHM_CONFIGS[algorithm]
+        experiment = experiment_config(algorithm)
+        assert set(experiment.__dict__) == base  # every field of BenchMARL's base experiment, none unknown
+        assert experiment.lr == 3e-4 and experiment.evaluation is False
+    assert algorithm_config("mappo").normalize_advantage is True and algorithm_config("ippo").lmbda == 0.95
+    assert model_config().num_cells == [128, 128]
+    for mode in mode_names():
+        config = task_config(mode)
+        assert config["mode"] == mode
+        task = EEFormationTrainingTask.PLANAR_SQUARE.get_from_yaml(str(CONFIG_DIR / "task" / "ee_formation_training"
+                                                                       / f"{mode}.yaml"))
+        assert task.transforms() == TaskTransforms(observation_normalization=True, reward_scale=0.005)
+    files = sorted(path.relative_to(CONFIG_DIR).as_posix() for path in CONFIG_DIR.rglob("*.yaml"))
+    assert files == ["algorithm/ippo.yaml", "algorithm/mappo.yaml", "algorithm/masac.yaml",
+                     "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/mlp.yaml",
+                     "task/ee_formation_training/residual.yaml", "task/ee_formation_training/torque.yaml"]
+    for path in CONFIG_DIR.rglob("*.yaml"):
+        assert isinstance(yaml.safe_load(path.read_text()), dict), path
+
+
+@pytest.mark.parametrize("name, error", [("mapo", ValueError), (None, ValueError)])
+def test_an_unknown_algorithm_is_refused_naming_the_field(name, error):
+    with pytest.raises(error, match="algorithm"):
+        algorithm_config(name)
+    with pytest.raises(error, match="algorithm"):
+        experiment_config(name)
+
+
+def test_a_non_boolean_advantage_normalization_is_refused():
+    with pytest.raises(TypeError, match="normalize_advantage"):
+        benchmarl_configs.NormalizedAdvantageMappoConfig(**{**algorithm_config("mappo").__dict__,
+                                                            "normalize_advantage": "yes"})
+
+
+@pytest.mark.parametrize("config, field, error", [
+    ({"observation_normalization": 1}, "observation_normalization", TypeError),
+    ({"reward_scale": 0.0}, "reward_scale", ValueError),
+    ({"reward_scale": float("inf")}, "reward_scale", ValueError),
+    ({"reward_scale": "0.1"}, "reward_scale", TypeError),
+])
+def test_bad_transform_values_raise_naming_the_field_before_any_env_is_built(config, field, error, monkeypatch):
+    monkeypatch.setattr(benchmarl_task, "BatchedTrainingEnv", lambda *args, **kwargs: pytest.fail("an env was built"))
+    with pytest.raises(error, match=field):
+        EEFormationTrainingTask.PLANAR_SQUARE.get_task(config)
+
+
+def test_the_transform_keys_are_not_scenario_overrides():
+    task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({"observation_normalization": True, "reward_scale": 0.5,
+                                                           "episode_seconds": 2.0})
+    assert task.parts()[2] == {"episode_seconds": 2.0}
+
+
+def _transformed_env(config, num_envs=2, seed=0):
+    task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({"mode": "torque", **FAST, **config})
+    env = task.get_env_fun(num_envs=num_envs, continuous_actions=True, seed=seed, device="cpu")()
+    transforms = task.get_env_transforms(env)
+    return TransformedEnv(env, Compose(*transforms)) if transforms else env  # as BenchMARL composes them
+
+
+def test_without_transforms_the_task_adds_none():
+    task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({"mode": "torque", **FAST})
+    env = task.get_env_fun(num_envs=2, continuous_actions=True, seed=0, device="cpu")()
+    try:
+        assert task.get_env_transforms(env) == []
+    finally:
+        env.close()
+
+
+def test_the_reward_scale_multiplies_every_reward_and_the_observations_normalize():
+    torch.manual_seed(0)
+    transforms = {"reward_scale": 0.25, "observation_normalization": True}
+    checked = _transformed_env(transforms)
+    try:
+        check_env_specs(checked)
+    finally:
+        checked.close()
+    plain, scaled = _transformed_env({}), _transformed_env(transforms)
+    try:
+        group = next(iter(plain.group_map))
+        actions = torch.rand(6, 2, 4, 2) * 2 - 1  # the same actions in both (steps, copies, agents, joints)
+        plain_rewards, scaled_rewards, observations = [], [], []
+        for env, rewards in ((plain, plain_rewards), (scaled, scaled_rewards)):
+            td = env.reset()
+            for action in actions:
+                td[group, "action"] = action
+                td = env.step(td)
+                rewards.append(td["next", group, "reward"].clone())
+                if env is scaled:
+                    observations.append(td["next", group, "observation"].clone())
+                td = td["next"]
+        torch.testing.assert_close(torch.stack(scaled_rewards), 0.25 * torch.stack(plain_rewards))
+        # The running statistics are the observations' own: over what it saw, each feature is about centred.
+        assert torch.stack(observations).mean(dim=(0, 1)).abs().max() < 3.0
+    finally:
+        plain.close()
+        scaled.close()
+
+
+@pytest.fixture(scope="module")
+def normalized_experiment(tmp_path_factory):
+    """MAPPO with the shipped configs (sizes cut to a smoke test) on the torque task with its transforms, trained
+    2 iterations."""
+    from benchmarl.experiment import Experiment
+
+    from conftest import tiny_benchmarl_config
+
+    config = tiny_benchmarl_config(tmp_path_factory.mktemp("benchmarl-normalized"))
+    model = model_config()
+    model.num_cells = [16, 16]
+    task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({**task_config("torque"), **FAST})
+    experiment = Experiment(task=task, algorithm_config=algorithm_config("mappo"), model_config=model,
+                            critic_model_config=model, seed=0, config=config)
+    experiment.run()
+    return experiment
+
+
+def test_the_shipped_mappo_normalizes_advantages(normalized_experiment):
+    losses = normalized_experiment.losses
+    assert losses and all(loss.normalize_advantage for loss in losses.values())
+
+
+def test_the_export_carries_the_observation_statistics_and_acts_as_the_experiment(normalized_experiment, tmp_path):
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    experiment = normalized_experiment
+    group = next(iter(experiment.group_map))
+    actors = actors_from_experiment(experiment)
+    actor = actors.groups[group]
+    assert actor.observation_loc.shape == actor.observation_scale.shape == (4, actor.layer_sizes[0])
+    assert np.all(actor.observation_scale > 0) and np.any(actor.observation_loc != 0)
+    folder = export_benchmarl_policy(experiment, tmp_path / "actor")
+    description = json.loads((folder / "actor.json").read_text())
+    assert description["transforms"] == {"observation_normalization": True, "reward_scale": 0.005}
+    loaded = load_benchmarl_policy(folder)
+    np.testing.assert_array_equal(loaded.groups[group].observation_loc, actor.observation_loc.astype(np.float32))
+    # The experiment's policy on the normalized observations = the numpy actor on the raw ones.
+    raw = torch.randn(5, 4, actor.layer_sizes[0], generator=torch.Generator().manual_seed(1))
+    normalized = (raw - torch.from_numpy(actor.observation_loc).float()) / torch.from_numpy(
+        actor.observation_scale).float()
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        out = experiment.group_policies[group](TensorDict(
+            {group: TensorDict({"observation": normalized}, batch_size=(5, 4))}, batch_size=(5,)))
+    expected = out[group, "action"].numpy()
+    np.testing.assert_allclose(loaded.groups[group].act(raw.numpy()), expected, atol=1e-5, rtol=0)
+    policies = loaded.learned_policies()
+    np.testing.assert_allclose(policies["arm_1"](raw[:, 1].numpy()[0]), np.clip(expected[0, 1], -1, 1), atol=1e-5)
+    # and evaluates like the experiment itself
+    assert evaluate_benchmarl_policy(folder, episodes=1) == evaluate_benchmarl_policy(experiment, episodes=1)
+
+
+def test_a_malformed_exported_normalization_is_refused(normalized_experiment, tmp_path):
+    folder = export_benchmarl_policy(normalized_experiment, tmp_path / "actor")
+    description = json.loads((folder / "actor.json").read_text())
+    group = next(iter(description["groups"]))
+    description["groups"][group]["observation_normalization"]["scale"] = [[1.0]]
+    (folder / "actor.json").write_text(json.dumps(description))
+    with pytest.raises(ValueError, match="observation_normalization"):
+        load_benchmarl_policy(folder)
