@@ -263,3 +263,34 @@ def test_video_of_a_run_writes_one_file_per_episode_named_by_its_folder(gravity_
     # Rendered episodes in a single env score as the batched comparison's: the same policy, the same settings.
     comparison = json.loads((gravity_compensated_run / "comparison.json").read_text())
     assert _same(json.loads(out.read_text())["results"]["learned"], comparison["results"]["learned"])
+
+
+def test_a_residual_sac_run_is_evaluated_as_its_comparison_is(tmp_path):
+    """The other policy kind (SB3's own predict, not the numpy actor) and the residual mode's composition
+    around the reference controller."""
+    pytest.importorskip("stable_baselines3")
+    from ee_formation_env.baselines.cli import train_command
+
+    run_dir = tmp_path / "residual-sac"
+    assert train_command(["--total-timesteps", "300", "--algo", "sac", "--out", str(run_dir), "--n-envs", "1",
+                          "--n-workers", "0", "--train-episode-seconds", "0.5", "--eval-episodes", "2",
+                          "--eval-seconds", "0.3", "--no-progress", "--eval-workers", "0"]) == 0
+    out = tmp_path / "r.json"
+    assert main(["--policy", str(run_dir), *RUN_EVALUATION, "--json", str(out)]) == 0
+    comparison = json.loads((run_dir / "comparison.json").read_text())
+    evaluated = json.loads(out.read_text())
+    assert evaluated["learned_label"] == "learned (residual)" and evaluated["overrides"] == {"episode_seconds": 0.3}
+    assert _same(evaluated["results"]["learned"], comparison["results"]["learned"])
+
+
+def test_two_scenario_names_that_read_alike_once_made_safe_get_two_video_files():
+    """``a/b`` and ``a_b`` (or two long names with one beginning) used to share one file: the second episode's
+    video replaced the first's."""
+    from ee_formation_env.baselines.evaluate import file_stem, video_path
+
+    pairs = [("a/b", "a_b"), ("x" * 150 + "1", "x" * 150 + "2"), (".hidden", "hidden"), ("a b", "a_b")]
+    for first, second in pairs:
+        assert video_path("v", first, "zero", 0) != video_path("v", second, "zero", 0), (first, second)
+        assert len(file_stem(first)) <= 100 and len(file_stem(second)) <= 100
+    assert file_stem("planar_square") == "planar_square"  # a safe name is kept as it is
+    assert file_stem("a/b") == file_stem("a/b")  # and the suffix is the same every time (a hash of the name)
