@@ -294,3 +294,18 @@ def test_two_scenario_names_that_read_alike_once_made_safe_get_two_video_files()
         assert len(file_stem(first)) <= 100 and len(file_stem(second)) <= 100
     assert file_stem("planar_square") == "planar_square"  # a safe name is kept as it is
     assert file_stem("a/b") == file_stem("a/b")  # and the suffix is the same every time (a hash of the name)
+
+
+def test_an_rllib_run_without_ray_is_refused_in_one_line_naming_the_extra(tmp_path, capsys):
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is not None:
+        pytest.skip("ray is installed: the RLlib run would load")
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "obs_normalizer.json").write_text("{}")
+    (tmp_path / "config.json").write_text(json.dumps({"scenario": "planar_square", "backend": "rllib",
+                                                       "mode": "torque", "algo": "ppo"}))
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--policy", str(tmp_path)])
+    assert "--policy (a --backend rllib run) needs ray.rllib, not installed" in str(exit_info.value)
+    assert 'pip install -e ".[train,distributed]"' in str(exit_info.value)
