@@ -85,7 +85,8 @@ class LearnedPolicy:
 MODEL_FOLDER = "model"  # a run's final model, in the checkpoint format
 
 #: What reloading a run's model needs per backend: the modules, and the pip extra(s) that install them.
-BACKEND_MODULES = {"sb3": (("torch", "stable_baselines3"), "train"), "rllib": (("torch", "ray.rllib"), "train,distributed")}
+BACKEND_MODULES = {"sb3": (("torch", "stable_baselines3"), "train"),
+                   "rllib": (("torch", "ray.rllib"), "train,distributed")}
 
 
 def saved_scenario(config: Mapping[str, Any]) -> Any:

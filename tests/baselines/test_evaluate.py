@@ -1,5 +1,5 @@
-"""The ``python -m ee_formation_env.baselines.evaluate`` command line: table, --policy all, bad arguments, --help, --video,
-and a train.py run folder as the policy."""
+"""The ``python -m ee_formation_env.baselines.evaluate`` command line: table, --policy all, bad arguments, --help,
+--video, and a train.py run folder as the policy."""
 
 from __future__ import annotations
 
