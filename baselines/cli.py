@@ -1,7 +1,8 @@
 """The ``ee-formation`` command: ``ee-formation COMMAND [flags]``; ``ee-formation COMMAND --help`` lists a command's flags.
 
 - ``train``: train a shared policy and compare it with the reference controllers (the flags of ``train.py``);
-- ``evaluate``: run reference policies on seeded episodes and print the metrics table;
+- ``evaluate``: run reference policies, or a ``train.py`` run folder's policy, on seeded episodes and print the
+  metrics table;
 - ``validate SCENARIO``: run every check the env runs on a scenario (:func:`ee_formation_env.validate_scenario`),
   without stepping physics: one ``OK`` line and exit status 0, or the error and exit status 2;
 - ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
@@ -104,7 +105,7 @@ def _study(module: str) -> Callable[[Sequence[str]], int]:
 COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {
     "train": ("train a shared policy (residual or torque mode) and compare it with the references",
               lambda argv: train_command(argv, prog="ee-formation train")),
-    "evaluate": ("evaluate reference policies on seeded episodes and print the metrics table", _evaluate),
+    "evaluate": ("evaluate reference policies or a trained run on seeded episodes: the metrics table", _evaluate),
     "validate": ("run every check the env runs on a scenario, without stepping physics", _validate),
     "reproduce": ("the paper's figures from the three laws (checkout only)", _study("reproduce")),
     "robustness": ("the laws under model mismatch, stalls and windup (checkout only)", _study("robustness")),

@@ -1,22 +1,29 @@
-"""Evaluate reference policies on seeded episodes and print a metrics table.
+"""Evaluate reference policies, or a trained run's policy, on seeded episodes and print a metrics table.
 
     ee-formation evaluate --scenario planar_square --policy adaptive_jacobian --episodes 10 --seed 0
     ee-formation evaluate --scenario spatial_tetrahedron --policy all --json results.json
     ee-formation evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
+    ee-formation evaluate --policy runs/NAME --episodes 10 --video videos          # a train.py run folder
 
 (``python -m ee_formation_env.baselines.evaluate`` is the same command.)
 
 Episode ``k`` uses reset seed ``seed + k``, so every policy sees the same initial states. Metrics are
-defined in :mod:`ee_formation_env.baselines.metrics` (the same module ``train.py`` uses).
+defined in :mod:`ee_formation_env.baselines.metrics` (the same module ``train.py`` uses). A run folder is
+evaluated as its comparison evaluates it (:class:`~ee_formation_env.baselines.learned.policy.SavedRun`): on
+the scenario saved with it unless ``--scenario`` is given, in the env settings it trained with (its action
+convention, e.g. ``gravity_compensation``), with its observation features and normalization.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import re
 import sys
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -26,7 +33,8 @@ import ee_formation_env
 from ee_formation_env.baselines import POLICIES, make_policies
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.metrics import (DEFAULT_EVALUATION_COPIES, DEFAULT_POSITION_TOLERANCE, EpisodeMetrics,
-                                                format_table, metric_definitions, run_episode, run_episodes, summarize)
+                                                PolicySource, format_table, metric_definitions, run_episode,
+                                                run_episodes, summarize)
 from ee_formation_env.env import FormationEnv
 
 
@@ -71,59 +79,74 @@ class EpisodeVideo:
 
 def file_stem(name: str, fallback: str = "scenario", max_length: int = 100) -> str:
     """``name`` as a safe file name: characters outside ``[A-Za-z0-9_.-]`` (path separators included) become
-    ``_``, leading dots are dropped (no ``..``, no hidden files), at most ``max_length`` characters."""
-    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", str(name)).lstrip(".")[:max_length]
-    return stem or fallback
+    ``_``, leading dots are dropped (no ``..``, no hidden files), at most ``max_length`` characters. Where that
+    changed the name, the stem ends with ``-`` and 8 hex digits of the name's SHA-256, so that two names that
+    read alike once made safe (``a/b`` and ``a_b``, or two long names with one beginning) get two files; a name
+    that is already safe is its own stem."""
+    name = str(name)
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", name).lstrip(".")
+    if stem == name and 0 < len(stem) <= max_length:
+        return stem
+    digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
+    return f"{stem[:max_length - 9] or fallback}-{digest}"
 
 
 def video_path(video_dir: Path | str, scenario: str, policy: str, seed: int) -> Path:
     """Where an episode's video goes: ``video_dir/<scenario>-<policy>-seed<k>`` (the writer adds ``.mp4`` or
-    ``.gif``), scenario and policy names made safe by :func:`file_stem`, so it is always inside ``video_dir``."""
+    ``.gif``), scenario and policy names made safe by :func:`file_stem`, so it is always inside ``video_dir``
+    and two scenario names never share a file."""
     return Path(video_dir) / f"{file_stem(scenario)}-{file_stem(policy, 'policy')}-seed{int(seed)}"
 
 
-def evaluate_policy(scenario: Any, policy: str, episodes: int, seed: int,
+def evaluate_policy(scenario: Any, policy: str | PolicySource, episodes: int, seed: int,
                     position_tolerance: float = DEFAULT_POSITION_TOLERANCE, overrides: dict | None = None,
                     policy_kwargs: dict | None = None, video_dir: Path | None = None,
                     on_episode: Callable[[str, int, EpisodeMetrics], None] | None = None,
-                    on_round: Callable[[str, list[int]], None] | None = None) -> dict[str, Any]:
+                    on_round: Callable[[str, list[int]], None] | None = None, name: str | None = None,
+                    video_name: str | None = None) -> dict[str, Any]:
     """Summary (see :func:`ee_formation_env.baselines.metrics.summarize`) of ``policy`` over seeded episodes.
 
-    ``video_dir``: also write one video per episode there (``<scenario>-<policy>-seed<k>.mp4``, or ``.gif``; the
-    names made safe by :func:`file_stem`, so that a scenario's ``name`` cannot put it elsewhere), rendered as
-    ``rgb_array``. ``on_episode(policy, seed, metrics)`` is called after each episode. Without videos, the
-    episodes run together on the batched env (:func:`~ee_formation_env.baselines.metrics.run_episodes`) in
-    rounds of at most :data:`~ee_formation_env.baselines.metrics.DEFAULT_EVALUATION_COPIES` seeds, each on a
-    fresh env as ``run_episodes`` itself makes them: ``on_round(policy, seeds)`` is called as a round starts and
+    ``policy``: a reference policy's name, or a callable ``env -> {agent: policy}`` (a
+    :class:`~ee_formation_env.baselines.learned.policy.SavedRun`'s ``policy_source()``), called once per env;
+    ``name`` names it in the callbacks (default: ``policy``, a name) and ``video_name`` in the video files
+    (default: ``name``). ``video_dir``: also write one video per episode there
+    (``<scenario>-<video_name>-seed<k>.mp4``, or ``.gif``; the names made safe by :func:`file_stem`, so that a
+    scenario's ``name`` cannot put it elsewhere), rendered as ``rgb_array``. ``on_episode(name, seed,
+    metrics)`` is called after each episode. Without videos, the episodes run together on the batched env
+    (:func:`~ee_formation_env.baselines.metrics.run_episodes`) in rounds of at most
+    :data:`~ee_formation_env.baselines.metrics.DEFAULT_EVALUATION_COPIES` seeds, each on a fresh env as
+    ``run_episodes`` itself makes them: ``on_round(name, seeds)`` is called as a round starts and
     ``on_episode`` for each of its episodes once they have all ended.
     """
+    name = name if name is not None else str(policy)
     if video_dir is None:  # the episodes together on the batched env: the same metrics, bit for bit
         seeds = [seed + k for k in range(episodes)]
         results = []
         for start in range(0, len(seeds), DEFAULT_EVALUATION_COPIES):
             chunk = seeds[start:start + DEFAULT_EVALUATION_COPIES]
             if on_round is not None:
-                on_round(policy, chunk)
+                on_round(name, chunk)
             chunk_results = run_episodes(scenario, policy, chunk, position_tolerance=position_tolerance,
                                          overrides=overrides, policy_kwargs=policy_kwargs)
             results += chunk_results
             if on_episode is not None:
                 for episode_seed, metrics in zip(chunk, chunk_results):
-                    on_episode(policy, episode_seed, metrics)
+                    on_episode(name, episode_seed, metrics)
         summary = summarize(results)
         summary["per_episode"] = [r.as_dict() for r in results]
         return summary
     results = []
     with ee_formation_env.parallel_env(scenario, render_mode="rgb_array", **(overrides or {})) as env:
-        policies = make_policies(policy, env, **(policy_kwargs or {}))
+        policies = (make_policies(policy, env, **(policy_kwargs or {})) if isinstance(policy, str)
+                    else policy(env))
         for k in range(episodes):
             video = EpisodeVideo(env)
             metrics = run_episode(env, policies, seed=seed + k, position_tolerance=position_tolerance,
                                   on_reset=video.capture, on_step=video.capture)
-            video.write(video_path(video_dir, env.scenario.name, policy, seed + k))
+            video.write(video_path(video_dir, env.scenario.name, video_name or name, seed + k))
             results.append(metrics)
             if on_episode is not None:
-                on_episode(policy, seed + k, metrics)
+                on_episode(name, seed + k, metrics)
     summary = summarize(results)
     summary["per_episode"] = [r.as_dict() for r in results]
     return summary
@@ -142,22 +165,30 @@ def _overrides(pairs: Sequence[str]) -> dict[str, Any]:
     return overrides
 
 
+DEFAULT_SCENARIO = "planar_square"  # what --scenario is unless given (a run folder: the scenario saved with it)
+
+
 def build_parser(prog: str = "python -m ee_formation_env.baselines.evaluate") -> argparse.ArgumentParser:
     """The command's flags (every one with its help)."""
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="table columns (mean over episodes unless said otherwise):\n"
                                             + metric_definitions())
-    parser.add_argument("--scenario", default="planar_square", help="built-in name or YAML/JSON file")
-    parser.add_argument("--policy", default="all", help=f"one of {list(POLICIES)} or 'all'")
+    parser.add_argument("--scenario", default=None,
+                        help=f"built-in name or YAML/JSON file (default: {DEFAULT_SCENARIO}; with --policy RUN_DIR, "
+                             "the scenario saved with the run)")
+    parser.add_argument("--policy", default="all",
+                        help=f"one of {list(POLICIES)}, 'all', or a train.py run folder RUN_DIR (its learned "
+                             "policy, in the env settings it trained with)")
     parser.add_argument("--episodes", type=int, default=10, help="episodes per policy (default 10)")
     parser.add_argument("--seed", type=int, default=0,
-                        help="reset seed of the first episode; episode k uses seed + k (default 0)")
+                        help="reset seed of the first episode; episode k uses seed + k (default 0; a run's "
+                             "comparison uses 10000)")
     parser.add_argument("--tolerance", type=float, default=DEFAULT_POSITION_TOLERANCE,
                         help="edge-length accuracy (m) that counts as success")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="scenario overrides, VALUE in JSON, e.g. --set torque_limits=1e6 frame_skip=1")
-    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON (a file path)")
     parser.add_argument("--video", metavar="DIR", type=Path,
                         help="also write one video per episode into DIR (MP4, or GIF without imageio-ffmpeg; "
                              "needs the 'video' extra)")
@@ -166,37 +197,137 @@ def build_parser(prog: str = "python -m ee_formation_env.baselines.evaluate") ->
     return parser
 
 
+def _json_target_problem(path: str) -> str | None:
+    """Why ``--json PATH`` cannot be written (None if it can), found by opening it for appending, which
+    leaves an existing file as it is; a file the probe had to create is removed again."""
+    target = Path(path)
+    if target.is_dir():
+        return f"{path} is a folder; expected the path of a file to write"
+    if not target.resolve().parent.is_dir():
+        return f"the folder of {path} does not exist"
+    existed = target.exists()
+    try:
+        with open(target, "a", encoding="utf-8"):
+            pass
+    except OSError as error:
+        return f"{path} cannot be written ({error.strerror or error})"
+    if not existed:
+        target.unlink(missing_ok=True)
+    return None
+
+
+def _video_folder_problem(folder: Path) -> str | None:
+    """Why ``--video DIR`` cannot hold the videos (None if it can): a file, or a folder (or the nearest
+    existing folder above it, where it would be made) this process cannot write into. An unnamed temporary
+    file probes it, so nothing is left behind."""
+    if folder.exists() and not folder.is_dir():
+        return f"{folder} is a file, not a folder"
+    existing = folder.resolve()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is a file, not a folder"
+    try:
+        tempfile.TemporaryFile(dir=existing).close()
+    except OSError as error:
+        return f"{folder} cannot be written ({error.strerror or error})"
+    return None
+
+
+@dataclass(frozen=True)
+class _Evaluated:
+    """One policy of the command: its row name, where it comes from, and the scenario overrides it runs with."""
+
+    name: str
+    overrides: dict[str, Any]
+    run: Any = None  # a SavedRun, or None for a reference policy (``name``)
+
+    def source(self) -> PolicySource:
+        """What :func:`evaluate_policy` runs: the reference's name, or the run's policies (a fresh model read,
+        as each comparison reads it)."""
+        return self.name if self.run is None else self.run.policy_source()
+
+    @property
+    def video_name(self) -> str:
+        """The policy part of its video files: a run's folder name, so that two runs' videos do not collide."""
+        return self.name if self.run is None else self.run.run_dir.resolve().name
+
+
+def _policies(policy: str, parser: argparse.ArgumentParser, overrides: dict[str, Any]) -> list[_Evaluated]:
+    """The policies ``--policy`` names, each with the scenario overrides it is evaluated with: a run's
+    policy also with the env settings of its action convention (``SavedRun.env_overrides``)."""
+    if policy == "all":
+        return [_Evaluated(name, overrides) for name in POLICIES]
+    if policy in POLICIES:
+        return [_Evaluated(policy, overrides)]
+    if not Path(policy).is_dir():
+        parser.error(f"--policy: unknown policy {policy!r}; available: {list(POLICIES)}, 'all', or a train.py "
+                     "run folder (holding config.json and model/)")
+    from ee_formation_env.baselines.learned.policy import SavedRun
+
+    run = SavedRun.load(policy, "--policy")
+    own = run.env_overrides()
+    for key, value in own.items():
+        if key in overrides and overrides[key] != value:
+            raise ValueError(f"--set: {key}: the run's policy acts with {key} {value} (it trained so); it cannot "
+                             "be evaluated with another value")
+    return [_Evaluated(run.label, {**overrides, **own}, run)]
+
+
+def _check_policies(scenario: Any, evaluated: Sequence[_Evaluated]) -> None:
+    """Build each policy once on the scenario, so that what would refuse it mid-evaluation refuses it now: the
+    scenario's own checks, a law on a gravity-compensated scenario, a run's model that does not load or whose
+    sizes do not fit the team."""
+    groups: dict[str, list[_Evaluated]] = {}
+    for policy in evaluated:
+        groups.setdefault(json.dumps(policy.overrides, sort_keys=True, default=str), []).append(policy)
+    for group in groups.values():
+        with ee_formation_env.parallel_env(scenario, **group[0].overrides) as env:
+            for policy in group:
+                source = policy.source()
+                if isinstance(source, str):
+                    make_policies(source, env)
+                else:
+                    source(env)
+
+
 def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_env.baselines.evaluate") -> int:
     parser = build_parser(prog)
     args = parser.parse_args(argv)
-    # Every argument is checked before the first episode runs.
+    # Every argument is checked before the first episode runs and before any file or folder is made.
     if args.episodes < 1:
-        parser.error("--episodes: expected an integer >= 1")
+        parser.error(f"--episodes: expected an integer >= 1, got {args.episodes}")
     if not (math.isfinite(args.tolerance) and args.tolerance > 0):
         parser.error(f"--tolerance: expected an edge accuracy > 0 m, got {args.tolerance}")
     if args.seed < 0:
         parser.error(f"--seed: expected an integer >= 0, got {args.seed}")
-    names = list(POLICIES) if args.policy == "all" else [args.policy]
-    for name in names:
-        if name not in POLICIES:
-            parser.error(f"--policy: unknown policy {name!r}; available: {list(POLICIES)} or 'all'")
-    if args.json and not Path(args.json).resolve().parent.is_dir():
-        parser.error(f"--json: the folder of {args.json} does not exist")
+    if args.json:
+        problem = _json_target_problem(args.json)
+        if problem:
+            parser.error(f"--json: {problem}")
     if args.video is not None:
         require(["imageio"], "video", "--video")
-        if args.video.exists() and not args.video.is_dir():
-            parser.error(f"--video: {args.video} is a file, not a folder")
+        problem = _video_folder_problem(args.video)
+        if problem:
+            parser.error(f"--video: {problem}")
     try:
-        overrides = _overrides(args.set)
-        ee_formation_env.parallel_env(args.scenario, **overrides).close()  # the scenario validates, or a clear error
+        evaluated = _policies(args.policy, parser, _overrides(args.set))
+        run = evaluated[0].run
+        if args.scenario is not None:
+            scenario = scenario_name = args.scenario
+        elif run is not None:  # the scenario as saved with the run, not as its file is now
+            scenario, scenario_name = run.scenario, run.scenario_name
+        else:
+            scenario = scenario_name = DEFAULT_SCENARIO
+        _check_policies(scenario, evaluated)
     except (ValueError, TypeError) as error:
         if args.debug:
             raise
         parser.error(str(error))
     if args.video is not None:
         args.video.mkdir(parents=True, exist_ok=True)
-    print(f"scenario {args.scenario}, {args.episodes} episodes from seed {args.seed}, tolerance {args.tolerance} m",
-          flush=True)
+    print(f"scenario {scenario_name}, {args.episodes} episodes from seed {args.seed}, tolerance {args.tolerance} m"
+          + (f", policy of {args.policy}" if run is not None else ""), flush=True)
 
     def progress(name: str, seed: int, metrics: EpisodeMetrics) -> None:
         outcome = "success" if metrics.success else ("fault: " + metrics.physics_fault if metrics.physics_fault
@@ -209,16 +340,21 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
         print(f"  {name}: running episodes {first}-{last}/{args.episodes} together ...", file=sys.stderr, flush=True)
 
     quiet = args.quiet
-    results = {name: evaluate_policy(args.scenario, name, args.episodes, args.seed, args.tolerance, overrides,
-                                     video_dir=args.video, on_episode=None if quiet else progress,
-                                     on_round=None if quiet else round_started) for name in names}
-    print(format_table(results))
+    # A run's row is "learned", as in its comparison.json; the table shows its label.
+    results = {"learned" if policy.run is not None else policy.name: evaluate_policy(
+        scenario, policy.source(), args.episodes, args.seed, args.tolerance, policy.overrides, video_dir=args.video,
+        on_episode=None if quiet else progress, on_round=None if quiet else round_started, name=policy.name,
+        video_name=policy.video_name) for policy in evaluated}
+    print(format_table({run.label if run is not None else key: value for key, value in results.items()}))
     if args.video is not None:
-        print(f"wrote {len(names) * args.episodes} videos to {args.video.resolve()}")
+        print(f"wrote {len(evaluated) * args.episodes} videos to {args.video.resolve()}")
     if args.json:
+        record = {"scenario": scenario_name, "episodes": args.episodes, "seed": args.seed,
+                  "overrides": evaluated[0].overrides}
+        if run is not None:
+            record.update(run=str(run.run_dir), learned_label=run.label)
         with open(args.json, "w", encoding="utf-8") as handle:
-            json.dump({"scenario": args.scenario, "episodes": args.episodes, "seed": args.seed,
-                       "overrides": overrides, "results": results}, handle, indent=2, default=float)
+            json.dump({**record, "results": results}, handle, indent=2, default=float)
         print(f"wrote {Path(args.json).resolve()}")
     return 0
 

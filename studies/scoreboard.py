@@ -3,10 +3,13 @@
 ``python -m studies.scoreboard`` runs each cell (scenario x method x training seed) that is not cached yet,
 then aggregates every cached cell (of this and earlier invocations) into ``results/scoreboard/scoreboard.json`` and a markdown table;
 ``--docs`` also merges those rows into the committed board (``docs/results/scoreboard.json``: a row
-recomputed here replaces its committed one, the others stay; :func:`merged_rows`) and regenerates the tables
-of ``docs/scoreboard.md`` from it. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the
-command resumes where it stopped, and the board can be filled over several sessions (a learned cell's
-training run under ``<out>/runs/`` resumes from its newest checkpoint). ``--quick``: tiny budgets and a few
+recomputed here replaces its committed one, the others stay, and none is replaced by one of fewer episodes or
+seeds unless ``--replace-smaller``; :func:`merged_rows`) and regenerates the tables of ``docs/scoreboard.md``
+from it. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the command resumes
+where it stopped, and the board can be filled over several sessions (a learned cell's training run under
+``<out>/runs/`` resumes from its newest checkpoint). Each cell carries the schema, code version and protocol it
+was computed with; one computed otherwise, or a corrupt file, is recomputed, never aggregated silently
+(:mod:`studies.scoreboard_cells`). ``--quick``: tiny budgets and a few
 short episodes, into a temporary folder by default; never writes into ``docs/``.
 
 Protocol (``docs/scoreboard.md`` has the rationale): reference controllers are evaluated on the held-out
@@ -28,9 +31,8 @@ A scenario distribution (``scenario_sets.DISTRIBUTIONS``) is evaluated on its te
 from __future__ import annotations
 
 import argparse
-import collections
+import dataclasses
 import json
-import math
 import tempfile
 import time
 from dataclasses import dataclass
@@ -38,11 +40,13 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
-from ee_formation_env.baselines.metrics import fault_kinds, run_episodes
+from ee_formation_env.baselines.metrics import run_episodes
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
-from studies.bootstrap import aggregate
+from studies.scoreboard_cells import cached_cell, mark_run, read_cell, run_is_current, stale_reason
+# METRICS and episode_values are read through this module by the study's users.
+from studies.scoreboard_rows import METRICS, _place, episode_values, format_board, rows, write_outputs  # noqa: F401
 
 
 @dataclass(frozen=True)
@@ -130,31 +134,7 @@ DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
 DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
 QUICK_FLAGS = ("--total-timesteps", "64", "--n-envs", "1", "--n-steps", "16", "--n-workers", "0")
 
-#: The board's metrics, one value per evaluation episode: (key, title, unit, meaning, format).
-METRICS: tuple[tuple[str, str, str, str, str], ...] = (
-    ("success", "success", "%", "the episode settled and held the formation (metrics' definition)", "{:.0%}"),
-    ("settling_time_or_limit", "settle", "s", "settling time, or the episode length when it did not settle", "{:.2f}"),
-    ("final_formation_error", "final err", "m² or m", "formation error at the last step", "{:.2e}"),
-    ("physics_fault", "faulted", "%", "episodes the env ended with a physics fault", "{:.0%}"),
-    ("contact_steps", "contacts", "steps", "env steps with a contact between arms", "{:.1f}"),
-    ("mean_return", "return", "", "episode return, mean over agents", "{:,.0f}"),
-)
-
-
 # ------------------------------------------------------------------------------------------ cells
-def episode_values(episode: dict[str, Any], episode_seconds: float) -> dict[str, float]:
-    """The board's metrics of one episode (an ``EpisodeMetrics.as_dict()``)."""
-    settling = episode["settling_time"]
-    return {
-        "success": float(bool(episode["success"])),
-        "settling_time_or_limit": float(settling) if episode["success"] and math.isfinite(settling) else episode_seconds,
-        "final_formation_error": float(episode["final_formation_error"]),
-        "physics_fault": float(bool(episode["physics_fault"])),
-        "contact_steps": float(episode["contact_steps"]),
-        "mean_return": float(episode["mean_return"]),
-    }
-
-
 @dataclass(frozen=True)
 class Board:
     """What one invocation evaluates: where, which cells, with which evaluation and training settings."""
@@ -169,6 +149,19 @@ class Board:
     eval_workers: int | None = None  # train.py's --eval-workers (None: its default)
 
     test_sets: bool = True  # also evaluate on each scenario's test set (scenario_sets)
+    accept_stale: bool = False  # aggregate cells of another code version as they are (each reported)
+
+    def protocol(self, method: Method) -> dict[str, Any]:
+        """What the study sets for a cell of ``method`` (recorded in it; studies.scoreboard_cells): the
+        method's definition, the BenchMARL learning settings it names, and the flags every learned method gets."""
+        protocol: dict[str, Any] = {"method": dataclasses.asdict(method)}
+        if method.benchmarl is not None:
+            from studies.benchmarl_runs import SETTINGS
+
+            protocol["benchmarl_settings"] = dataclasses.asdict(SETTINGS[method.benchmarl.settings])
+        if method.learned:
+            protocol["extra_train_flags"] = list(self.extra_train_flags)
+        return protocol
 
     def cell_path(self, scenario: str, method: Method, seed: int | None, test: str | None = None) -> Path:
         """A training-split cell, or with ``test`` the cell of that test scenario (of training ``scenario``)."""
@@ -225,13 +218,17 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     from ee_formation_env.baselines.learned.run import train
 
     run_dir = board.run_dir(scenario, method, seed)
+    # A run started by another code version, or for another definition of the method, is trained again.
+    current = run_is_current(run_dir, board.protocol(method))
+    if not current:
+        mark_run(run_dir, board.protocol(method))
     if method.benchmarl is not None:
-        return _benchmarl_cell(board, scenario, method, seed, run_dir)
-    if not (run_dir / "comparison.json").is_file():
+        return _benchmarl_cell(board, scenario, method, seed, run_dir, current)
+    if not current or not (run_dir / "comparison.json").is_file():
         evaluation = ["--eval-episodes", str(len(board.eval_seeds(scenario))), "--eval-seconds", str(seconds),
                       "--no-progress",
                       *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
-        if (run_dir / "config.json").is_file():
+        if current and (run_dir / "config.json").is_file():
             argv = ["--resume", str(run_dir), *evaluation]
         else:
             argv = ["--scenario", scenario, *method.train_flags, *board.extra_train_flags, "--seed", str(seed),
@@ -264,11 +261,12 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
     if method.benchmarl is not None:
         metrics = run_episodes(test_scenario, trained_policies(method, run_dir), seeds,
                                overrides={"episode_seconds": seconds})
-    elif method.learned:
-        from ee_formation_env.baselines.metrics import evaluation_env
+    elif method.learned:  # as the run's own comparison evaluates it: in the env settings it trained with
+        from ee_formation_env.baselines.learned.policy import SavedRun
 
-        with evaluation_env(test_scenario, min(len(seeds), 16), episode_seconds=seconds) as env:
-            metrics = run_episodes(None, trained_policies(method, run_dir, env), seeds, env=env)
+        run = SavedRun.load(run_dir, f"{method.name} run")
+        metrics = run_episodes(test_scenario, run.policy_source(), seeds,
+                               overrides={"episode_seconds": seconds, **run.env_overrides()})
     else:
         metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds})
     episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]
@@ -289,29 +287,15 @@ def trained_policies(method: Method, run_dir: Path, env: Any = None) -> Callable
     return learned_policy_factory(run_dir, env, config)
 
 
-def _cached(path: Path, label: str, compute: Callable[[], dict[str, Any]], progress: Callable[[str], None]
-            ) -> dict[str, Any]:
-    """The cell at ``path``, computed and written atomically (a complete file or none) if not cached."""
-    if path.is_file():
-        progress(f"cached  {label}")
-    else:
-        progress(f"running {label}")
-        record = compute()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_suffix(".partial")
-        partial.write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
-        partial.replace(path)
-    return json.loads(path.read_text(encoding="utf-8"))
-
-
-def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_dir: Path
+def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_dir: Path, current: bool = True
                     ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Train and evaluate a BenchMARL method (studies.benchmarl_runs; a stopped run starts again: BenchMARL runs
-    are not resumed) and return its held-out episodes and budget."""
+    are not resumed; one ``current`` is False for, another code version's, too) and return its held-out
+    episodes and budget."""
     from studies import benchmarl_runs
 
     spec = method.benchmarl
-    if not (run_dir / "evaluation.json").is_file():
+    if not current or not (run_dir / "evaluation.json").is_file():
         benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if board.extra_train_flags else spec.minutes,
                            seed, run_dir, len(board.eval_seeds(scenario)), episode_seconds=board.episode_seconds,
                            settings=benchmarl_runs.SETTINGS[spec.settings])
@@ -336,18 +320,22 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
                 continue
             for seed in (board.seeds if method.learned else (None,)):
                 label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
-                trained = _cached(board.cell_path(scenario, method, seed), label,
-                                  lambda: run_cell(board, scenario, method, seed), progress)
+
+                def cached(path: Path, label: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+                    return cached_cell(path, label, board.protocol(method), compute, progress, board.accept_stale)
+
+                trained = cached(board.cell_path(scenario, method, seed), label,
+                                 lambda: run_cell(board, scenario, method, seed))
                 records.append(trained)
                 for test, test_scenario in tests.items():
-                    records.append(_cached(
+                    records.append(cached(
                         board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
-                        lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained), progress))
+                        lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained)))
                 if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
-                    records.append(_cached(
+                    records.append(cached(
                         board.cell_path(scenario, method, seed, TRAIN_SET), f"{label} -> train set",
                         lambda: run_test_cell(board, scenario, method, seed, scenario, scenario, trained,
-                                              board.train_seeds(), split="train"), progress))
+                                              board.train_seeds(), split="train")))
     return records
 
 
@@ -366,141 +354,61 @@ def _board_order(places: Sequence[tuple[str, str]]) -> Callable[[dict[str, Any]]
     return lambda item: (places.index(_place(item)), item.get("split") == "test", methods.index(item["method"]))
 
 
-def cached_records(out: Path) -> list[dict[str, Any]]:
-    """Every complete cell under ``out`` (whichever invocation ran it), in board order (:func:`_board_order`),
-    then seeds."""
+def cached_records(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Every complete cell under ``board.out`` (whichever invocation ran it), in board order
+    (:func:`_board_order`), then seeds. A cell this invocation did not recompute that is corrupt, or stale
+    (another schema, code version or protocol; kept with ``board.accept_stale``), is left out, each in one line."""
     places = _board_places()
-    records = [json.loads(path.read_text(encoding="utf-8")) for path in (out / "cells").rglob("*.json")]
-    records = [r for r in records if _place(r) in places and r["method"] in METHODS]
+    records = []
+    for path in sorted((board.out / "cells").rglob("*.json")):
+        record, problem = read_cell(path)
+        if record is None:
+            progress(f"left out {path}: {problem}; rerun its scenario and method to recompute it")
+            continue
+        if _place(record) not in places or record["method"] not in METHODS:
+            continue
+        stale = stale_reason(record, board.protocol(METHODS[record["method"]]))
+        if stale and not board.accept_stale:
+            progress(f"left out {path}: {stale}; rerun its scenario and method to recompute it, or "
+                     "--accept-stale-cells to aggregate it")
+            continue
+        records.append(record)
     order = _board_order(places)
     return sorted(records, key=lambda r: (*order(r), -1 if r["seed"] is None else r["seed"]))
 
 
-def merged_rows(committed: Sequence[dict[str, Any]], fresh: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+def merged_rows(committed: Sequence[dict[str, Any]], fresh: Sequence[dict[str, Any]],
+                replace_smaller: bool = False) -> list[dict[str, Any]]:
     """The board ``--docs`` writes: the ``committed`` rows (``docs/results/scoreboard.json``) with each one that
     ``fresh`` recomputes, same place, split and method, replaced by its new row, and ``fresh``'s new rows added;
     in board order. Rows of scenarios or methods the board no longer has are dropped. The cells behind a
-    committed row need not be on this machine, so the board can be filled over sessions on fresh clones."""
+    committed row need not be on this machine, so the board can be filled over sessions on fresh clones.
+
+    A fresh row with fewer evaluation episodes or fewer training seeds than the committed row it would replace
+    (a ``--episodes 2`` check, a session that ran one seed) is refused, ``ValueError`` naming each, unless
+    ``replace_smaller``: a committed result is not lost to a smaller one by accident."""
     places = _board_places()
 
     def key(row: dict[str, Any]) -> tuple[tuple[str, str], str, str]:
         return _place(row), row["split"], row["method"]
 
     by_key = {key(row): row for row in committed if _place(row) in places and row["method"] in METHODS}
+    smaller = [f"{row['scenario']} ({row['split']}) / {row['method']}: {_size(by_key[key(row)])} -> {_size(row)}"
+               for row in fresh if key(row) in by_key and _smaller(row, by_key[key(row)])]
+    if smaller and not replace_smaller:
+        raise ValueError(f"--docs: {len(smaller)} committed row(s) would be replaced by one with fewer episodes or "
+                         f"seeds: {'; '.join(smaller)}; --replace-smaller replaces them anyway (the local board is "
+                         "written)")
     by_key.update((key(row), row) for row in fresh)
     return sorted(by_key.values(), key=_board_order(places))
 
 
-def _place(record: dict[str, Any]) -> tuple[str, str]:
-    """(training scenario, evaluated scenario) of a cell: a test scenario may share a built-in's name."""
-    return record.get("trained_on", record["scenario"]), record["scenario"]
+def _size(row: dict[str, Any]) -> str:
+    return f"{len(row['eval_seeds'])} episodes x {len(row['seeds'])} seeds"
 
 
-def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per (scenario, method): its seeds, budget, wall time and every metric aggregated."""
-    grouped: dict[tuple[tuple[str, str], str, str], list[dict[str, Any]]] = {}
-    for record in records:
-        grouped.setdefault((_place(record), record.get("split", "train"), record["method"]), []).append(record)
-    out = []
-    for ((_, scenario), _, method), every_cell in grouped.items():
-        # split "train": the scenario the method trains on; "test": a held-out scenario (trained_on says which)
-        split = {"split": every_cell[0].get("split", "train"),
-                 **({"trained_on": every_cell[0]["trained_on"]} if "trained_on" in every_cell[0] else {})}
-        every_cell = sorted(every_cell, key=lambda c: -1 if c["seed"] is None else c["seed"])
-        failures = [{"seed": c["seed"], "reason": c["failed"]} for c in every_cell if c.get("failed")]
-        cells = [c for c in every_cell if not c.get("failed")]
-        if not cells:  # every training run of this row stopped: reported, with no metrics
-            out.append({"scenario": scenario, "method": method, **split,
-                        "seeds": [c["seed"] for c in every_cell], "eval_seeds": every_cell[0]["eval_seeds"],
-                        "episode_seconds": every_cell[0]["episode_seconds"], "budget": {"agent_steps_per_seed": []},
-                        "wall_seconds": float(sum(c["wall_seconds"] for c in every_cell)), "faults": [],
-                        "failures": failures, "metrics": {}})
-            continue
-        eval_seeds = cells[0]["eval_seeds"]
-        if any(c["eval_seeds"] != eval_seeds for c in cells):
-            raise ValueError(f"cells: {scenario} / {method} mixes evaluation seeds; delete its cells and rerun")
-        values = [[episode_values(e, c["episode_seconds"]) for e in c["episodes"]] for c in cells]
-        out.append({
-            "scenario": scenario, "method": method, **split,
-            "seeds": [c["seed"] for c in cells if c["seed"] is not None],
-            "eval_seeds": eval_seeds, "episode_seconds": cells[0]["episode_seconds"],
-            "budget": {"agent_steps_per_seed": [c["budget"].get("agent_steps", 0) for c in cells],
-                       **({"total_timesteps": cells[0]["budget"]["total_timesteps"]}
-                          if "total_timesteps" in cells[0]["budget"] else {})},
-            "wall_seconds": float(sum(c["wall_seconds"] for c in cells)),
-            "faults": [{"reason": reason, "episodes": count} for reason, count in fault_kinds(collections.Counter(
-                e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]))],
-            "failures": failures,
-            "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS},
-        })
-    return out
-
-
-def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
-    """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
-    lines: list[str] = []
-
-    def table(row: dict[str, Any]) -> tuple[tuple[str, str], str]:
-        return _place(row), row["split"]
-
-    for place, split in dict.fromkeys(table(row) for row in board_rows):
-        scenario = place[1]
-        first = next(row for row in board_rows if table(row) == (place, split))
-        if scenario in DISTRIBUTIONS:
-            seeds = first["eval_seeds"]
-            title = f"{scenario}, {split} set (its draws at the {len(seeds)} reset seeds {seeds[0]}-{seeds[-1]})"
-        else:
-            title = scenario if place[0] == scenario else (
-                f"{scenario} (test: policies trained on {place[0]}, evaluated here unchanged)")
-        lines += [f"### {title}", "",
-                  "| method | seeds | agent steps per seed | " + " | ".join(
-                      f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
-                  "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
-        for row in (r for r in board_rows if table(r) == (place, split)):
-            if not row["metrics"]:
-                lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
-                             " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
-                continue
-            cells = []
-            for key, _, _, _, spec in METRICS:
-                metric = row["metrics"][key]
-                cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
-                             f"{spec.format(metric['ci_high'])}]")
-            seeds = ", ".join(map(str, row["seeds"])) or "-"
-            steps = row["budget"]["agent_steps_per_seed"]  # differ where a wall-clock cap stopped a run
-            budget = f"{max(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}-{max(steps):,}"
-            lines.append(f"| {row['method']} | {seeds} | {budget} | " + " | ".join(cells) +
-                         f" | {row['wall_seconds']:,.0f} |")
-        faulted = [row for row in board_rows if table(row) == (place, split) and row["faults"]]
-        for row in faulted:
-            kinds = "; ".join(f"{fault['reason']} ({fault['episodes']}x)" for fault in row["faults"][:3])
-            lines.append(f"\n- {row['method']}: physics faults: {kinds}")
-        for row in (r for r in board_rows if table(r) == (place, split) and r["failures"]):
-            for failure in row["failures"]:
-                lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
-        lines.append("")
-    return "\n".join(lines).rstrip() + "\n"
-
-
-def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdown_path: Path | None = None,
-                  generated_page: Path | None = None) -> None:
-    """``scoreboard.json`` (``{"rows": [...]}``), the markdown tables, and the generated block of a docs page."""
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps({"rows": list(board_rows), "metrics": {k: {"title": t, "unit": u, "meaning": m}
-                                                                          for k, t, u, m, _ in METRICS}},
-                                    indent=1, default=float) + "\n", encoding="utf-8")
-    table = format_board(board_rows)
-    if markdown_path is not None:
-        markdown_path.write_text(table, encoding="utf-8")
-    if generated_page is not None:
-        import re
-
-        text = generated_page.read_text(encoding="utf-8")
-        pattern = r"(<!-- generated: scoreboard -->\n)(.*?)(\n<!-- end generated -->)"
-        if not re.search(pattern, text, re.S):
-            raise ValueError(f"--docs: {generated_page} has no generated scoreboard block")
-        generated_page.write_text(re.sub(pattern, lambda m: m.group(1) + table.strip() + m.group(3), text,
-                                         flags=re.S), encoding="utf-8")
+def _smaller(row: dict[str, Any], committed: dict[str, Any]) -> bool:
+    return len(row["eval_seeds"]) < len(committed["eval_seeds"]) or len(row["seeds"]) < len(committed["seeds"])
 
 
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "scoreboard.md"
@@ -525,6 +433,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--docs", action="store_true",
                         help="also merge the rows into docs/results/scoreboard.json (a recomputed row replaces its committed "
                              "one) and regenerate the tables of docs/scoreboard.md")
+    parser.add_argument("--replace-smaller", action="store_true",
+                        help="--docs: replace committed rows even by rows of fewer episodes or fewer seeds (refused "
+                             "otherwise)")
+    parser.add_argument("--accept-stale-cells", action="store_true",
+                        help="aggregate cached cells of another code version, schema or method definition as they "
+                             "are, each reported (default: recompute them, and leave out those not run here)")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.scenarios) - set(BUILTIN_SCENARIOS))
     if unknown:
@@ -538,17 +452,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--seeds: expected distinct integers >= 0")
     if args.quick and args.docs:
         parser.error("--docs: not with --quick (a smoke test is not a result)")
+    if args.replace_smaller and not args.docs:
+        parser.error("--replace-smaller: only with --docs (it decides what replaces a committed row)")
     out = args.out or (Path(tempfile.mkdtemp(prefix="scoreboard-")) if args.quick else Path("results/scoreboard"))
     board = Board(out=out, scenarios=tuple(args.scenarios), methods=tuple(args.methods), seeds=tuple(args.seeds),
                   episodes=args.episodes, episode_seconds=0.3 if args.quick else None,
                   extra_train_flags=QUICK_FLAGS if args.quick else (), eval_workers=0 if args.quick else None,
-                  test_sets=not args.no_test_sets)
+                  test_sets=not args.no_test_sets, accept_stale=args.accept_stale_cells)
     fill(board)
-    board_rows = rows(cached_records(out))  # every cell ever completed here, not only this invocation's
+    board_rows = rows(cached_records(board))  # every cell ever completed here, not only this invocation's
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
     if args.docs:  # merged into the committed board: its other rows' cells may be on another machine
         committed = json.loads(DOCS_JSON.read_text(encoding="utf-8"))["rows"] if DOCS_JSON.is_file() else []
-        write_outputs(merged_rows(committed, board_rows), DOCS_JSON, generated_page=DOCS_PAGE)
+        write_outputs(merged_rows(committed, board_rows, args.replace_smaller), DOCS_JSON, generated_page=DOCS_PAGE)
     print(format_board(board_rows))
     print(f"wrote {out / 'scoreboard.json'} and {out / 'scoreboard.md'}" +
           (f", {DOCS_JSON} and {DOCS_PAGE}" if args.docs else ""))

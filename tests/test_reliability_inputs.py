@@ -322,9 +322,10 @@ def test_custom_scenarios_get_the_documented_rate_and_length_defaults():
 def test_video_files_stay_inside_their_folder_whatever_the_scenario_name(tmp_path, monkeypatch):
     from ee_formation_env.baselines.evaluate import evaluate_policy, file_stem
 
-    assert file_stem("../escaped_dir/owned") == "_escaped_dir_owned"
-    assert file_stem("/etc/passwd") == "_etc_passwd"
-    assert file_stem("...") == "scenario" and file_stem(".hidden") == "hidden"
+    # A changed name keeps its readable part and gets a hash suffix (two names never share a stem).
+    assert re.fullmatch(r"_escaped_dir_owned-[0-9a-f]{8}", file_stem("../escaped_dir/owned"))
+    assert re.fullmatch(r"_etc_passwd-[0-9a-f]{8}", file_stem("/etc/passwd"))
+    assert re.fullmatch(r"scenario-[0-9a-f]{8}", file_stem("...")) and file_stem(".hidden").startswith("hidden-")
     assert file_stem("planar_square") == "planar_square" and file_stem("v1.2-run") == "v1.2-run"
     written: list[Path] = []
     stub = types.ModuleType("imageio")

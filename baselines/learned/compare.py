@@ -18,15 +18,10 @@ from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
-from ee_formation_env.baselines.learned.policy import learned_policy_factory
+from ee_formation_env.baselines.learned.policy import SavedRun, saved_scenario
 from ee_formation_env.baselines.metrics import format_table, run_policies, summarize
 
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
-
-
-def saved_scenario(config: dict[str, Any]) -> Any:
-    """The scenario a run saved (its parsed data), or, for runs saved without it, its name or file."""
-    return config.get("scenario_data") or config["scenario"]
 
 
 def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_dir: Path | None = None
@@ -86,7 +81,7 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         runs = [episodes[(name, seed)] for seed in seeds]
         results[name] = summarize(runs)
         results[name]["per_episode"] = [e.as_dict() for e in runs]
-    label = f"learned ({config['mode']})"
+    label = SavedRun(run_dir, config).label
     shortfall = learned_shortfall(results)
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results,
                   "shortfall": shortfall}
@@ -142,21 +137,9 @@ def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any
     """The held-out episodes of the policies ``names`` ("learned" or references), together in one batched env
     of this worker (two when the learned policy's action convention, e.g. ``gravity_compensation``, is not the
     reference laws' raw torque: the same scenario and seeds, each policy in its own convention)."""
-    run_dir, config = _EVALUATION["run_dir"], _EVALUATION["config"]
-    learned_overrides = TrainConfig.from_dict(config).training_options().env_overrides()
-    sources: dict[str, Any] = {}
-    for name in names:
-        if name == "learned":
-            factory: list[Any] = []  # the model is read once, with the first copy's env
-
-            def learned(env: Any, factory: list[Any] = factory) -> Any:
-                if not factory:
-                    factory.append(learned_policy_factory(run_dir, env, config))
-                return factory[0](env)
-
-            sources[name] = learned
-        else:
-            sources[name] = name
+    run = SavedRun(_EVALUATION["run_dir"], _EVALUATION["config"])
+    learned_overrides = run.env_overrides()
+    sources: dict[str, Any] = {name: run.policy_source() if name == "learned" else name for name in names}
     scenario, overrides = _EVALUATION["scenario"], _EVALUATION["overrides"]
     if not learned_overrides or "learned" not in sources:
         return run_policies(scenario, sources, seeds, overrides=overrides)

@@ -3,7 +3,9 @@
 :func:`learned_policies` rebuilds what the learner stepped around the shared network: observation
 normalization, then the training env's own transforms (:class:`ComposedPolicy`): the observation features and
 the mode's action rule (residual mode: the reference controller with its error gate). The result plugs into
-:func:`ee_formation_env.baselines.metrics.run_episode` like a reference policy.
+:func:`ee_formation_env.baselines.metrics.run_episode` like a reference policy. :class:`SavedRun` is a run
+folder as the comparison and ``ee-formation evaluate --policy RUN_DIR`` evaluate it: the same policies, in
+the env settings the run trained with.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import numpy as np
 
 from ee_formation_env.baselines.learned.action_scale import rescaling
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
-from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms
+from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_size
 from ee_formation_env.baselines.learned.modes import ActionRows
 from ee_formation_env.baselines.learned.options import TrainingOptions
 
@@ -82,6 +84,85 @@ class LearnedPolicy:
 
 MODEL_FOLDER = "model"  # a run's final model, in the checkpoint format
 
+#: What reloading a run's model needs per backend: the modules, and the pip extra(s) that install them.
+BACKEND_MODULES = {"sb3": (("torch", "stable_baselines3"), "train"),
+                   "rllib": (("torch", "ray.rllib"), "train,distributed")}
+
+
+def saved_scenario(config: Mapping[str, Any]) -> Any:
+    """The scenario a run saved (its parsed data), or, for runs saved without it, its name or file."""
+    return config.get("scenario_data") or config["scenario"]
+
+
+class SavedRun:
+    """A ``train.py`` run folder whose learned policy is evaluated: its saved configuration, the scenario it
+    trained on, the env settings its policy acts in (:meth:`env_overrides`) and its per-agent policies
+    (:meth:`policy_source`). The comparison (:mod:`~ee_formation_env.baselines.learned.compare`), ``ee-formation
+    evaluate --policy RUN_DIR`` and the scoreboard's test cells all evaluate a run through it."""
+
+    def __init__(self, run_dir: Path | str, config: Mapping[str, Any]):
+        self.run_dir, self.config = Path(run_dir), dict(config)
+
+    @classmethod
+    def load(cls, run_dir: Path | str, what: str = "run") -> "SavedRun":
+        """The run in ``run_dir``; a folder that is not a finished run (no ``config.json`` or no ``model/``),
+        or a backend whose packages are not installed, is refused in one line starting with ``what``."""
+        from ee_formation_env.baselines.extras import require
+
+        run_dir = Path(run_dir)
+        if not (run_dir / "config.json").is_file():
+            raise ValueError(f"{what}: {run_dir} is not a train.py run folder (no config.json in it)")
+        config = read_json(run_dir / "config.json", what)
+        if not isinstance(config, dict) or config.get("backend") not in BACKEND_MODULES or "scenario" not in config:
+            raise ValueError(f"{what}: {run_dir / 'config.json'} is not a run's configuration (no scenario, or a "
+                             f"backend other than {list(BACKEND_MODULES)})")
+        if not (run_dir / MODEL_FOLDER / "obs_normalizer.json").is_file():
+            raise ValueError(f"{what}: {run_dir} holds no final model ({MODEL_FOLDER}/): the run has not finished "
+                             "(--resume continues it)")
+        modules, extras = BACKEND_MODULES[config["backend"]]
+        require(modules, extras, f"{what} (a --backend {config['backend']} run)")
+        try:
+            TrainingOptions.from_saved(config)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{what}: {run_dir / 'config.json'}: {error}") from None
+        return cls(run_dir, config)
+
+    @property
+    def options(self) -> TrainingOptions:
+        return TrainingOptions.from_saved(self.config)
+
+    @property
+    def scenario(self) -> Any:
+        """The scenario the run trained on, as saved with it (not as its file is now)."""
+        return saved_scenario(self.config)
+
+    @property
+    def scenario_name(self) -> str:
+        return str(self.config["scenario"])
+
+    @property
+    def label(self) -> str:
+        """The learned policy's row name in tables: ``learned (<mode>)``."""
+        return f"learned ({self.config['mode']})"
+
+    def env_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of every env this run's policy acts in: its action convention
+        (:meth:`TrainingOptions.env_overrides`, e.g. ``gravity_compensation``)."""
+        return self.options.env_overrides()
+
+    def policy_source(self) -> Callable[[Any], dict[str, Any]]:
+        """``copy_env -> per-agent policies`` (:func:`learned_policy_factory`), the model read with the first
+        copy's env, when the evaluation builds it: what :func:`~ee_formation_env.baselines.metrics.run_episodes`
+        and :func:`~ee_formation_env.baselines.metrics.run_policies` take as a policy."""
+        factory: list[Callable[[Any], dict[str, Any]]] = []
+
+        def policies(env: Any) -> dict[str, Any]:
+            if not factory:
+                factory.append(learned_policy_factory(self.run_dir, env, self.config))
+            return factory[0](env)
+
+        return policies
+
 
 def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[str, Any]:
     """Per-agent policies of a saved run (its ``model/`` folder), the residual composition included; nothing in
@@ -102,9 +183,26 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> C
             predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
     else:
         predict = rllib_predictor(model_dir)
+    options = TrainingOptions.from_saved(config)
+    size = normalizer.mean.shape[0]
+    actions = np.asarray(predict(np.zeros(size, dtype=np.float32))).shape[-1]  # the actor's own output size
+    check_team(env, size, actions, options.resolved().obs_features)
     learned = LearnedPolicy(predict, normalizer)
-    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env,
-                                   TrainingOptions.from_saved(config))
+    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, options)
+
+
+def check_team(env: Any, observation_size: int, action_size: int, obs_features: str) -> None:
+    """Refuse, in one line, a team a shared policy of these sizes cannot act for: an agent whose observation
+    (featured by ``obs_features``, as in training) or action has another size. A network fed a vector of the
+    wrong length would fail deep inside torch or numpy, or, worse, broadcast."""
+    for agent in env.possible_agents:
+        layout = env.observation_layout(agent)
+        observed = env.observation_space(agent).shape[0] + feature_size(layout, obs_features)
+        acted = env.action_space(agent).shape[0]
+        if (observed, acted) != (observation_size, action_size):
+            raise ValueError(f"policy: the run's policy takes {observation_size} observation entries and gives "
+                             f"{action_size} joint actions (obs_features {obs_features}); {agent} of scenario "
+                             f"{env.scenario.name} has {observed} and {acted}: it cannot act for this team")
 
 
 def composed_policy_factory(learned: Mapping[str, Any], env: Any, options: TrainingOptions

@@ -162,3 +162,12 @@ def test_no_command_prints_the_pybullet_banner():
                                 text=True, timeout=120, cwd=REPO)
         assert result.returncode == 0
         assert "pybullet build time" not in result.stdout + result.stderr, argv
+
+
+def test_evaluate_refuses_json_into_a_folder_in_one_line_naming_the_flag(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["evaluate", "--policy", "zero", "--json", str(tmp_path)])
+    assert exit_info.value.code == 2
+    captured = capsys.readouterr()
+    assert f"ee-formation evaluate: error: --json: {tmp_path} is a folder; expected the path of a file" in captured.err
+    assert "Traceback" not in captured.err and captured.out == ""  # refused before the header, before any episode

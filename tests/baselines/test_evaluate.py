@@ -1,4 +1,5 @@
-"""The ``python -m ee_formation_env.baselines.evaluate`` command line: table, --policy all, bad arguments, --help, --video."""
+"""The ``python -m ee_formation_env.baselines.evaluate`` command line: table, --policy all, bad arguments, --help,
+--video, and a train.py run folder as the policy."""
 
 from __future__ import annotations
 
@@ -43,19 +44,70 @@ def test_policy_all_evaluates_every_policy(capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--episodes", "0"], "--episodes"),
-    (["--policy", "no_such_policy"], "unknown policy 'no_such_policy'"),
+    (["--episodes", "0"], "--episodes: expected an integer >= 1, got 0"),
+    (["--episodes", "-3"], "--episodes: expected an integer >= 1, got -3"),
+    (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
+    (["--tolerance", "nan"], "--tolerance: expected an edge accuracy > 0 m"),
+    (["--policy", "no_such_policy"],
+     f"--policy: unknown policy 'no_such_policy'; available: {list(POLICIES)}, 'all', or a train.py run folder"),
     (["--set", "frame_skip"], "KEY=VALUE"),
     (["--set", "no_such_key=1"], "no_such_key"),
     (["--scenario", "no_such_scenario"], "no_such_scenario"),
     (["--episodes", "two"], "invalid int value"),
+    # A law on a gravity-compensated scenario would be refused as its first episode starts: refused up front.
+    (["--policy", "all", "--set", "gravity_compensation=true"], "gradient sends the paper's raw joint torques"),
 ])
-def test_bad_arguments_give_a_clear_usage_error(capsys, argv, message):
+def test_bad_arguments_are_refused_in_one_line_before_any_episode_or_file(capsys, argv, message, monkeypatch, tmp_path):
+    import ee_formation_env.baselines.evaluate as evaluate
+
+    monkeypatch.setattr(evaluate, "run_episodes", lambda *args, **kwargs: pytest.fail("an episode ran"))
     with pytest.raises(SystemExit) as exit_info:
-        main(argv)
+        main([*argv, "--json", str(tmp_path / "results.json")])
     assert exit_info.value.code == 2
     error = capsys.readouterr().err
     assert "usage:" in error and message in error
+    assert len([line for line in error.splitlines() if "error:" in line]) == 1
+    assert not (tmp_path / "results.json").exists()
+
+
+def test_json_into_a_folder_is_refused_naming_json_before_any_episode(capsys, monkeypatch, tmp_path):
+    """``--json DIR`` used to run every episode and then fail with a traceback opening the folder."""
+    import ee_formation_env.baselines.evaluate as evaluate
+
+    monkeypatch.setattr(evaluate, "run_episodes", lambda *args, **kwargs: pytest.fail("an episode ran"))
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--policy", "zero", "--json", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert f"error: --json: {tmp_path} is a folder; expected the path of a file to write" in capsys.readouterr().err
+
+
+def test_json_that_cannot_be_written_is_refused_naming_json_and_leaves_no_file(capsys, tmp_path):
+    """An unwritable target is found by opening it (permission bits do not stop root; a read-only file system
+    does), not by running every episode first."""
+    import os
+
+    if os.geteuid() != 0:  # a folder without write permission
+        locked = tmp_path / "locked"
+        locked.mkdir()
+        locked.chmod(0o500)
+        target = locked / "results.json"
+    elif Path("/proc/self").is_dir():  # /proc takes no new files, even from root
+        target = Path("/proc/ee-formation-results.json")
+    else:
+        pytest.skip("no folder this process cannot write into")
+    with pytest.raises(SystemExit):
+        main(["--policy", "zero", "--json", str(target)])
+    assert f"error: --json: {target} cannot be written" in capsys.readouterr().err
+    assert not target.exists()
+
+
+def test_json_next_to_an_existing_file_keeps_it_until_the_results_are_written(tmp_path):
+    """The writability probe opens an existing file for appending: a refused run leaves its content as it was."""
+    target = tmp_path / "results.json"
+    target.write_text("earlier results")
+    with pytest.raises(SystemExit):
+        main(["--policy", "zero", "--scenario", "no_such_scenario", "--json", str(target)])  # refused after the probe
+    assert target.read_text() == "earlier results"
 
 
 def test_help_defines_every_column(capsys):
@@ -117,3 +169,143 @@ def test_rounds_give_the_metrics_of_one_batched_call(monkeypatch):
     rounds = evaluate.evaluate_policy("planar_square", "gradient", 3, 5, overrides=overrides)["per_episode"]
     together = [m.as_dict() for m in run_episodes("planar_square", "gradient", [5, 6, 7], overrides=overrides)]
     assert rounds == together
+
+
+# ------------------------------------------------------------------------------------ a train.py run as the policy
+RUN_EVALUATION = ["--episodes", "2", "--seed", "10000", "--set", "episode_seconds=0.3", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def gravity_compensated_run(tmp_path_factory):
+    """A tiny torque run on the spatial arms (whose g(q) is not 0), trained with gravity_compensation and the
+    torque preset's log-error features: what evaluating it must apply again (the env adding g(q), the
+    features, the normalization)."""
+    pytest.importorskip("stable_baselines3")
+    from ee_formation_env.baselines.cli import train_command
+
+    run_dir = tmp_path_factory.mktemp("runs") / "torque-gc"
+    assert train_command(["--scenario", "spatial_tetrahedron", "--total-timesteps", "300", "--mode", "torque",
+                          "--gravity-compensation",
+                          "--out", str(run_dir), "--n-envs", "1", "--n-workers", "0",
+                          "--train-episode-seconds", "0.5", "--eval-episodes", "2", "--eval-seconds", "0.3",
+                          "--no-progress", "--eval-workers", "0"]) == 0
+    return run_dir
+
+
+def _same(a, b) -> bool:
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)  # NaN equal to NaN, as in the files
+
+
+def test_a_run_folder_is_evaluated_with_its_own_env_settings_as_its_comparison_is(gravity_compensated_run, tmp_path,
+                                                                                   capsys):
+    from ee_formation_env.baselines.learned.policy import SavedRun
+    from ee_formation_env.baselines.metrics import run_episodes
+
+    out = tmp_path / "evaluation.json"
+    assert main(["--policy", str(gravity_compensated_run), *RUN_EVALUATION, "--json", str(out)]) == 0
+    assert "| learned (torque) |" in capsys.readouterr().out
+    evaluated = json.loads(out.read_text())
+    comparison = json.loads((gravity_compensated_run / "comparison.json").read_text())
+    assert evaluated["scenario"] == "spatial_tetrahedron" and evaluated["learned_label"] == comparison["learned_label"]
+    assert evaluated["overrides"] == {"episode_seconds": 0.3, "gravity_compensation": True}
+    assert _same(evaluated["results"]["learned"], comparison["results"]["learned"])  # same seeds, same metrics
+    # Without the run's action convention the same policy does something else: the setting is what matters.
+    run = SavedRun.load(gravity_compensated_run)
+    raw = run_episodes(run.scenario, run.policy_source(), [10_000, 10_001], overrides={"episode_seconds": 0.3})
+    assert not _same([m.as_dict() for m in raw], comparison["results"]["learned"]["per_episode"])
+
+
+def test_a_run_folder_is_refused_a_team_of_other_sizes_in_one_line_before_any_episode(gravity_compensated_run,
+                                                                                      capsys, tmp_path):
+    with pytest.raises(SystemExit):
+        main(["--policy", str(gravity_compensated_run), "--scenario", "planar_square",
+              "--json", str(tmp_path / "r.json")])
+    error = capsys.readouterr().err
+    assert ("error: policy: the run's policy takes 59 observation entries and gives 7 joint actions "
+            "(obs_features log-error); arm_0 of scenario planar_square has 30 and 2: it cannot act for this team"
+            ) in error
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_a_run_folder_runs_on_another_scenario_of_the_same_sizes(gravity_compensated_run, capsys):
+    assert main(["--policy", str(gravity_compensated_run), "--scenario", "spatial_random", "--episodes", "1",
+                 "--set", "episode_seconds=0.05", "--quiet"]) == 0
+    assert capsys.readouterr().out.startswith("scenario spatial_random, 1 episodes")
+
+
+def test_a_run_keeps_its_action_convention_against_set(gravity_compensated_run, capsys):
+    """Its torques mean 'on top of g(q)': evaluating them without it would score another policy."""
+    with pytest.raises(SystemExit):
+        main(["--policy", str(gravity_compensated_run), "--set", "gravity_compensation=false"])
+    assert "error: --set: gravity_compensation: the run's policy acts with gravity_compensation True" in (
+        capsys.readouterr().err)
+
+
+def test_a_folder_that_is_not_a_finished_run_is_refused_naming_it(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--policy", str(tmp_path)])
+    assert f"error: --policy: {tmp_path} is not a train.py run folder (no config.json in it)" in capsys.readouterr().err
+    (tmp_path / "config.json").write_text(json.dumps({"scenario": "planar_square", "backend": "sb3", "mode": "torque"}))
+    with pytest.raises(SystemExit):
+        main(["--policy", str(tmp_path)])
+    assert "holds no final model (model/): the run has not finished" in capsys.readouterr().err
+
+
+def test_video_of_a_run_writes_one_file_per_episode_named_by_its_folder(gravity_compensated_run, tmp_path):
+    pytest.importorskip("imageio")
+    videos = tmp_path / "videos"
+    out = tmp_path / "r.json"
+    assert main(["--policy", str(gravity_compensated_run), *RUN_EVALUATION, "--video", str(videos),
+                 "--json", str(out)]) == 0
+    assert sorted(f.stem for f in videos.iterdir()) == ["spatial_tetrahedron-torque-gc-seed10000",
+                                                        "spatial_tetrahedron-torque-gc-seed10001"]
+    assert all(f.stat().st_size > 0 for f in videos.iterdir())
+    # Rendered episodes in a single env score as the batched comparison's: the same policy, the same settings.
+    comparison = json.loads((gravity_compensated_run / "comparison.json").read_text())
+    assert _same(json.loads(out.read_text())["results"]["learned"], comparison["results"]["learned"])
+
+
+def test_a_residual_sac_run_is_evaluated_as_its_comparison_is(tmp_path):
+    """The other policy kind (SB3's own predict, not the numpy actor) and the residual mode's composition
+    around the reference controller."""
+    pytest.importorskip("stable_baselines3")
+    from ee_formation_env.baselines.cli import train_command
+
+    run_dir = tmp_path / "residual-sac"
+    assert train_command(["--total-timesteps", "300", "--algo", "sac", "--out", str(run_dir), "--n-envs", "1",
+                          "--n-workers", "0", "--train-episode-seconds", "0.5", "--eval-episodes", "2",
+                          "--eval-seconds", "0.3", "--no-progress", "--eval-workers", "0"]) == 0
+    out = tmp_path / "r.json"
+    assert main(["--policy", str(run_dir), *RUN_EVALUATION, "--json", str(out)]) == 0
+    comparison = json.loads((run_dir / "comparison.json").read_text())
+    evaluated = json.loads(out.read_text())
+    assert evaluated["learned_label"] == "learned (residual)" and evaluated["overrides"] == {"episode_seconds": 0.3}
+    assert _same(evaluated["results"]["learned"], comparison["results"]["learned"])
+
+
+def test_two_scenario_names_that_read_alike_once_made_safe_get_two_video_files():
+    """``a/b`` and ``a_b`` (or two long names with one beginning) used to share one file: the second episode's
+    video replaced the first's."""
+    from ee_formation_env.baselines.evaluate import file_stem, video_path
+
+    pairs = [("a/b", "a_b"), ("x" * 150 + "1", "x" * 150 + "2"), (".hidden", "hidden"), ("a b", "a_b")]
+    for first, second in pairs:
+        assert video_path("v", first, "zero", 0) != video_path("v", second, "zero", 0), (first, second)
+        assert len(file_stem(first)) <= 100 and len(file_stem(second)) <= 100
+    assert file_stem("planar_square") == "planar_square"  # a safe name is kept as it is
+    assert file_stem("a/b") == file_stem("a/b")  # and the suffix is the same every time (a hash of the name)
+
+
+def test_an_rllib_run_without_ray_is_refused_in_one_line_naming_the_extra(tmp_path, capsys):
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is not None:
+        pytest.skip("ray is installed: the RLlib run would load")
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "obs_normalizer.json").write_text("{}")
+    (tmp_path / "config.json").write_text(json.dumps({"scenario": "planar_square", "backend": "rllib",
+                                                       "mode": "torque", "algo": "ppo"}))
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--policy", str(tmp_path)])
+    assert "--policy (a --backend rllib run) needs ray.rllib, not installed" in str(exit_info.value)
+    assert 'pip install -e ".[train,distributed]"' in str(exit_info.value)

@@ -1,4 +1,5 @@
-"""studies.scoreboard: cells cached and resumed, rows with bootstrap intervals, the quick mode end to end."""
+"""studies.scoreboard: cells cached and resumed (and recomputed when another code computed them), rows with
+bootstrap intervals, the merge into the committed board, the quick mode end to end."""
 
 from __future__ import annotations
 
@@ -58,6 +59,7 @@ def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
     (["--episodes", "0"], "--episodes: expected an integer >= 1"),
     (["--seeds", "1", "1"], "--seeds: expected distinct integers"),
     (["--quick", "--docs"], "--docs: not with --quick"),
+    (["--replace-smaller"], "--replace-smaller: only with --docs"),
 ])
 def test_bad_arguments_are_refused_before_any_cell_runs(argv, message, capsys, tmp_path):
     with pytest.raises(SystemExit):
@@ -148,3 +150,111 @@ def test_docs_rows_merge_into_the_committed_board():
         ("planar_square", "gradient", 1.0), ("planar_square", "adaptive_jacobian", 5.0),
         ("planar_square", "residual-ppo", 4.0), ("planar_square_rotated", "residual-ppo", 3.0)]
     assert scoreboard.merged_rows(merged, []) == merged
+
+
+def test_docs_refuses_to_replace_a_committed_row_by_one_of_fewer_episodes_or_seeds():
+    """A quick ``--episodes 2`` check or a one-seed session would otherwise overwrite a 10-episode, 3-seed result."""
+    def record(seed, episodes):
+        return {**_record("planar_square", "residual-ppo", seed, 1.0), "eval_seeds": list(range(episodes)),
+                "episodes": [_record("planar_square", "residual-ppo", seed, 1.0)["episodes"][0]] * episodes}
+
+    committed = scoreboard.rows([record(seed, 10) for seed in (0, 1, 2)])
+    fewer_episodes = scoreboard.rows([record(seed, 2) for seed in (0, 1, 2)])
+    fewer_seeds = scoreboard.rows([record(0, 10)])
+    for fresh, size in ((fewer_episodes, "2 episodes x 3 seeds"), (fewer_seeds, "10 episodes x 1 seeds")):
+        with pytest.raises(ValueError, match=rf"--docs: 1 committed row\(s\) would be replaced by one with fewer "
+                                             rf"episodes or seeds: planar_square \(train\) / residual-ppo: "
+                                             rf"10 episodes x 3 seeds -> {size}; --replace-smaller"):
+            scoreboard.merged_rows(committed, fresh)
+        assert scoreboard.merged_rows(committed, fresh, replace_smaller=True) == fresh
+    more = scoreboard.rows([record(seed, 10) for seed in (0, 1, 2, 3)])
+    assert scoreboard.merged_rows(committed, more) == more  # as large or larger: replaced without a flag
+
+
+def test_docs_keeps_the_committed_board_when_refused_and_replaces_it_with_replace_smaller(tmp_path, monkeypatch):
+    page = tmp_path / "scoreboard.md"
+    page.write_text("# Scoreboard\n\n<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
+    board = tmp_path / "scoreboard.json"
+    committed = scoreboard.rows([{**_record("planar_square", "gradient", None, 1.0), "eval_seeds": [10_000, 10_001],
+                                  "episodes": [_record("planar_square", "gradient", None, 1.0)["episodes"][0]] * 2}])
+    board.write_text(json.dumps({"rows": committed}))
+    monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
+    monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
+    monkeypatch.setattr(scoreboard, "run_cell", lambda *args: _record("planar_square", "gradient", None, 3.0))
+    argv = ["--out", str(tmp_path / "out"), "--scenarios", "planar_square", "--methods", "gradient", "--episodes", "1",
+            "--no-test-sets", "--docs"]
+    before = board.read_text(), page.read_text()
+    with pytest.raises(ValueError, match="planar_square \\(train\\) / gradient: 2 episodes x 0 seeds -> 1 episodes"):
+        scoreboard.main(argv)
+    assert (board.read_text(), page.read_text()) == before
+    assert (tmp_path / "out" / "scoreboard.json").is_file()  # the local board is written all the same
+    assert scoreboard.main([*argv, "--replace-smaller"]) == 0
+    (row,) = json.loads(board.read_text())["rows"]
+    assert row["eval_seeds"] == [10_000] and row["metrics"]["settling_time_or_limit"]["mean"] == 3.0
+    assert "old" not in page.read_text()
+
+
+def _fabricate(path, **changes):
+    """Rewrite the cell at ``path`` as if another version of the code had computed it."""
+    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+
+
+def test_a_cell_of_another_code_version_is_recomputed_or_accepted_and_reported_never_aggregated_silently(tmp_path,
+                                                                                                       capsys):
+    from studies import scoreboard_cells
+
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "gradient",
+            "--episodes", "1", "--no-test-sets"]
+    assert scoreboard.main(argv) == 0
+    capsys.readouterr()
+    cell = tmp_path / "cells" / "planar_square" / "gradient" / "reference.json"
+    other_code = {"package": "0.0.1", "source": "0" * 16}
+    episode = {**json.loads(cell.read_text())["episodes"][0], "mean_return": 1e9}  # a number this code never gave
+    _fabricate(cell, code=other_code, episodes=[episode])
+
+    def board():
+        (row,) = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+        return row
+
+    assert scoreboard.main([*argv, "--accept-stale-cells"]) == 0
+    out = capsys.readouterr().out
+    assert f"stale   planar_square / gradient: {cell}: computed by ee-formation-env 0.0.1" in out
+    assert "kept (--accept-stale-cells)" in out
+    assert board()["metrics"]["mean_return"]["mean"] == 1e9 and board()["code"] == [other_code]  # and says so
+    assert scoreboard.main(argv) == 0
+    assert "; recomputing" in capsys.readouterr().out
+    assert board()["metrics"]["mean_return"]["mean"] < 1e9 and board()["code"] == [scoreboard_cells.code_version()]
+    # Cells this invocation does not run are not recomputed: a stale one and a corrupt one are each left out in a line.
+    stale = tmp_path / "cells" / "planar_square" / "approx_jacobian" / "reference.json"
+    stale.parent.mkdir(parents=True)
+    stale.write_text(json.dumps({**json.loads(cell.read_text()), "method": "approx_jacobian", "code": other_code}))
+    corrupt = tmp_path / "cells" / "planar_square" / "adaptive_jacobian" / "reference.json"
+    corrupt.parent.mkdir(parents=True)
+    corrupt.write_text(cell.read_text()[:-30])  # a write cut short
+    assert scoreboard.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f"left out {stale}: computed by ee-formation-env 0.0.1" in out and "--accept-stale-cells" in out
+    assert f"left out {corrupt}: unreadable (" in out
+    assert [row["method"] for row in json.loads((tmp_path / "scoreboard.json").read_text())["rows"]] == ["gradient"]
+
+
+def test_a_learned_cell_retrains_a_run_another_code_version_trained_instead_of_reusing_it(tmp_path, capsys):
+    from studies import scoreboard_cells
+
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "residual-ppo",
+            "--seeds", "0", "--episodes", "1", "--no-test-sets"]
+    assert scoreboard.main(argv) == 0
+    cell = tmp_path / "cells" / "planar_square" / "residual-ppo" / "seed-0.json"
+    run_dir = tmp_path / "runs" / "planar_square" / "residual-ppo" / "seed-0"
+    trained = (run_dir / "config.json").stat().st_mtime_ns
+    cell.unlink()  # the cell is recomputed from the run this code trained: reused, not trained again
+    assert scoreboard.main(argv) == 0
+    assert (run_dir / "config.json").stat().st_mtime_ns == trained
+    stamp = scoreboard_cells.run_code_path(run_dir)
+    stamp.write_text(json.dumps({**json.loads(stamp.read_text()), "code": {"package": "0.0.1", "source": "0" * 16}}))
+    _fabricate(cell, code={"package": "0.0.1", "source": "0" * 16})
+    capsys.readouterr()
+    assert scoreboard.main(argv) == 0
+    assert "; recomputing" in capsys.readouterr().out
+    assert (run_dir / "config.json").stat().st_mtime_ns != trained  # trained again by this code
+    assert json.loads(stamp.read_text())["code"] == scoreboard_cells.code_version()

@@ -1,0 +1,156 @@
+"""The scoreboard's rows: its cells aggregated per (place, split, method), and their markdown tables.
+
+A row holds a method's seeds, budget, wall time, physics faults, failed training runs and every metric of
+:data:`METRICS` aggregated over training seeds within each evaluation episode (:func:`studies.bootstrap.aggregate`);
+``studies.scoreboard`` computes the cells and merges the rows into the committed board.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+from ee_formation_env.baselines.metrics import fault_kinds
+from ee_formation_env.scenario_sets import DISTRIBUTIONS
+from studies.bootstrap import aggregate
+
+#: The board's metrics, one value per evaluation episode: (key, title, unit, meaning, format).
+METRICS: tuple[tuple[str, str, str, str, str], ...] = (
+    ("success", "success", "%", "the episode settled and held the formation (metrics' definition)", "{:.0%}"),
+    ("settling_time_or_limit", "settle", "s", "settling time, or the episode length when it did not settle", "{:.2f}"),
+    ("final_formation_error", "final err", "m² or m", "formation error at the last step", "{:.2e}"),
+    ("physics_fault", "faulted", "%", "episodes the env ended with a physics fault", "{:.0%}"),
+    ("contact_steps", "contacts", "steps", "env steps with a contact between arms", "{:.1f}"),
+    ("mean_return", "return", "", "episode return, mean over agents", "{:,.0f}"),
+)
+
+
+def episode_values(episode: dict[str, Any], episode_seconds: float) -> dict[str, float]:
+    """The board's metrics of one episode (an ``EpisodeMetrics.as_dict()``)."""
+    settling = episode["settling_time"]
+    return {
+        "success": float(bool(episode["success"])),
+        "settling_time_or_limit": float(settling) if episode["success"] and math.isfinite(settling) else episode_seconds,
+        "final_formation_error": float(episode["final_formation_error"]),
+        "physics_fault": float(bool(episode["physics_fault"])),
+        "contact_steps": float(episode["contact_steps"]),
+        "mean_return": float(episode["mean_return"]),
+    }
+
+
+def _place(record: dict[str, Any]) -> tuple[str, str]:
+    """(training scenario, evaluated scenario) of a cell: a test scenario may share a built-in's name."""
+    return record.get("trained_on", record["scenario"]), record["scenario"]
+
+
+def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (scenario, method): its seeds, budget, wall time and every metric aggregated."""
+    grouped: dict[tuple[tuple[str, str], str, str], list[dict[str, Any]]] = {}
+    for record in records:
+        grouped.setdefault((_place(record), record.get("split", "train"), record["method"]), []).append(record)
+    out = []
+    for ((_, scenario), _, method), every_cell in grouped.items():
+        # split "train": the scenario the method trains on; "test": a held-out scenario (trained_on says which)
+        split = {"split": every_cell[0].get("split", "train"),
+                 **({"trained_on": every_cell[0]["trained_on"]} if "trained_on" in every_cell[0] else {})}
+        every_cell = sorted(every_cell, key=lambda c: -1 if c["seed"] is None else c["seed"])
+        failures = [{"seed": c["seed"], "reason": c["failed"]} for c in every_cell if c.get("failed")]
+        cells = [c for c in every_cell if not c.get("failed")]
+        if not cells:  # every training run of this row stopped: reported, with no metrics
+            out.append({"scenario": scenario, "method": method, **split,
+                        "seeds": [c["seed"] for c in every_cell], "eval_seeds": every_cell[0]["eval_seeds"],
+                        "episode_seconds": every_cell[0]["episode_seconds"], "budget": {"agent_steps_per_seed": []},
+                        "wall_seconds": float(sum(c["wall_seconds"] for c in every_cell)), "faults": [],
+                        "failures": failures, "metrics": {}})
+            continue
+        eval_seeds = cells[0]["eval_seeds"]
+        if any(c["eval_seeds"] != eval_seeds for c in cells):
+            raise ValueError(f"cells: {scenario} / {method} mixes evaluation seeds; delete its cells and rerun")
+        values = [[episode_values(e, c["episode_seconds"]) for e in c["episodes"]] for c in cells]
+        out.append({
+            "scenario": scenario, "method": method, **split,
+            "seeds": [c["seed"] for c in cells if c["seed"] is not None],
+            "eval_seeds": eval_seeds, "episode_seconds": cells[0]["episode_seconds"],
+            "budget": {"agent_steps_per_seed": [c["budget"].get("agent_steps", 0) for c in cells],
+                       **({"total_timesteps": cells[0]["budget"]["total_timesteps"]}
+                          if "total_timesteps" in cells[0]["budget"] else {})},
+            "wall_seconds": float(sum(c["wall_seconds"] for c in cells)),
+            "faults": [{"reason": reason, "episodes": count} for reason, count in fault_kinds(collections.Counter(
+                e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]))],
+            "failures": failures,
+            "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS},
+            # the code versions of its cells (studies.scoreboard_cells): one, unless stale cells were accepted
+            "code": [dict(code) for code in {json.dumps(c.get("code"), sort_keys=True): c.get("code")
+                                             for c in cells if c.get("code")}.values()],
+        })
+    return out
+
+
+def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
+    lines: list[str] = []
+
+    def table(row: dict[str, Any]) -> tuple[tuple[str, str], str]:
+        return _place(row), row["split"]
+
+    for place, split in dict.fromkeys(table(row) for row in board_rows):
+        scenario = place[1]
+        first = next(row for row in board_rows if table(row) == (place, split))
+        if scenario in DISTRIBUTIONS:
+            seeds = first["eval_seeds"]
+            title = f"{scenario}, {split} set (its draws at the {len(seeds)} reset seeds {seeds[0]}-{seeds[-1]})"
+        else:
+            title = scenario if place[0] == scenario else (
+                f"{scenario} (test: policies trained on {place[0]}, evaluated here unchanged)")
+        lines += [f"### {title}", "",
+                  "| method | seeds | agent steps per seed | " + " | ".join(
+                      f"{title} ({unit})" if unit else title for _, title, unit, _, _ in METRICS) + " | wall s |",
+                  "|---|---|---:|" + "---:|" * (len(METRICS) + 1)]
+        for row in (r for r in board_rows if table(r) == (place, split)):
+            if not row["metrics"]:
+                lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
+                             " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
+                continue
+            cells = []
+            for key, _, _, _, spec in METRICS:
+                metric = row["metrics"][key]
+                cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
+                             f"{spec.format(metric['ci_high'])}]")
+            seeds = ", ".join(map(str, row["seeds"])) or "-"
+            steps = row["budget"]["agent_steps_per_seed"]  # differ where a wall-clock cap stopped a run
+            budget = f"{max(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}-{max(steps):,}"
+            lines.append(f"| {row['method']} | {seeds} | {budget} | " + " | ".join(cells) +
+                         f" | {row['wall_seconds']:,.0f} |")
+        faulted = [row for row in board_rows if table(row) == (place, split) and row["faults"]]
+        for row in faulted:
+            kinds = "; ".join(f"{fault['reason']} ({fault['episodes']}x)" for fault in row["faults"][:3])
+            lines.append(f"\n- {row['method']}: physics faults: {kinds}")
+        for row in (r for r in board_rows if table(r) == (place, split) and r["failures"]):
+            for failure in row["failures"]:
+                lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdown_path: Path | None = None,
+                  generated_page: Path | None = None) -> None:
+    """``scoreboard.json`` (``{"rows": [...]}``), the markdown tables, and the generated block of a docs page."""
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps({"rows": list(board_rows), "metrics": {k: {"title": t, "unit": u, "meaning": m}
+                                                                          for k, t, u, m, _ in METRICS}},
+                                    indent=1, default=float) + "\n", encoding="utf-8")
+    table = format_board(board_rows)
+    if markdown_path is not None:
+        markdown_path.write_text(table, encoding="utf-8")
+    if generated_page is not None:
+        import re
+
+        text = generated_page.read_text(encoding="utf-8")
+        pattern = r"(<!-- generated: scoreboard -->\n)(.*?)(\n<!-- end generated -->)"
+        if not re.search(pattern, text, re.S):
+            raise ValueError(f"--docs: {generated_page} has no generated scoreboard block")
+        generated_page.write_text(re.sub(pattern, lambda m: m.group(1) + table.strip() + m.group(3), text,
+                                         flags=re.S), encoding="utf-8")

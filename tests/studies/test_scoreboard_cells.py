@@ -1,0 +1,93 @@
+"""studies.scoreboard_cells: what a cell carries (schema, code version, protocol) and when a cached one is used."""
+
+from __future__ import annotations
+
+import json
+
+import ee_formation_env
+from studies import scoreboard_cells as cells
+
+PROTOCOL = {"method": {"name": "gradient", "reference": "gradient"}}
+
+
+def _complete(**fields):
+    return {"scenario": "planar_square", "method": "gradient", "seed": None, "eval_seeds": [10_000],
+            "episode_seconds": 1.0, "budget": {}, "wall_seconds": 0.0, "episodes": [], **fields}
+
+
+def test_the_code_version_is_the_package_version_and_a_hash_of_the_files_that_decide_a_result():
+    version = cells.code_version()
+    assert version["package"] == ee_formation_env.__version__
+    assert len(version["source"]) == 16 and int(version["source"], 16) >= 0
+    names = [name for name, _ in cells.source_files()]
+    assert "ee_formation_env/env.py" in names and "ee_formation_env/builtin/planar_square.yaml" in names
+    assert "ee_formation_env.baselines/metrics.py" in names and "ee_formation_env.assets/planar_2link.urdf" in names
+    assert "studies/benchmarl_runs.py" in names
+    assert not any("__pycache__" in name or name.endswith((".pyc", ".md")) for name in names)
+    assert len(names) == len(set(names))
+
+
+def test_a_written_cell_is_stamped_and_current(tmp_path):
+    path = tmp_path / "cell.json"
+    record = cells.write_cell(path, _complete(), PROTOCOL)
+    assert record["schema"] == cells.CELL_SCHEMA and record["code"] == cells.code_version()
+    assert cells.stale_reason(record, PROTOCOL) is None
+    assert not path.with_suffix(".partial").exists()
+
+
+def test_a_cell_of_another_schema_code_or_method_definition_is_stale_and_says_why(tmp_path):
+    record = cells.write_cell(tmp_path / "cell.json", _complete(), PROTOCOL)
+    assert "cell schema 0" in cells.stale_reason({**record, "schema": 0}, PROTOCOL)
+    old = {**record, "code": {"package": "0.0.1", "source": "0" * 16}}
+    assert "computed by ee-formation-env 0.0.1 (source 0000000000000000), this is" in cells.stale_reason(old, PROTOCOL)
+    unstamped = {key: value for key, value in record.items() if key != "code"}
+    assert "unstamped code" in cells.stale_reason(unstamped, PROTOCOL)
+    redefined = {"method": {"name": "gradient", "reference": "approx_jacobian"}}
+    assert "defined otherwise" in cells.stale_reason(record, redefined)
+
+
+def test_a_truncated_cell_is_reported_in_one_line_naming_its_file_and_recomputed(tmp_path):
+    path = tmp_path / "cell.json"
+    cells.write_cell(path, _complete(), PROTOCOL)
+    path.write_text(path.read_text()[:40])  # a write cut short
+    lines = []
+    record = cells.cached_cell(path, "planar_square / gradient", PROTOCOL, lambda: _complete(wall_seconds=2.0),
+                               lines.append)
+    assert record["wall_seconds"] == 2.0 and json.loads(path.read_text())["wall_seconds"] == 2.0
+    assert lines[0].startswith(f"corrupt planar_square / gradient: {path}: unreadable (") and "recomputing" in lines[0]
+    assert len(lines[0].splitlines()) == 1 and lines[1] == "running planar_square / gradient"
+
+
+def test_a_cell_missing_a_field_is_corrupt_not_aggregated(tmp_path):
+    path = tmp_path / "cell.json"
+    path.write_text(json.dumps({"scenario": "planar_square", "method": "gradient"}))
+    record, problem = cells.read_cell(path)
+    assert record is None and "not a complete cell record (missing ['seed'" in problem
+    path.write_text("[1, 2]")
+    assert cells.read_cell(path) == (None, "not a cell record (a JSON list)")
+
+
+def test_a_stale_cell_is_recomputed_unless_accepted_and_either_way_reported(tmp_path):
+    path = tmp_path / "cell.json"
+    cells.write_cell(path, _complete(wall_seconds=1.0), PROTOCOL)
+    fabricated = {**json.loads(path.read_text()), "code": {"package": "0.0.1", "source": "0" * 16}}
+    path.write_text(json.dumps(fabricated))
+    lines = []
+    kept = cells.cached_cell(path, "cell", PROTOCOL, lambda: _complete(wall_seconds=2.0), lines.append,
+                             accept_stale=True)
+    assert kept["wall_seconds"] == 1.0 and "kept (--accept-stale-cells)" in lines[-1]
+    recomputed = cells.cached_cell(path, "cell", PROTOCOL, lambda: _complete(wall_seconds=2.0), lines.append)
+    assert recomputed["wall_seconds"] == 2.0 and recomputed["code"] == cells.code_version()
+    assert any(line.startswith(f"stale   cell: {path}: computed by ee-formation-env 0.0.1") and
+               line.endswith("; recomputing") for line in lines)
+
+
+def test_a_run_is_current_only_if_this_code_marked_it_for_this_protocol(tmp_path):
+    run_dir = tmp_path / "runs" / "seed-0"
+    assert not cells.run_is_current(run_dir, PROTOCOL)
+    cells.mark_run(run_dir, PROTOCOL)
+    assert cells.run_is_current(run_dir, PROTOCOL) and cells.run_code_path(run_dir).name == ".seed-0.code.json"
+    assert not cells.run_is_current(run_dir, {"method": {"name": "gradient", "train_flags": ["--mode", "torque"]}})
+    cells.run_code_path(run_dir).write_text(json.dumps({"code": {"package": "0.0.1", "source": None},
+                                                        "protocol": PROTOCOL}))
+    assert not cells.run_is_current(run_dir, PROTOCOL)
