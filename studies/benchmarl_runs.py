@@ -2,6 +2,7 @@
 
     python -m studies.benchmarl_runs --algorithm mappo --mode torque --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm mappo --mode torque --settings sb3 --minutes 30 --seed 0
+    python -m studies.benchmarl_runs --algorithm ippo --mode torque --settings project --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm ippo --mode residual --minutes 10 --scenario planar_square
     python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
     python -m studies.benchmarl_runs --plot RUN_DIR [RUN_DIR ...] --figure curves.png   (no training)
@@ -11,7 +12,10 @@ Needs the ``torchrl`` extra. The task is
 presets (the options of ``docs/training.md``, "The training options in BenchMARL"); the experiment uses the
 recommended on-policy layout of that page (64 natively batched copies, 8,000 frames per batch) and the learning
 settings ``--settings`` (:data:`SETTINGS`: BenchMARL's defaults, 4 epochs over minibatches of 2,000 frames; or
-``sb3``, train.py's torque preset's where BenchMARL has the knob; off-policy algorithms keep BenchMARL's layout), csv logging, no BenchMARL
+``sb3``, train.py's torque preset's where BenchMARL has the knob; off-policy algorithms keep BenchMARL's layout;
+or ``project``: every config from the project's YAML files,
+:mod:`~ee_formation_env.baselines.learned.benchmarl_configs`, with the task's observation normalization and
+reward scale, advantage normalization and the mode preset's learning-rate decay), csv logging, no BenchMARL
 evaluation (its test env is a training env). Training stops at the first batch collected after ``--minutes``
 of wall time, before that batch's update (:class:`WallClockStop`); then the deterministic policy runs the held-out seeds 10,000 + k through
 :func:`~ee_formation_env.baselines.learned.benchmarl_task.evaluate_benchmarl_policy`, and the folder ``--out``
@@ -74,13 +78,17 @@ class RunSettings:
 #: settings of train.py's torque preset where BenchMARL has the knob (Adam 3e-4, GAE 0.95, initial standard
 #: deviation e^-2 ~ 0.14, 10 epochs over small minibatches), on the same layout, at a constant learning rate;
 #: ``sb3-decay``, those with the preset's linear decay of the learning rate to 0 (over the wall-clock budget).
-#: Differences that remain: no observation, reward or advantage normalization, the tanh squash.
+#: Differences that remain: no observation, reward or advantage normalization, the tanh squash. The fourth name,
+#: :data:`PROJECT_SETTINGS`, is not a RunSettings: its values live in the project's BenchMARL YAML files.
 SETTINGS: dict[str, RunSettings] = {
     "benchmarl": RunSettings(),
     "sb3": RunSettings(lr=3e-4, lmbda=0.95, initial_std=0.14, epochs=10, minibatch_frames=400),
     "sb3-decay": RunSettings(lr=3e-4, lmbda=0.95, initial_std=0.14, epochs=10, minibatch_frames=400, lr_decay=True),
 }
 
+
+PROJECT_SETTINGS = "project"
+SETTINGS_NAMES = (*SETTINGS, PROJECT_SETTINGS)
 
 try:  # the torchrl extra; without it the module imports, and run() fails on its own imports
     from benchmarl.experiment.callback import Callback as _Callback
@@ -94,20 +102,24 @@ class WallClockStop(Exception):
 
 class WallClockCallback(_Callback):
     """A BenchMARL callback that records (frames, mean reward per agent step of the batch, wall s) per batch in
-    ``curve`` and stops the run at the first batch collected after ``seconds`` of wall time; with ``lr`` given,
-    it sets every optimizer's learning rate to ``lr * (1 - elapsed / seconds)`` before each batch's update.
-    Module-level, because BenchMARL pickles an experiment's callbacks."""
+    ``curve`` (the env's reward: the batch's divided by the task's ``reward_scale``) and stops the run at the
+    first batch collected after ``seconds`` of wall time; with ``lr`` given, it sets every optimizer's learning
+    rate to ``lr * (1 - elapsed / seconds)`` before each batch's update. Module-level, because BenchMARL pickles
+    an experiment's callbacks."""
 
-    def __init__(self, seconds: float, curve: list[tuple[int, float, float]], lr: float | None = None):
+    def __init__(self, seconds: float, curve: list[tuple[int, float, float]], lr: float | None = None,
+                 reward_scale: float = 1.0):
         super().__init__()
         self.seconds, self.curve, self.started, self.lr = seconds, curve, time.time(), lr
+        self.reward_scale = reward_scale
 
     def on_setup(self) -> None:
         self.started = time.time()
 
     def on_batch_collected(self, batch: Any) -> None:
         experiment = self.experiment
-        rewards = [batch.get(("next", group, "reward")).float().mean().item() for group in experiment.group_map]
+        rewards = [batch.get(("next", group, "reward")).float().mean().item() / self.reward_scale
+                   for group in experiment.group_map]
         self.curve.append((int(experiment.total_frames), sum(rewards) / len(rewards), time.time() - self.started))
         elapsed = time.time() - self.started
         if elapsed >= self.seconds:
@@ -119,21 +131,23 @@ class WallClockCallback(_Callback):
                         group["lr"] = self.lr * (1.0 - elapsed / self.seconds)
 
 
-def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10,
-        episode_seconds: float | None = None, settings: RunSettings = SETTINGS["benchmarl"]) -> dict[str, Any]:
-    """Train, evaluate and export one run into ``out``; the evaluation record. ``episode_seconds``: the
-    evaluation episodes' length (default: the scenario's; training uses the mode's training length);
-    ``settings``: the learning settings (:data:`SETTINGS`)."""
-    import torch
+def _configs(algorithm: str, mode: str, settings: RunSettings | str) -> tuple[Any, Any, Any, dict[str, Any], Any]:
+    """(experiment config, algorithm config, model config, task config, learning rate to decay or None) of a
+    run: the project's YAML files for :data:`PROJECT_SETTINGS`, else BenchMARL's defaults with ``settings``."""
     from benchmarl.algorithms import IppoConfig, MappoConfig, MasacConfig
-    from benchmarl.experiment import Experiment, ExperimentConfig
+    from benchmarl.experiment import ExperimentConfig
     from benchmarl.models.mlp import MlpConfig
 
-    from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, evaluate_benchmarl_policy,
-                                                                   export_benchmarl_policy)
-    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
+    from ee_formation_env.baselines.learned import benchmarl_configs
+    from ee_formation_env.baselines.learned.modes import training_mode
 
-    torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
+    if settings == PROJECT_SETTINGS:
+        config = benchmarl_configs.experiment_config(algorithm)
+        decays = training_mode(mode).preset.ppo.learning_rate_decay and algorithm in ON_POLICY
+        return (config, benchmarl_configs.algorithm_config(algorithm), benchmarl_configs.model_config(),
+                benchmarl_configs.task_config(mode), config.lr if decays else None)
+    if not isinstance(settings, RunSettings):
+        raise ValueError(f"settings: expected a RunSettings or {PROJECT_SETTINGS!r}, got {settings!r}")
     config = ExperimentConfig.get_from_yaml()
     config.lr = settings.lr
     if algorithm in ON_POLICY:
@@ -141,22 +155,40 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
         config.on_policy_collected_frames_per_batch = settings.frames_per_batch
         config.on_policy_n_minibatch_iters = settings.epochs
         config.on_policy_minibatch_size = settings.minibatch_frames
+    algorithm_config = {"mappo": MappoConfig, "ippo": IppoConfig, "masac": MasacConfig}[algorithm].get_from_yaml()
+    algorithm_config.scale_mapping = f"biased_softplus_{settings.initial_std}"
+    if algorithm in ON_POLICY:
+        algorithm_config.lmbda = settings.lmbda
+    return (config, algorithm_config, MlpConfig.get_from_yaml(), {"mode": mode},
+            settings.lr if settings.lr_decay else None)
+
+
+def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10,
+        episode_seconds: float | None = None, settings: RunSettings | str = SETTINGS["benchmarl"]) -> dict[str, Any]:
+    """Train, evaluate and export one run into ``out``; the evaluation record. ``episode_seconds``: the
+    evaluation episodes' length (default: the scenario's; training uses the mode's training length);
+    ``settings``: the learning settings (:data:`SETTINGS`, or :data:`PROJECT_SETTINGS`)."""
+    import torch
+    from benchmarl.experiment import Experiment
+
+    from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, evaluate_benchmarl_policy,
+                                                                   export_benchmarl_policy)
+    from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
+
+    torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
+    config, algorithm_config, model, task_config, decayed_lr = _configs(algorithm, mode, settings)
     config.max_n_frames, config.max_n_iters = 10**10, None  # the wall clock stops it
     config.loggers, config.evaluation, config.render = ["csv"], False, False
     config.checkpoint_at_end, config.create_json = False, False
     out.mkdir(parents=True, exist_ok=True)
     config.save_folder = str(out)
-    algorithm_config = {"mappo": MappoConfig, "ippo": IppoConfig, "masac": MasacConfig}[algorithm].get_from_yaml()
-    algorithm_config.scale_mapping = f"biased_softplus_{settings.initial_std}"
-    if algorithm in ON_POLICY:
-        algorithm_config.lmbda = settings.lmbda
     task = EEFormationTrainingTask[scenario.upper()].get_task(
-        {"mode": mode, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
+        {**task_config, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
     curve: list[tuple[int, float, float]] = []
-    experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=MlpConfig.get_from_yaml(),
-                            critic_model_config=MlpConfig.get_from_yaml(), seed=seed, config=config,
-                            callbacks=[WallClockCallback(minutes * 60.0, curve,
-                                                         settings.lr if settings.lr_decay else None)])
+    experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=model,
+                            critic_model_config=model, seed=seed, config=config,
+                            callbacks=[WallClockCallback(minutes * 60.0, curve, decayed_lr,
+                                                         task.transforms().reward_scale)])
     started = time.time()
     try:
         experiment.run()
@@ -172,7 +204,8 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
         writer.writerow(["frames", "agent_steps", "mean_reward_per_step", "wall_seconds"])
         writer.writerows((frames, frames * n_agents, reward, wall) for frames, reward, wall in curve)
     record = {"algorithm": algorithm, "scenario": scenario, "mode": mode, "seed": seed, "minutes": minutes,
-              "settings": asdict(settings), "train_seconds": train_seconds, "frames": int(experiment.total_frames),
+              "settings": settings if isinstance(settings, str) else asdict(settings),
+              "task_config": task.config, "train_seconds": train_seconds, "frames": int(experiment.total_frames),
               "agent_steps": int(experiment.total_frames) * n_agents, "iterations": experiment.n_iters_performed,
               "evaluation": evaluation}
     (out / "evaluation.json").write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
@@ -210,8 +243,12 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path) -> Path:
         with (run_dir / "curve.csv").open(newline="", encoding="utf-8") as handle:
             rows = list(csv.DictReader(handle))
         steps = [int(row["agent_steps"]) / 1e6 for row in rows]
-        used = {**asdict(RunSettings()), **record.get("settings", {})}  # a knob a run predates: its default
-        settings = next((name for name, named in SETTINGS.items() if asdict(named) == used), "custom")
+        saved = record.get("settings", {})
+        if isinstance(saved, str):
+            settings = saved
+        else:
+            used = {**asdict(RunSettings()), **saved}  # a knob a run predates: its default
+            settings = next((name for name, named in SETTINGS.items() if asdict(named) == used), "custom")
         label = (f"{record['algorithm']} {record['mode']}, {settings} settings, seed {record['seed']}: "
                  f"{record['evaluation']['success_rate']:.0%} success")
         axes[0].plot(steps, [float(row["mean_reward_per_step"]) for row in rows], label=label)
@@ -239,9 +276,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mode", default="torque", choices=mode_names(), help="training mode (default torque)")
     parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock training budget")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
-    parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS),
-                        help="learning settings: benchmarl (its defaults), sb3 (train.py's torque preset's) or "
-                             "sb3-decay (those with its linear learning-rate decay)")
+    parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS_NAMES),
+                        help="learning settings: benchmarl (its defaults), sb3 (train.py's torque preset's), "
+                             "sb3-decay (those with its linear learning-rate decay) or project (the project's "
+                             "BenchMARL YAML files: normalized observations and advantages, scaled rewards)")
     parser.add_argument("--episodes", type=int, default=10, help=f"held-out evaluation episodes (seeds {HELD_OUT_SEED_OFFSET}+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
@@ -265,7 +303,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     tag = "" if args.settings == "benchmarl" else f"-{args.settings}"
     out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
     record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
-                 settings=SETTINGS[args.settings])
+                 settings=SETTINGS.get(args.settings, args.settings))
     from ee_formation_env.baselines.metrics import format_table
 
     print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))

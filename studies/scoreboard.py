@@ -56,7 +56,7 @@ class BenchmarlRun:
     algorithm: str
     mode: str
     minutes: float
-    settings: str = "benchmarl"  # a name of studies.benchmarl_runs.SETTINGS
+    settings: str = "benchmarl"  # a name of studies.benchmarl_runs.SETTINGS_NAMES
 
 
 @dataclass(frozen=True)
@@ -128,6 +128,10 @@ METHODS: dict[str, Method] = {
     "mappo-residual": Method("mappo-residual", benchmarl=BenchmarlRun("mappo", "residual", 10.0)),
     "ippo-residual": Method("ippo-residual", benchmarl=BenchmarlRun("ippo", "residual", 10.0)),
     "masac-residual": Method("masac-residual", benchmarl=BenchmarlRun("masac", "residual", 10.0)),
+    # From scratch with the project's BenchMARL configs (normalized observations and advantages, scaled rewards).
+    **{f"{algorithm}-torque-project": Method(f"{algorithm}-torque-project",
+                                             benchmarl=BenchmarlRun(algorithm, "torque", 30.0, "project"))
+       for algorithm in ("mappo", "ippo", "masac")},
 }
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
@@ -298,7 +302,7 @@ def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_
     if not current or not (run_dir / "evaluation.json").is_file():
         benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if board.extra_train_flags else spec.minutes,
                            seed, run_dir, len(board.eval_seeds(scenario)), episode_seconds=board.episode_seconds,
-                           settings=benchmarl_runs.SETTINGS[spec.settings])
+                           settings=benchmarl_runs.SETTINGS.get(spec.settings, spec.settings))
     record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
     budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
               "minutes": float(record["minutes"]), "mode": spec.mode, "algorithm": spec.algorithm,

@@ -166,3 +166,35 @@ def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch)
     now[0] += 10.0
     constant.on_batch_collected(batch)
     assert optimizer.param_groups[0]["lr"] == 0.5
+
+
+@needs_benchmarl
+def test_the_project_settings_are_the_shipped_yaml_files(tmp_path, monkeypatch):
+    import benchmarl.experiment
+
+    from ee_formation_env.baselines.learned import benchmarl_configs
+
+    seen = {}
+    original = benchmarl.experiment.Experiment.__init__
+
+    def spy(self, *args, **kwargs):
+        seen.update(kwargs)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(benchmarl.experiment.Experiment, "__init__", spy)
+    out = tmp_path / "run"
+    assert benchmarl_runs.main(["--minutes", "0.05", "--episodes", "1", "--mode", "torque", "--settings", "project",
+                                "--out", str(out)]) == 0
+    record = json.loads((out / "evaluation.json").read_text())
+    assert record["settings"] == "project"
+    assert record["task_config"] == {**benchmarl_configs.task_config("torque")}
+    config, algorithm = seen["config"], seen["algorithm_config"]
+    shipped = benchmarl_configs.experiment_config("mappo")
+    assert (config.lr, config.on_policy_minibatch_size) == (shipped.lr, shipped.on_policy_minibatch_size)
+    assert algorithm.normalize_advantage is True and seen["model_config"].num_cells == [128, 128]
+    assert seen["task"].transforms().observation_normalization
+    # the curve is in the env's reward, not the scaled one: at most 2 per agent step
+    with (out / "curve.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert rows and all(0 <= float(row["mean_reward_per_step"]) <= 2 for row in rows)
+    assert (out / "policy" / "actor.json").is_file()
