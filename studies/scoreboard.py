@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -463,7 +464,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                   episodes=args.episodes, episode_seconds=0.3 if args.quick else None,
                   extra_train_flags=QUICK_FLAGS if args.quick else (), eval_workers=0 if args.quick else None,
                   test_sets=not args.no_test_sets, accept_stale=args.accept_stale_cells)
-    fill(board)
+    from ee_formation_env.baselines.learned.interruption import TrainingInterrupted
+
+    try:
+        fill(board)
+    except TrainingInterrupted as stopped:  # Ctrl-C or SIGTERM while a cell trained: one line, not a traceback
+        print(f"scoreboard: {stopped.signal_name} stopped a cell's training at {stopped.agent_steps} agent steps; its "
+              f"model is saved in {stopped.run_dir}. The same command resumes the board: finished cells are kept, "
+              "and this cell continues from its newest checkpoint.", file=sys.stderr)
+        return stopped.exit_code
     board_rows = rows(cached_records(board))  # every cell ever completed here, not only this invocation's
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
     if args.docs:  # merged into the committed board: its other rows' cells may be on another machine

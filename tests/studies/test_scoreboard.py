@@ -258,3 +258,17 @@ def test_a_learned_cell_retrains_a_run_another_code_version_trained_instead_of_r
     assert "; recomputing" in capsys.readouterr().out
     assert (run_dir / "config.json").stat().st_mtime_ns != trained  # trained again by this code
     assert json.loads(stamp.read_text())["code"] == scoreboard_cells.code_version()
+
+
+def test_a_signal_during_a_cells_training_ends_the_board_in_one_line_with_the_signals_exit_code(
+        tmp_path, monkeypatch, capsys):
+    from ee_formation_env.baselines.learned.interruption import TrainingInterrupted
+
+    def interrupted(board):
+        raise TrainingInterrupted(tmp_path / "runs" / "cell", "SIGTERM", 1234)
+
+    monkeypatch.setattr(scoreboard, "fill", interrupted)
+    assert scoreboard.main(["--scenarios", "planar_square", "--methods", "gradient", "--out", str(tmp_path)]) == 143
+    error = capsys.readouterr().err
+    assert "SIGTERM stopped a cell's training at 1234 agent steps" in error and "same command resumes" in error
+    assert "Traceback" not in error
