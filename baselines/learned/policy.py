@@ -43,6 +43,24 @@ class ObservationNormalizer:
         return cls(np.zeros(dim), np.ones(dim), clip=np.inf, epsilon=0.0)
 
     @classmethod
+    def from_checkpoint(cls, directory: Path) -> "ObservationNormalizer":
+        """The observation normalization a checkpoint folder saved: its ``obs_normalizer.json`` (the final
+        model), else the observation statistics of its ``vecnormalize.json`` (SB3's ``VecNormalize``)."""
+        directory = Path(directory)
+        if (directory / "obs_normalizer.json").is_file():
+            return cls.load(directory / "obs_normalizer.json")
+        data = read_json(directory / "vecnormalize.json", "vecnormalize.json")
+        try:
+            mean, var = np.asarray(data["obs_mean"], dtype=np.float64), np.asarray(data["obs_var"], dtype=np.float64)
+            clip, epsilon = float(data["clip_obs"]), float(data["epsilon"])
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"vecnormalize.json: {directory / 'vecnormalize.json'} is malformed ({error})") from None
+        if mean.shape != var.shape or mean.ndim != 1:
+            raise ValueError(f"vecnormalize.json: obs_mean and obs_var must be vectors of one length, got "
+                             f"{mean.shape} and {var.shape}")
+        return cls(mean, var, clip=clip, epsilon=epsilon)
+
+    @classmethod
     def load(cls, path: Path) -> "ObservationNormalizer":
         data = read_json(path, "obs_normalizer.json")
         try:
@@ -150,15 +168,16 @@ class SavedRun:
         (:meth:`TrainingOptions.env_overrides`, e.g. ``gravity_compensation``)."""
         return self.options.env_overrides()
 
-    def policy_source(self) -> Callable[[Any], dict[str, Any]]:
+    def policy_source(self, checkpoint: Path | None = None) -> Callable[[Any], dict[str, Any]]:
         """``copy_env -> per-agent policies`` (:func:`learned_policy_factory`), the model read with the first
         copy's env, when the evaluation builds it: what :func:`~ee_formation_env.baselines.metrics.run_episodes`
-        and :func:`~ee_formation_env.baselines.metrics.run_policies` take as a policy."""
+        and :func:`~ee_formation_env.baselines.metrics.run_policies` take as a policy. ``checkpoint``: a
+        checkpoint folder of the run to act with instead of its final model (an SB3 PPO run's)."""
         factory: list[Callable[[Any], dict[str, Any]]] = []
 
         def policies(env: Any) -> dict[str, Any]:
             if not factory:
-                factory.append(learned_policy_factory(self.run_dir, env, self.config))
+                factory.append(learned_policy_factory(self.run_dir, env, self.config, checkpoint))
             return factory[0](env)
 
         return policies
@@ -170,12 +189,16 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
     return learned_policy_factory(run_dir, env, config)(env)
 
 
-def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any]) -> Callable[[Any], dict[str, Any]]:
+def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], checkpoint: Path | None = None
+                           ) -> Callable[[Any], dict[str, Any]]:
     """``env -> per-agent policies`` of a saved run (as :func:`learned_policies`), the model read once: each
     call gives fresh reference controllers (their own internal state) around the one shared, stateless learned
-    part, what :func:`ee_formation_env.baselines.metrics.run_episodes` calls once per copy."""
-    model_dir = Path(run_dir) / MODEL_FOLDER
-    normalizer = ObservationNormalizer.load(model_dir / "obs_normalizer.json")
+    part, what :func:`ee_formation_env.baselines.metrics.run_episodes` calls once per copy. ``checkpoint``: one
+    of the run's checkpoint folders instead of its final model (SB3 runs)."""
+    model_dir = Path(run_dir) / MODEL_FOLDER if checkpoint is None else Path(checkpoint)
+    if checkpoint is not None and config["backend"] != "sb3":
+        raise ValueError(f"checkpoint: only SB3 runs keep checkpoints (this run: --backend {config['backend']})")
+    normalizer = ObservationNormalizer.from_checkpoint(model_dir)
     if config["backend"] == "sb3":
         policy = load_policy(model_dir)
         predict = _numpy_actor(policy) if config["algo"] == "ppo" else None
