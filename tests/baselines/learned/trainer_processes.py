@@ -43,17 +43,27 @@ def training_started(run_dir: Path) -> Callable[[], bool]:
     return lambda: monitor.is_file() and monitor.stat().st_size > 200
 
 
-def children(pid: int) -> list[int]:
-    """Process ids whose parent is ``pid`` (from /proc)."""
+def children(pid: int, spawned_workers_only: bool = False) -> list[int]:
+    """Process ids whose parent is ``pid`` (from /proc); ``spawned_workers_only``: those started by
+    multiprocessing's spawn (``spawn_main``), not its resource tracker."""
     found = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             fields = stat.read_text().rsplit(")", 1)[1].split()
+            command = (stat.parent / "cmdline").read_bytes()
         except OSError:
             continue
-        if int(fields[1]) == pid:
+        if int(fields[1]) == pid and (not spawned_workers_only or b"spawn_main" in command):
             found.append(int(stat.parent.name))
     return found
+
+
+def gone(pid: int) -> bool:
+    """No such process any more, or only its zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except OSError:
+        return True
 
 
 def wait_for(condition: Callable[[], bool], seconds: float) -> bool:
