@@ -21,17 +21,14 @@ def report_errors(command: Callable[[], int], debug: bool) -> int:
     """Run ``command``; bad input prints ``error: <field>: <what>`` to stderr and returns 2 (``debug``: raise it,
     with its traceback). A run that stopped before its end prints how to continue it and returns its exit code
     (a signal's, 128 + its number, even with ``debug``)."""
-    from ee_formation_env.baselines.learned.interruption import RunStopped, TrainingInterrupted
+    from ee_formation_env.baselines.learned.interruption import RunStopped
 
     try:
         return command()
-    except TrainingInterrupted as stopped:
-        print(str(stopped), file=sys.stderr)
-        return stopped.exit_code
     except RunStopped as stopped:
-        if debug:
+        if debug and stopped.signal_name is None:
             raise
-        print(f"error: {stopped}", file=sys.stderr)
+        print(str(stopped) if stopped.signal_name else f"error: {stopped}", file=sys.stderr)
         return stopped.exit_code
     except INPUT_ERRORS as error:
         if debug:

@@ -41,13 +41,15 @@ class RunStopped(Exception):
     """A run that stopped before its end for a reason other than its input: ``message`` (one line) says what
     stopped it and what is saved; with ``run_dir`` the line ends with the ``--resume`` command and what it does
     (``continues``). ``command`` is the program the message tells to run (the command that trained sets its own
-    name). ``details``: more lines (a worker's traceback), shown with ``--debug``."""
+    name). ``details``: more lines (a worker's traceback), shown with ``--debug``. ``signal_name``: the signal
+    that stopped it, if one did (the exit status is then 128 + its number, else 1)."""
 
     def __init__(self, message: str, run_dir: object = None, continues: str = "continues it",
-                 command: str = "python train.py", details: str | None = None):
+                 command: str = "python train.py", details: str | None = None, signal_name: str | None = None):
         super().__init__(message)
         self.message, self.run_dir, self.continues, self.command, self.details = (message, run_dir, continues,
                                                                                   command, details)
+        self.signal_name = signal_name
 
     def __str__(self) -> str:
         if self.run_dir is None:
@@ -56,7 +58,7 @@ class RunStopped(Exception):
 
     @property
     def exit_code(self) -> int:
-        return 1
+        return 1 if self.signal_name is None else 128 + int(getattr(signal, self.signal_name))
 
 
 class TrainingInterrupted(RunStopped):
@@ -73,12 +75,8 @@ class TrainingInterrupted(RunStopped):
             message = (f"training: stopped by {signal_name} at {agent_steps} agent steps; the model and its "
                        f"normalization are saved in {run_dir}")
             continues = "continues it"
-        super().__init__(message, run_dir, continues, command)
-        self.signal_name, self.agent_steps, self.phase = signal_name, agent_steps, phase
-
-    @property
-    def exit_code(self) -> int:
-        return 128 + int(getattr(signal, self.signal_name))
+        super().__init__(message, run_dir, continues, command, signal_name=signal_name)
+        self.agent_steps, self.phase = agent_steps, phase
 
 
 class StopSignal(KeyboardInterrupt):

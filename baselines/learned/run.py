@@ -89,7 +89,7 @@ def train(config: TrainConfig) -> Path:
             raise
         left = "the run folder was left empty" if run_dir.exists() else "no run folder is left"
         raise RunStopped(f"{stopped.message}; nothing was saved, so {left}: the same command starts the run again",
-                         details=stopped.details) from stopped
+                         details=stopped.details, signal_name=stopped.signal_name) from stopped
 
 
 def resume(config: TrainConfig) -> Path:
@@ -144,7 +144,7 @@ def resume(config: TrainConfig) -> Path:
             if stopped.run_dir is not None:
                 raise
             raise RunStopped(f"{stopped.message}; nothing new was saved", run_dir, "tries again",
-                             details=stopped.details) from stopped
+                             details=stopped.details, signal_name=stopped.signal_name) from stopped
 
 
 def _validated_scenario(config: TrainConfig) -> Any:
@@ -197,7 +197,7 @@ def _compare_and_write(config: TrainConfig, saved: dict[str, Any], run_dir: Path
         if stopped.run_dir is not None:
             raise
         raise RunStopped(f"{stopped.message}; training is complete", run_dir, "runs the comparison",
-                         details=stopped.details) from stopped
+                         details=stopped.details, signal_name=stopped.signal_name) from stopped
     timing["total_seconds"] = time.time() - started  # training, reference lines and evaluation
     write_json(run_dir / TIMING, timing)
     print(f"wrote {run_dir}/comparison.md, comparison.json, comparison.png")

@@ -106,6 +106,9 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
     try:
         model = build_sb3_model(args, out_dir, monitor_name)
     except WorkerFault as fault:  # at start-up: nothing trained, nothing to save (the caller says what is left)
+        if _stopping_for_the_same_signal(fault, stop):
+            raise RunStopped(f"training: stopped by {stop.signal_name} while its env workers started",
+                             signal_name=stop.signal_name) from None
         first, _, rest = str(fault).partition("\n")
         raise RunStopped(f"training: {first}", details=rest or None) from fault
     venv = model.get_env()

@@ -135,6 +135,28 @@ def test_a_run_that_never_started_leaves_no_folder_so_the_same_command_runs_agai
     assert (run_dir / MARKER).is_file() and not (run_dir / LOCK_NAME).exists()  # the lock is released
 
 
+def test_a_sigterm_to_the_group_while_the_workers_start_is_a_stop_with_its_exit_code_not_a_fault(tmp_path,
+                                                                                                 monkeypatch):
+    """The workers die of the SIGTERM that stops the trainer too: nothing was trained yet, nothing is left."""
+    from ee_formation_env.baselines.learned import sb3_backend
+    from ee_formation_env.baselines.learned.interruption import RunStopped, StopRequest
+    from ee_formation_env.integrations.sb3 import WorkerFault
+
+    def worker_died(*args, **kwargs):
+        raise WorkerFault("env worker 0 (pid 1, env 1 of planar_square) died (exit code -15: SIGTERM) during "
+                          "start-up (building its envs)", 0, "start-up (building its envs)")
+
+    monkeypatch.setattr(sb3_backend, "build_sb3_model", worker_died)
+    config = TrainConfig.from_args(TINY)
+    with pytest.raises(RunStopped) as stopped:
+        sb3_backend.train_sb3(config, tmp_path, StopRequest("SIGTERM"))
+    assert stopped.value.exit_code == 143 and str(stopped.value) == (
+        "training: stopped by SIGTERM while its env workers started")
+    with pytest.raises(RunStopped) as fault:  # the same death without a stop request: a fault
+        sb3_backend.train_sb3(config, tmp_path, StopRequest())
+    assert fault.value.exit_code == 1 and "died (exit code -15: SIGTERM)" in str(fault.value)
+
+
 # ------------------------------------------------------------------------------------------ --overwrite
 def _targets(tmp_path: Path, trained_run: Path) -> dict[str, tuple[Path, str]]:
     """What --overwrite must refuse, each with the reason its error gives."""
