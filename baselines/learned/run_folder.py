@@ -170,10 +170,12 @@ def _remove_made(made: list[Path]) -> None:
 
 
 def has_resumable_state(run_dir: Path) -> bool:
-    """Whether ``run_dir`` holds anything a ``--resume`` could continue from: a checkpoint or a model."""
+    """Whether ``run_dir`` holds anything a ``--resume`` could continue from: a checkpoint or a model (a folder
+    whose ``checkpoints/`` holds something stray counts too: nothing in it is removed unread)."""
+    model = Path(run_dir) / "model"
+    if (model / "state.json").is_file() or (model / "rllib_module.pt").is_file():
+        return True
     try:
-        found = checkpoints(run_dir)
+        return bool(checkpoints(run_dir))
     except ValueError:
-        found = [None]
-    return bool(found) or (Path(run_dir) / "model" / "state.json").is_file() or \
-        (Path(run_dir) / "model" / "rllib_module.pt").is_file()
+        return True
