@@ -30,7 +30,7 @@ def train_command(argv: Sequence[str] | None = None, prog: str = "train.py") -> 
     """``train.py`` / ``ee-formation train``: parse the flags into a run configuration, then train (or, with
     ``--eval-only RUN_DIR``, re-evaluate a saved run; ``--resume RUN_DIR``, continue one)."""
     from ee_formation_env.baselines.learned.config import TrainConfig
-    from ee_formation_env.baselines.learned.interruption import TrainingInterrupted
+    from ee_formation_env.baselines.learned.interruption import RunStopped
     from ee_formation_env.baselines.learned.run import evaluate_saved_run, train
 
     config = TrainConfig.from_args(argv, prog=prog, description=TRAIN_DESCRIPTION)
@@ -41,7 +41,7 @@ def train_command(argv: Sequence[str] | None = None, prog: str = "train.py") -> 
                 evaluate_saved_run(config)
             else:
                 train(config)
-        except TrainingInterrupted as stopped:  # its message names the program that was run, to resume it
+        except RunStopped as stopped:  # its message names the program that was run, to resume it
             stopped.command = f"python {prog}" if prog.endswith(".py") else prog
             raise
         return 0

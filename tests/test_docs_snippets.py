@@ -97,3 +97,16 @@ def _environment() -> dict[str, str]:
     import os
 
     return {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+
+
+#: Code that trains: with worker processes started by ``spawn``, which re-imports the main script in each.
+TRAINS = re.compile(r"(?<![\w.])train\(|\.learn\(|\bExperiment\(|\btrain_command\(")
+
+
+def test_every_block_that_trains_keeps_its_training_under_the_main_guard():
+    """A reader's script that trains at its top level would train again in every spawned worker (the run then
+    stops at its start-up, saying so): each snippet that trains shows the guard."""
+    unguarded = [f"{page.name}:{line}" for page in PAGES for line, _, code in _blocks(page)
+                 if TRAINS.search(code) and 'if __name__ == "__main__":' not in code]
+    assert not unguarded, f"training snippets without `if __name__ == \"__main__\":`: {unguarded}"
+    assert sum(bool(TRAINS.search(code)) for page in PAGES for _, _, code in _blocks(page)) >= 3

@@ -8,8 +8,10 @@ it; the tables and the figure show the same summary.
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -17,6 +19,9 @@ import ee_formation_env
 from ee_formation_env import baselines
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.interruption import RunStopped
+from ee_formation_env.baselines.learned.saved_run import verify_model
+from ee_formation_env.worker_processes import ignore_interrupts, interrupts_blocked, unguarded_main_hint
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 from ee_formation_env.baselines.learned.policy import SavedRun, saved_scenario
 from ee_formation_env.baselines.metrics import format_table, run_policies, summarize
@@ -54,6 +59,7 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
                 bar.set_postfix_str(name)
                 bar.update(len(metrics))
 
+    verify_model(run_dir, config["backend"])
     workers = min(args.eval_workers, len(names))
     if workers == 0:
         _evaluation_worker_setup(*setup)
@@ -62,15 +68,7 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         finally:
             _evaluation_worker_teardown()
     else:
-        import concurrent.futures
-        import multiprocessing
-
-        with concurrent.futures.ProcessPoolExecutor(
-                workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_evaluation_worker_setup, initargs=setup) as pool:
-            futures = [pool.submit(_evaluate_policies, names[i::workers], seeds) for i in range(workers)]
-            for future in concurrent.futures.as_completed(futures):
-                done(future.result())
+        _evaluate_in_workers(workers, setup, names, seeds, done)
     if bar is not None:
         bar.close()
     else:
@@ -85,11 +83,14 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     shortfall = learned_shortfall(results)
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results,
                   "shortfall": shortfall}
-    (results_dir / "comparison.json").write_text(json.dumps(comparison, indent=2, default=float))
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
     (results_dir / "comparison.md").write_text(
         f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
     _plot(run_dir, results_dir, results, label, error_unit)
+    # Last, and whole or not at all: a run folder holding comparison.json has its complete comparison.
+    temporary = results_dir / ".comparison.json.partial"
+    temporary.write_text(json.dumps(comparison, indent=2, default=float))
+    os.replace(temporary, results_dir / "comparison.json")
     print(table)
     if shortfall:
         print(f"warning: {shortfall}", flush=True)
@@ -121,10 +122,53 @@ def learned_shortfall(results: dict[str, Any]) -> str | None:
     return None
 
 
+def _evaluate_in_workers(workers: int, setup: tuple, names: list[str], seeds: list[int],
+                         done: Callable[[dict[str, list[Any]]], None]) -> None:
+    """The policies ``names`` shared among ``workers`` spawned processes, each result handed to ``done``.
+
+    The workers ignore SIGINT (blocked from their start), as the env workers do: a Ctrl-C to the process group
+    reaches this process alone, and whatever ends the comparison early (a signal, an error) ends the workers at
+    once rather than waiting for their episodes. A worker that dies is one line; one that died during its
+    start-up because ``spawn`` re-ran an unguarded main script says so, with the fix."""
+    import concurrent.futures
+    import multiprocessing
+
+    pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                                  initializer=_evaluation_worker_setup, initargs=setup)
+    try:
+        with interrupts_blocked():  # the processes start with the submissions
+            futures = [pool.submit(_evaluate_policies, names[i::workers], seeds) for i in range(workers)]
+        for future in concurrent.futures.as_completed(futures):
+            done(future.result())
+    except concurrent.futures.process.BrokenProcessPool:
+        codes = [process.exitcode for process in getattr(pool, "_processes", {}).values()]
+        _end_workers(pool)
+        hint = unguarded_main_hint(next((code for code in codes if code), None))
+        raise RunStopped("comparison: an evaluation worker process died" + (
+            f" during its start-up: {hint}" if hint else f" (exit codes {codes})")) from None
+    except BaseException:
+        _end_workers(pool)
+        raise
+    pool.shutdown()
+
+
+def _end_workers(pool: Any) -> None:
+    """Stop ``pool`` without waiting for the episodes it runs: its processes are killed."""
+    processes = list(getattr(pool, "_processes", {}).values())  # the executor has no public way to end them
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.kill()
+    for process in processes:
+        process.join(timeout=5.0)
+
+
 _EVALUATION: dict[str, Any] = {}  # one evaluation worker's settings
 
 
 def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
+    if multiprocessing.parent_process() is not None:  # a worker process: Ctrl-C is its parent's to handle
+        ignore_interrupts()
     _EVALUATION.clear()
     _EVALUATION.update(scenario=scenario, overrides=overrides, run_dir=Path(run_dir), config=config)
 

@@ -24,7 +24,7 @@ from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
 from ee_formation_env.baselines.learned.options import TrainingOptions
-
+from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
 
 class _Presets(Mapping[str, ModePreset]):
@@ -112,13 +112,15 @@ class TrainConfig:
     max_fault_fraction: float = _flag("sb3: stop training with an error naming the fault when more than this share "
                                       f"of the last {FAULT_WINDOW} training episodes ended in a physics fault "
                                       "(1: never stop)", 0.5, type=float)
-    seed: int = _flag("training seed", 0, type=int)
+    seed: int = _flag(f"training seed, an integer >= 0; the first reset of env slot j uses seed + j, which stays below "
+                      f"the held-out evaluation seeds ({HELD_OUT_SEED_OFFSET} and up)", 0, type=int)
     out: str | None = _flag("run directory (default runs/<name>); a folder that already holds files is refused "
                             "unless --overwrite or --resume")
     overwrite: bool = _flag("replace what --out holds, once the new configuration has validated", False,
                             action="store_true")
     resume: str | None = _flag("continue the interrupted or checkpointed run in RUN_DIR to its budget, with its saved "
-                               "configuration (only evaluation flags may be given beside it)", metavar="RUN_DIR")
+                               "configuration (only evaluation flags and --total-timesteps, a new budget at least the "
+                               "agent steps done, may be given beside it)", metavar="RUN_DIR")
     eval_only: str | None = _flag("evaluate a saved run only (its saved scenario; results in RUN_DIR/evaluations/)",
                                   metavar="RUN_DIR")
     eval_episodes: int = _flag("held-out episodes per policy in the comparison", 10, type=int)
@@ -158,7 +160,7 @@ class TrainConfig:
         if config.imitate is None:
             config.imitate = "none"
         imitating = config.imitate != "none"
-        if config.total_timesteps is None:
+        if config.total_timesteps is None and not config.resume:  # a resumed run keeps its saved budget unless given
             config.total_timesteps = IMITATION_TIMESTEPS if imitating else preset.total_timesteps
         if config.obs_features is None:  # an imitated policy sees what its reference sees
             config.obs_features = "none" if imitating else preset.obs_features
@@ -177,7 +179,19 @@ class TrainConfig:
     def check(self) -> None:
         """Raise ``ValueError`` naming the flag of the first setting out of range (a resolved configuration)."""
         imitating = self.imitate != "none"
-        if self.total_timesteps < (0 if imitating else 1):
+        for name in ("out", "resume", "eval_only"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, (str, Path)) or not str(value).strip()):
+                raise ValueError(f"--{name.replace('_', '-')}: expected a folder path, got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise TypeError(f"--seed: expected an integer, got {self.seed!r}")
+        if not 0 <= self.seed < HELD_OUT_SEED_OFFSET:
+            raise ValueError(f"--seed: expected an integer in [0, {HELD_OUT_SEED_OFFSET}) (training reset seeds stay "
+                             f"below the held-out evaluation seeds), got {self.seed}")
+        if self.total_timesteps is not None and (isinstance(self.total_timesteps, bool)
+                                                 or not isinstance(self.total_timesteps, int)):
+            raise TypeError(f"--total-timesteps: expected an integer, got {self.total_timesteps!r}")
+        if self.total_timesteps is not None and self.total_timesteps < (0 if imitating else 1):
             raise ValueError("--total-timesteps must be >= 1 (>= 0 with --imitate: the imitated policy as it is)")
         if self.n_envs < 1 or self.n_steps < 1 or self.eval_episodes < 1:
             raise ValueError("--n-envs, --n-steps and --eval-episodes must be >= 1")
@@ -250,9 +264,35 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "TrainConfig":
         """The configuration a run saved (extra keys such as ``scenario_data`` and ``versions`` are ignored;
-        settings a run saved before they existed take their defaults)."""
+        settings a run saved before they existed take their defaults). Unchecked: :meth:`from_saved` checks."""
         names = {spec.name for spec in fields(cls)}
         return cls(**{key: value for key, value in data.items() if key in names})
+
+    #: Saved settings that a run's ``config.json`` may lack: added after the first saved runs, their defaults
+    #: are what those runs trained with. Every other saved setting must be in the file.
+    LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction")
+    #: Saved settings that may be null in a resolved configuration (every other one has a value).
+    NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
+
+    @classmethod
+    def from_saved(cls, data: Any, source: str = "config.json") -> "TrainConfig":
+        """The configuration a run saved, checked before use: a JSON object holding every saved setting (but
+        :data:`LATER_SAVED_FIELDS`), each of its field's type, the whole in range as :meth:`resolved` checks
+        it. A fault is a ``ValueError`` naming ``source`` and the key."""
+        fix = "restore the config.json the run wrote (its sha256 is in the run's SHA256SUMS)"
+        if not isinstance(data, Mapping):
+            raise ValueError(f"{source}: expected a JSON object of settings, got {type(data).__name__}: {fix}")
+        saved = [spec for spec in fields(cls) if spec.name not in cls.UNSAVED_FIELDS]
+        missing = [spec.name for spec in saved if spec.name not in data and spec.name not in cls.LATER_SAVED_FIELDS]
+        if missing:
+            raise ValueError(f"{source}: {', '.join(missing)} missing (every setting of the run is saved): {fix}")
+        for spec in saved:
+            if spec.name in data and not _saved_value_fits(spec, data[spec.name]):
+                raise ValueError(f"{source}: {spec.name}: {_expected(spec)}, got {data[spec.name]!r}: {fix}")
+        try:
+            return cls.from_dict(data).resolved()
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{source}: {error}: {fix}") from None
 
     @classmethod
     def load(cls, run_dir: str | Path) -> "TrainConfig":
@@ -292,6 +332,10 @@ class TrainConfig:
         cls.add_arguments(parser)
         return parser
 
+    #: Fields that ``--resume`` may set besides the evaluation fields: the budget (a new one, not below the agent
+    #: steps done: a finished run is extended).
+    RESUME_FIELDS = ("total_timesteps",)
+
     @classmethod
     def from_args(cls, argv: Sequence[str] | None = None, prog: str = "train.py",
                   description: str | None = None) -> "TrainConfig":
@@ -302,8 +346,9 @@ class TrainConfig:
             config = cls(**vars(namespace))
             if config.resume or config.eval_only:  # the saved run's settings decide; only evaluation flags may change
                 defaults = vars(parser.parse_args([]))
+                allowed = (*cls.UNSAVED_FIELDS, *cls.EVALUATION_FIELDS, *(cls.RESUME_FIELDS if config.resume else ()))
                 given = [name for name, value in vars(namespace).items() if value != defaults[name]
-                         and name not in (*cls.UNSAVED_FIELDS, *cls.EVALUATION_FIELDS)]
+                         and name not in allowed]
                 if given:
                     flag = "--resume" if config.resume else "--eval-only"
                     raise ValueError(f"{flag}: the run's saved configuration is used; drop "
@@ -312,3 +357,37 @@ class TrainConfig:
         except ValueError as error:
             parser.error(str(error))
             raise  # parser.error exits; this line is never reached
+
+
+def _saved_value_fits(spec: Any, value: Any) -> bool:
+    """Whether a saved ``value`` has the type of the field ``spec`` (its flag's ``type``, its choices, a
+    boolean flag's bool; ``None`` where the field's default is ``None``)."""
+    if value is None:
+        return spec.name in TrainConfig.NULLABLE_SAVED_FIELDS
+    kind = spec.metadata.get("type")
+    if spec.name == "scenario":
+        return isinstance(value, (str, dict))
+    if spec.metadata.get("action") in ("store_true", argparse.BooleanOptionalAction):
+        return isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if spec.metadata.get("choices") is not None and spec.name != "mode":
+        return value in spec.metadata["choices"]
+    return isinstance(value, str)
+
+
+def _expected(spec: Any) -> str:
+    kind = spec.metadata.get("type")
+    if spec.metadata.get("action") in ("store_true", argparse.BooleanOptionalAction):
+        what = "true or false"
+    elif kind in (int, float):
+        what = "an integer" if kind is int else "a finite number"
+    elif spec.metadata.get("choices") is not None and spec.name != "mode":
+        what = "one of " + ", ".join(map(str, spec.metadata["choices"]))
+    elif spec.name == "scenario":
+        what = "a scenario name, file or object"
+    else:
+        what = "a string"
+    return f"expected {what}" + (" or null" if spec.name in TrainConfig.NULLABLE_SAVED_FIELDS else "")

@@ -201,6 +201,7 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], chec
     normalizer = ObservationNormalizer.from_checkpoint(model_dir)
     if config["backend"] == "sb3":
         policy = load_policy(model_dir)
+        _check_fits(normalizer, tuple(policy.observation_space.shape), model_dir)
         predict = _numpy_actor(policy) if config["algo"] == "ppo" else None
         if predict is None:
             predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
@@ -226,6 +227,15 @@ def check_team(env: Any, observation_size: int, action_size: int, obs_features: 
             raise ValueError(f"policy: the run's policy takes {observation_size} observation entries and gives "
                              f"{action_size} joint actions (obs_features {obs_features}); {agent} of scenario "
                              f"{env.scenario.name} has {observed} and {acted}: it cannot act for this team")
+
+
+def _check_fits(normalizer: ObservationNormalizer, shape: tuple[int, ...], model_dir: Path) -> None:
+    """The normalization must be the policy's observation's own, entry for entry: a vector of another length
+    would broadcast (one entry over all of them) or fail deep inside an episode."""
+    if np.shape(normalizer.mean) != shape:
+        raise ValueError(f"{model_dir / 'obs_normalizer.json'}: mean and var have shape {np.shape(normalizer.mean)}, "
+                         f"the policy's observation (policy.json) {shape}: the file is not this model's; restore "
+                         "the one the run wrote")
 
 
 def composed_policy_factory(learned: Mapping[str, Any], env: Any, options: TrainingOptions

@@ -4,25 +4,32 @@
 :class:`~ee_formation_env.baselines.learned.config.TrainConfig`; :func:`evaluate_saved_run` is their
 ``--eval-only``. A run folder holds ``config.json`` (the configuration, the parsed scenario and the package
 versions), the model and its observation normalization, TensorBoard logs, checkpoints, ``learning_curve.csv``,
-``reference_returns.json``, ``timing.json`` and the comparison (``comparison.json``, ``.md``, ``.png``).
+``reference_returns.json``, ``timing.json`` and the comparison (``comparison.json``, ``.md``, ``.png``); its
+marker and, while a command works on it, its lock (:mod:`~ee_formation_env.baselines.learned.run_folder`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import platform
-import shutil
 import time
 from pathlib import Path
 from typing import Any
 
 import ee_formation_env
 from ee_formation_env.baselines.extras import require
-from ee_formation_env.baselines.learned.checkpoint import checkpoints, read_json, write_json
+from ee_formation_env.baselines.learned.checkpoint import write_json
 from ee_formation_env.baselines.learned.compare import compare, reference_returns, saved_scenario
 from ee_formation_env.baselines.learned.config import TrainConfig
-from ee_formation_env.baselines.learned.interruption import TrainingInterrupted, stop_on_signals
-from ee_formation_env.baselines.learned.policy import MODEL_FOLDER
+from ee_formation_env.baselines.learned.interruption import (RunStopped, StopSignal, TrainingInterrupted,
+                                                             raise_on_signals, stop_on_signals)
+from ee_formation_env.baselines.learned.run_folder import check_out, created_run_folder, has_resumable_state
+from ee_formation_env.baselines.learned.run_lock import run_lock
+from ee_formation_env.baselines.learned.saved_run import (load_saved_config, model_from_checkpoint,
+                                                          newest_intact_checkpoint, write_saved_config)
+from ee_formation_env.baselines.learned.segments import TIMING, read_timing
+from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, batched_env_factory
+from ee_formation_env.worker_processes import exit_if_reimporting_main
 
 
 def require_training_extras(config: TrainConfig, saved: dict[str, Any] | None = None) -> None:
@@ -54,62 +61,102 @@ def train(config: TrainConfig) -> Path:
     """Train ``config`` (resolved), write every artefact of the run and compare it with the references;
     returns the run folder. ``config.resume`` continues a saved run instead (:func:`resume`).
 
-    Everything is checked before the run folder is made: the scenario builds and validates, a folder that already
-    holds files is refused unless ``overwrite`` (then replaced once the rest has validated). A SIGINT or SIGTERM
-    stops training within a step, saves the model and raises :class:`TrainingInterrupted`."""
+    Everything is checked before the run folder is made: ``--out`` (:func:`~ee_formation_env.baselines.learned.
+    run_folder.check_out`: a folder that holds files is refused unless ``overwrite``, which replaces only a run
+    folder the project wrote and no live trainer holds), the scenario and the training env it builds (one
+    shared policy needs identical agents), the seeds, the extras. A run that fails before anything could be
+    continued from leaves no folder behind. A SIGINT or SIGTERM stops training within a step, saves the model
+    and raises :class:`TrainingInterrupted`; a worker or disk fault raises :class:`RunStopped`, one line."""
+    exit_if_reimporting_main()  # a spawn child re-running an unguarded main script touches no run folder
     if config.resume:
         return resume(config)
     started = time.time()
-    run_dir = Path(config.out) if config.out else Path("runs") / run_name(config)
-    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())) and not config.overwrite:
-        hint = (f"--resume {run_dir} continues it, " if (run_dir / "config.json").is_file() else "")
-        raise ValueError(f"--out: {run_dir} already holds files: {hint}--overwrite replaces it, or choose another "
-                         "--out")
+    run_dir = Path(config.out) if config.out is not None else Path("runs") / run_name(config)
+    check_out(run_dir, config.overwrite)
     scenario = _validated_scenario(config)
     require_training_extras(config)
-    if config.overwrite and run_dir.exists():
-        shutil.rmtree(run_dir) if run_dir.is_dir() else run_dir.unlink()
-    run_dir.mkdir(parents=True)
     saved = config.to_dict()
     saved["scenario_data"] = scenario.to_dict()
     saved["versions"] = package_versions()
-    write_json(run_dir / "config.json", saved)
-    print(f"training {config.algo} ({config.backend}, mode {config.mode}) on {config.scenario} for "
-          f"{config.total_timesteps} agent steps -> {run_dir}")
-    return _train_and_compare(config, saved, run_dir, started)
+    try:
+        with created_run_folder(run_dir, config.overwrite, ee_formation_env.__version__):
+            write_saved_config(run_dir, saved)
+            print(f"training {config.algo} ({config.backend}, mode {config.mode}) on {config.scenario} for "
+                  f"{config.total_timesteps} agent steps -> {run_dir}")
+            return _train_and_compare(config, saved, run_dir, started)
+    except RunStopped as stopped:
+        if stopped.run_dir is not None or has_resumable_state(run_dir):
+            raise
+        left = "the run folder was left empty" if run_dir.exists() else "no run folder is left"
+        raise RunStopped(f"{stopped.message}; nothing was saved, so {left}: the same command starts the run again",
+                         details=stopped.details, signal_name=stopped.signal_name) from stopped
 
 
 def resume(config: TrainConfig) -> Path:
-    """Continue the run in ``config.resume`` from its newest complete checkpoint (or its saved final model, if an
-    interruption saved one later) to its budget, with its saved configuration; then compare as a fresh run does."""
+    """Continue the run in ``config.resume`` from its newest intact checkpoint (or its saved final model, if an
+    interruption saved one later) to its budget, with its saved configuration; then compare as a fresh run does.
+    ``config.total_timesteps``, if given, is a new budget (not below the agent steps done): a finished run is
+    extended to it, then compared again. A run whose training is complete but whose comparison is missing (a
+    signal during the comparison) is compared only. The run folder is locked meanwhile."""
     started = time.time()
     run_dir = Path(config.resume)
-    saved = read_json(run_dir / "config.json", "--resume")
-    settings = dataclasses.replace(TrainConfig.from_dict(saved), resume=str(run_dir), out=str(run_dir),
-                                   **{name: getattr(config, name) for name in TrainConfig.EVALUATION_FIELDS})
-    settings = settings.resolved()
-    if settings.backend != "sb3" or settings.algo != "ppo":
-        raise ValueError(f"--resume: runs of --backend sb3 --algo ppo only (this one: {settings.backend} "
-                         f"{settings.algo}; SAC's replay buffer and RLlib's state are not checkpointed)")
-    candidates = [*checkpoints(run_dir), run_dir / MODEL_FOLDER]
-    states = [(read_json(path / "state.json", "--resume")["agent_steps"], path) for path in candidates
-              if (path / "state.json").is_file()]
-    if not states:
-        raise ValueError(f"--resume: {run_dir} holds no complete checkpoint to continue from")
-    steps, newest = max(states, key=lambda item: item[0])
-    if steps >= settings.total_timesteps and (run_dir / "comparison.json").is_file():
-        raise ValueError(f"--resume: {run_dir} is complete ({steps} of {settings.total_timesteps} agent steps)")
-    require_training_extras(settings)
-    print(f"resuming {run_dir} from {newest.name} at {steps} of {settings.total_timesteps} agent steps")
-    settings = dataclasses.replace(settings, scenario=saved_scenario(saved))  # as saved, not as the file is now
-    return _train_and_compare(settings, saved, run_dir, started, resume_from=newest)
+    if not (run_dir / "config.json").is_file():
+        raise ValueError(f"--resume: {run_dir / 'config.json'} not found")
+    with run_lock(run_dir, "--resume"):
+        saved, settings = load_saved_config(run_dir, "--resume")
+        settings = dataclasses.replace(settings, resume=str(run_dir), out=str(run_dir),
+                                       **{name: getattr(config, name) for name in TrainConfig.EVALUATION_FIELDS})
+        if settings.backend != "sb3" or settings.algo != "ppo":
+            raise ValueError(f"--resume: runs of --backend sb3 --algo ppo only (this one: {settings.backend} "
+                             f"{settings.algo}; SAC's replay buffer and RLlib's state are not checkpointed)")
+        found = newest_intact_checkpoint(run_dir)
+        if found is None:
+            raise ValueError(f"--resume: {run_dir} holds no complete checkpoint to continue from")
+        steps, newest = found
+        if config.total_timesteps is not None and config.total_timesteps != settings.total_timesteps:
+            if config.total_timesteps < steps:
+                raise ValueError(f"--total-timesteps: {config.total_timesteps} is below the {steps} agent steps "
+                                 f"{run_dir} has done: a budget can only be lowered to the steps done, or raised")
+            saved["total_timesteps"] = config.total_timesteps
+            settings = dataclasses.replace(settings, total_timesteps=config.total_timesteps)
+            extended = True
+        else:
+            extended = False
+        read_timing(run_dir)  # a damaged timing.json is refused before anything runs
+        if steps >= settings.total_timesteps and (run_dir / "comparison.json").is_file():
+            raise ValueError(f"--resume: {run_dir} is complete ({steps} of {settings.total_timesteps} agent steps): "
+                             "--total-timesteps N (more than that) extends it")
+        require_training_extras(settings)
+        if extended:  # the new budget is the run's own from now on, so that a later --resume keeps it
+            write_saved_config(run_dir, saved)
+        settings = dataclasses.replace(settings, scenario=saved_scenario(saved))  # as saved, not as the file is now
+        if steps >= settings.total_timesteps:
+            print(f"{run_dir}: training is complete ({steps} of {settings.total_timesteps} agent steps); running the "
+                  "comparison", flush=True)
+            model_from_checkpoint(run_dir, newest)
+            timing = read_timing(run_dir)
+            timing.setdefault("agent_steps", steps)
+            return _compare_and_write(settings, saved, run_dir, timing, started)
+        print(f"resuming {run_dir} from {newest.name} at {steps} of {settings.total_timesteps} agent steps")
+        try:
+            return _train_and_compare(settings, saved, run_dir, started, resume_from=newest)
+        except RunStopped as stopped:
+            if stopped.run_dir is not None:
+                raise
+            raise RunStopped(f"{stopped.message}; nothing new was saved", run_dir, "tries again",
+                             details=stopped.details, signal_name=stopped.signal_name) from stopped
 
 
 def _validated_scenario(config: TrainConfig) -> Any:
-    """The parsed scenario, after building the training env once: every geometric check runs here, before any
-    folder or process exists."""
+    """The parsed scenario, after building one copy of the training env: every geometric check runs here, and
+    the agents' spaces are checked (one shared policy needs identical ones), before any folder or process
+    exists. The training reset seeds must stay below the held-out evaluation seeds."""
     scenario = ee_formation_env.load_scenario(config.scenario)
-    ee_formation_env.parallel_env(scenario, **config.training_overrides()).close()
+    batched_env_factory(dataclasses.replace(config, scenario=scenario))(num_envs=1).close()
+    slots = config.n_envs * scenario.n_agents
+    if config.seed + slots > EVAL_SEED_OFFSET:
+        raise ValueError(f"--seed: {config.seed} + {slots} env slots reaches the held-out evaluation seeds "
+                         f"({EVAL_SEED_OFFSET} and up): expected at most {EVAL_SEED_OFFSET - slots}")
     return scenario
 
 
@@ -131,21 +178,39 @@ def _train_and_compare(config: TrainConfig, saved: dict[str, Any], run_dir: Path
         reasons = "; ".join(f"{reason} ({count}x)" for reason, count in segment["fault_reasons"].items())
         print(f"{segment['faulted_training_episodes']} of {segment['training_episodes']} training episodes ended in "
               f"a physics fault: {reasons}", flush=True)
-    write_json(run_dir / "reference_returns.json", reference_returns(saved))
-    compare(config, saved, run_dir)
+    return _compare_and_write(config, saved, run_dir, timing, started)
+
+
+def _compare_and_write(config: TrainConfig, saved: dict[str, Any], run_dir: Path, timing: dict[str, Any],
+                       started: float) -> Path:
+    """The comparison phase, training complete: the reference lines, the comparison, ``timing.json``'s total.
+    A SIGINT or SIGTERM here ends it at once (:class:`TrainingInterrupted`, phase "comparison"), and
+    ``--resume`` then runs it alone; ``comparison.json`` is written last, so a run holding it is complete."""
+    try:
+        with raise_on_signals():
+            write_json(run_dir / "reference_returns.json", reference_returns(saved))
+            compare(config, saved, run_dir)
+    except StopSignal as stopped:
+        raise TrainingInterrupted(run_dir, stopped.signal_name, int(timing.get("agent_steps", 0)),
+                                  phase="comparison") from None
+    except RunStopped as stopped:
+        if stopped.run_dir is not None:
+            raise
+        raise RunStopped(f"{stopped.message}; training is complete", run_dir, "runs the comparison",
+                         details=stopped.details, signal_name=stopped.signal_name) from stopped
     timing["total_seconds"] = time.time() - started  # training, reference lines and evaluation
-    write_json(run_dir / "timing.json", timing)
+    write_json(run_dir / TIMING, timing)
     print(f"wrote {run_dir}/comparison.md, comparison.json, comparison.png")
     return run_dir
 
 
 def evaluate_saved_run(config: TrainConfig) -> dict[str, Any]:
     """``--eval-only RUN_DIR``: the comparison of a saved run on the scenario saved with it, with the evaluation
-    settings of ``config``, written into ``RUN_DIR/evaluations/<date>-<time>/`` (the run's own results stay)."""
+    settings of ``config``, written into ``RUN_DIR/evaluations/<date>-<time>/`` (the run's own results stay).
+    The run's files are checked first (:mod:`~ee_formation_env.baselines.learned.saved_run`)."""
+    exit_if_reimporting_main()
     run_dir = Path(config.eval_only)
-    if not (run_dir / "config.json").is_file():
-        raise ValueError(f"--eval-only: {run_dir / 'config.json'} not found")
-    saved = read_json(run_dir / "config.json", "--eval-only")
+    saved, _ = load_saved_config(run_dir, "--eval-only")
     require_training_extras(config, saved)
     results_dir = run_dir / "evaluations" / time.strftime("%Y%m%d-%H%M%S")
     suffix = 1

@@ -12,20 +12,24 @@ from __future__ import annotations
 
 import collections
 import functools
-import json
 import math
+import re
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-from ee_formation_env.baselines.learned.checkpoint import (checkpoint_name, restore_checkpoint, save_checkpoint,
-                                                           write_json)
+from ee_formation_env.baselines.learned.checkpoint import (DISK_ERRORS, CheckpointWriteError, checkpoint_name,
+                                                           checkpoints, restore_checkpoint, save_checkpoint,
+                                                           write_failure)
 from ee_formation_env.baselines.learned.config import FAULT_WINDOW, TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
-from ee_formation_env.baselines.learned.interruption import StopRequest
+from ee_formation_env.baselines.learned.interruption import RunStopped, StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
+from ee_formation_env.baselines.learned.segments import (close_killed_segments, new_monitor_name, read_timing,
+                                                         start_segment, update_segment, write_learning_curve,
+                                                         write_timing)
 from ee_formation_env.baselines.learned.training_env import batched_env_factory
 from ee_formation_env.baselines.metrics import fault_kinds
 
@@ -85,22 +89,44 @@ def _linear_schedule(initial: float, progress_remaining: float) -> float:
 def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
               resume_from: Path | None = None) -> dict[str, Any]:
     """Train ``args`` (a resolved configuration) with SB3 into ``out_dir``: checkpoints during training, the final
-    model (``model/``, and ``model.zip`` for SB3 users), ``monitor*.csv`` and ``learning_curve.csv``; returns the
-    segment's timing. ``stop``: ends training at the next step once set (a signal); ``resume_from``: a
-    checkpoint of this run to continue from, to the budget."""
-    timing = _read_timing(out_dir) if resume_from is not None else {"segments": []}
-    segment = len(timing["segments"])
-    # SB3 appends ".monitor.csv" to a monitor file name that does not end so
-    monitor_name = "monitor.csv" if segment == 0 else f"resumed-{segment}.monitor.csv"
-    model = build_sb3_model(args, out_dir, monitor_name)
+    model (``model/``, and ``model.zip`` for SB3 users), the segment's monitor file, ``timing.json`` and
+    ``learning_curve.csv`` (:mod:`~ee_formation_env.baselines.learned.segments`); returns the run's timing.
+    ``stop``: ends training at the next step once set (a signal); ``resume_from``: a checkpoint of this run to
+    continue from, to the budget.
+
+    Faults outside the configuration are :class:`RunStopped`, one line each with what is saved and the
+    ``--resume`` command: an env worker that dies, fails or is stopped (the model so far saved first), a write
+    the file system refuses (the older checkpoints intact). An env worker that dies of the SIGTERM that also
+    stops this process (sent to the whole process group) is part of that stop, not a fault."""
+    from ee_formation_env.integrations.sb3 import WorkerFault
+
+    timing = read_timing(out_dir) if resume_from is not None else {"segments": []}
+    close_killed_segments(timing)
+    monitor_name = new_monitor_name(out_dir, timing)
+    try:
+        model = build_sb3_model(args, out_dir, monitor_name)
+    except WorkerFault as fault:  # at start-up: nothing trained, nothing to save (the caller says what is left)
+        if _stopping_for_the_same_signal(fault, stop):
+            raise RunStopped(f"training: stopped by {stop.signal_name} while its env workers started",
+                             signal_name=stop.signal_name) from None
+        first, _, rest = str(fault).partition("\n")
+        raise RunStopped(f"training: {first}", details=rest or None) from fault
     venv = model.get_env()
+    interrupted = None
     try:
         if resume_from is not None:
             restore_checkpoint(resume_from, model)
         elif args.imitate != "none":
             imitate(model, args, out_dir)
         start_steps = int(model.num_timesteps)
-        saver = _checkpoint_callback(out_dir, args, max(args.total_timesteps // (4 * venv.num_envs), 1))
+        segment = start_segment(out_dir, timing, monitor_name, start_steps)
+        started = time.time()
+
+        def progress() -> None:  # at each checkpoint: a kill loses at most what came after it
+            update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps),
+                           train_seconds=time.time() - started)
+
+        saver = _checkpoint_callback(out_dir, args, max(args.total_timesteps // (4 * venv.num_envs), 1), progress)
         callbacks = [saver]
         if stop is not None:
             callbacks.append(_stop_callback(stop))
@@ -111,7 +137,6 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
                                                                 venv.num_envs)))
         faults = FaultTally()
         callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents)))
-        started = time.time()
         remaining = args.total_timesteps - start_steps
         if remaining > 0:
             try:
@@ -120,52 +145,86 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
                 else:  # SB3 counts the budget from the restored step count: the schedules continue where they were
                     model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
             except TrainingFaults as fault:
-                save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
-                                {"interrupted": "physics faults"})
+                _save_model(out_dir, model, args, "physics faults")
                 raise TrainingFaults(f"{fault} (the model so far is saved in {out_dir / MODEL_FOLDER})") from None
-            except (RuntimeError, TimeoutError) as fault:  # an env worker died or stopped: the model itself is fine
-                save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
-                                {"interrupted": f"{type(fault).__name__}: {fault}"})
-                ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
-                    out_dir / MODEL_FOLDER / "obs_normalizer.json")
-                raise RuntimeError(f"training: {fault}; the model at {model.num_timesteps} agent steps is saved in "
-                                   f"{out_dir / MODEL_FOLDER}: `python train.py --resume {out_dir}` continues "
-                                   "the run") from fault
-        seconds = time.time() - started
+            except WorkerFault as fault:  # an env worker died or stopped: the model itself is fine
+                if not _stopping_for_the_same_signal(fault, stop):
+                    _save_model(out_dir, model, args, f"{type(fault).__name__}: {fault}")
+                    first, _, rest = str(fault).partition("\n")
+                    raise RunStopped(f"training: {first}; the model at {model.num_timesteps} agent steps is saved "
+                                     f"in {out_dir / MODEL_FOLDER}", out_dir, "continues the run",
+                                     details=rest or None) from fault
         interrupted = stop.signal_name if stop is not None and stop.requested else None
-        save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
-                        {"interrupted": interrupted})
-        ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs).save(
-            out_dir / MODEL_FOLDER / "obs_normalizer.json")
+        _save_model(out_dir, model, args, interrupted)
         model.save(out_dir / "model.zip")  # SB3's own format, for SB3 users; never read by the project
+    except CheckpointWriteError as error:
+        raise RunStopped(f"{error}; {_intact_checkpoints(out_dir)}", out_dir,
+                         "continues from it once there is room") from None
+    except OSError as error:  # a log or model.zip the file system refuses: the checkpoints are written whole
+        if error.errno not in DISK_ERRORS:
+            raise
+        raise RunStopped(f"training: cannot write {error.filename or out_dir} ({write_failure(error)}); "
+                         f"{_intact_checkpoints(out_dir)}", out_dir, "continues from it once there is room") from None
     finally:
         venv.close()
-    timing["segments"].append({"monitor": monitor_name, "start_agent_steps": start_steps,
-                               "agent_steps": int(model.num_timesteps), "train_seconds": seconds,
-                               "interrupted": interrupted, **faults.as_dict()})
-    timing.update(train_seconds=sum(s["train_seconds"] for s in timing["segments"]),
-                  agent_steps=int(model.num_timesteps), interrupted=interrupted)
+    seconds = time.time() - started
+    update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps), train_seconds=seconds,
+                   interrupted=interrupted, running=False, **faults.as_dict())
     timing["agent_steps_per_s"] = (model.num_timesteps - start_steps) / max(seconds, 1e-9)  # this segment's
-    write_json(out_dir / "timing.json", timing)
-    _write_learning_curve(out_dir, timing["segments"])
+    write_timing(out_dir, timing)
+    write_learning_curve(out_dir, timing["segments"])
     return timing
 
 
-def _read_timing(out_dir: Path) -> dict[str, Any]:
-    timing = json.loads((out_dir / "timing.json").read_text()) if (out_dir / "timing.json").is_file() else {}
-    timing.setdefault("segments", [])
-    return timing
+def _normalizer(model: Any) -> ObservationNormalizer:
+    """The observation normalization the evaluation applies: the VecEnv's running statistics, as now."""
+    venv = model.get_env()
+    return ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs)
 
 
-def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int) -> Any:
-    """Every ``every`` vec-env steps, a complete checkpoint (:func:`save_checkpoint`) of the model."""
+def _save_model(out_dir: Path, model: Any, args: TrainConfig, interrupted: str | None) -> None:
+    """The final model (``model/``): a complete checkpoint with the observation normalization the evaluation
+    applies, ``state.json`` saying why training ended early (``interrupted``; None: it did not)."""
+    save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
+                    {"interrupted": interrupted}, files={"obs_normalizer.json": _normalizer(model).save})
+
+
+def _stopping_for_the_same_signal(fault: Exception, stop: StopRequest | None) -> bool:
+    """Whether ``fault`` is a worker that died of a SIGTERM (or SIGINT) sent to the whole process group, which
+    stops this process too. The signal reached this process when it reached the worker, so its stop request
+    comes within moments (its handler runs at the next bytecode of the main thread); it is waited for here
+    for at most a second. A worker sent SIGTERM alone is a fault."""
+    if stop is None or not re.search(r"\(exit code -(15|2): SIG(TERM|INT)\)", str(fault)):
+        return False
+    deadline = time.monotonic() + 1.0
+    while not stop.requested and time.monotonic() < deadline:
+        time.sleep(0.02)  # lets the handler run
+    return stop.requested
+
+
+def _intact_checkpoints(out_dir: Path) -> str:
+    """Which checkpoint a resume would continue from, after a refused write (each is complete or absent)."""
+    try:
+        found = checkpoints(out_dir)
+    except ValueError:
+        found = []
+    if not found:
+        return "no checkpoint was saved before"
+    return f"the older checkpoints are intact (newest: {found[-1].name})"
+
+
+def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int, saved: Callable[[], None]) -> Any:
+    """Every ``every`` vec-env steps, a complete checkpoint (:func:`save_checkpoint`) of the model, with the
+    observation normalization the evaluation applies; then ``saved()``."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class CheckpointSaver(BaseCallback):
         def _on_step(self) -> bool:
             if self.n_calls % every == 0:
                 save_checkpoint(out_dir / "checkpoints" / checkpoint_name(self.model.num_timesteps), self.model,
-                                args.algo, policy_kwargs(args), args.total_timesteps)
+                                args.algo, policy_kwargs(args), args.total_timesteps,
+                                files={"obs_normalizer.json": _normalizer(self.model).save})
+                saved()
             return True
 
     return CheckpointSaver()
@@ -273,24 +332,3 @@ def _progress_callback(total: int) -> Any:
             self.bar.close()
 
     return TrainingProgress()
-
-
-def _write_learning_curve(out_dir: Path, segments: list[dict[str, Any]]) -> None:
-    """``learning_curve.csv``: agent steps so far and episode return (mean over agents), per training episode,
-    over every segment of the run (a resumed segment starts at its checkpoint's step count)."""
-    rows: list[tuple[int, float]] = []
-    for segment in segments:
-        start = int(segment["start_agent_steps"])
-        rows = [row for row in rows if row[0] <= start]  # episodes after the checkpoint were not kept
-        monitor = out_dir / segment["monitor"]
-        if not monitor.exists():
-            continue
-        lines = [line for line in monitor.read_text().splitlines() if line and not line.startswith("#")]
-        total = start
-        for line in lines[1:]:
-            reward, length, _ = (float(x) for x in line.split(","))
-            total += int(length)
-            rows.append((total, reward))
-    with open(out_dir / "learning_curve.csv", "w", encoding="utf-8") as handle:
-        handle.write("agent_steps,episode_return\n")
-        handle.writelines(f"{steps},{ret}\n" for steps, ret in rows)

@@ -92,7 +92,12 @@ class BatchedTrainingEnv:
         self.render_mode = None
         spaces = [(env.observation_space(a), env.action_space(a)) for a in self.possible_agents]
         if any(space != spaces[0] for space in spaces) or env.uniform_joints is None:
-            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
+            other = next((k for k, space in enumerate(spaces) if space != spaces[0]), None)
+            differs = "" if other is None else (
+                f": {self.possible_agents[other]} has observation {spaces[other][0].shape} and action "
+                f"{spaces[other][1].shape}, {self.possible_agents[0]} {spaces[0][0].shape} and {spaces[0][1].shape}")
+            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent"
+                             f"{differs} (one policy serves every agent: a team of one robot kind)")
         if options.obs_features == "invariant":
             check_invariant_arms(self.task)
         layouts = [env.observation_layout(agent) for agent in self.possible_agents]

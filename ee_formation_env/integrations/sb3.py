@@ -29,6 +29,8 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
 from ee_formation_env.vector import PER_AGENT_INFO
+from ee_formation_env.worker_processes import (exit_if_reimporting_main, ignore_interrupts, interrupts_blocked,
+                                               unguarded_main_hint)
 
 #: ``factory(num_envs=K)`` -> a batched env of K copies (picklable for worker processes): ``possible_agents``,
 #: ``scenario``, ``observation_space(agent)`` / ``action_space(agent)`` (one copy's), ``reset_arrays(seed,
@@ -37,6 +39,10 @@ from ee_formation_env.vector import PER_AGENT_INFO
 BatchedEnvFactory = Callable[..., Any]
 
 DEFAULT_WORKER_TIMEOUT = 60.0  # s: a slow reset of 14 residual copies on a loaded 2-core machine fits well within it
+#: s: a worker seen stopped (SIGSTOP, state "T") this long while it owes an answer is a fault, whatever
+#: ``worker_timeout`` says: a stopped process does not go on by itself. Polled every ``_STOPPED_POLL`` s.
+STOPPED_WORKER_SECONDS = 2.0
+_STOPPED_POLL = 0.5
 _CLOSE_TIMEOUT = 10.0  # s: at most this long for the workers to answer "close" before they are terminated
 _SLOT_INFO_SKIPPED = ("final_observation",)  # SB3 gets it as each slot's "terminal_observation"
 
@@ -96,12 +102,28 @@ class _CopyGroup:
         self.env.close()
 
 
+class WorkerFault(RuntimeError):
+    """An env worker died, failed or stopped answering; ``index`` is the worker's, ``during`` what it was doing
+    ("start-up (building its envs)", "step", ...). The message's first line names the worker; an exception
+    inside the worker adds its traceback on the lines after."""
+
+    def __init__(self, message: str, index: int, during: str):
+        super().__init__(message)
+        self.index, self.during = index, during
+
+    @property
+    def during_start_up(self) -> bool:
+        return self.during.startswith("start-up")
+
+
+class WorkerTimeout(WorkerFault, TimeoutError):
+    """A worker that did not answer in time, or is stopped (SIGSTOP)."""
+
+
 def _worker(connection: Connection, factory: BatchedEnvFactory, count: int, info_keys: Sequence[str] | None) -> None:
     # Ctrl-C goes to the whole process group: the learner decides how to stop (and can save its model first).
     # SIGINT is blocked from the spawn until here (SharedPolicyVecEnv._start_worker), so none is missed.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if hasattr(signal, "pthread_sigmask"):
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    ignore_interrupts()
     parent = multiprocessing.parent_process()
     watched = [connection] if parent is None else [connection, parent.sentinel]
     group = None
@@ -173,28 +195,34 @@ class SharedPolicyVecEnv(VecEnv):
     slots of a copy whose episode ended always get its ``physics_fault_reason`` ("" for none).
 
     Worker faults name the worker: its index, pid, the copies it steps (indices and scenario) and what it was
-    doing; after one the VecEnv refuses further use.
+    doing; after one the VecEnv refuses further use. Each is a :class:`WorkerFault` (a ``RuntimeError``).
 
-    - A worker that dies (killed, crashed, out of memory) raises ``RuntimeError("env worker 0 (pid 1234, envs
-      18-31 of planar_square) died (exit code -9: SIGKILL) during step")`` as soon as it ends.
-    - An exception inside a worker raises ``RuntimeError("SharedPolicyVecEnv worker failed: env worker 0 (pid
+    - A worker that dies (killed, crashed, out of memory) raises ``WorkerFault("env worker 0 (pid 1234, envs
+      18-31 of planar_square) died (exit code -9: SIGKILL) during step")`` as soon as it ends. One that dies
+      during its start-up because ``spawn`` re-ran the parent's main script, which has no
+      ``if __name__ == "__main__":`` guard, says so, with the fix (:mod:`ee_formation_env.worker_processes`).
+    - An exception inside a worker raises ``WorkerFault("SharedPolicyVecEnv worker failed: env worker 0 (pid
       1234, env 0 of planar_square) raised ValueError(...) during step")``, followed by the worker's traceback.
-    - A worker that does not answer within ``worker_timeout`` seconds (default 60: a slow reset on a loaded
-      machine fits; ``None`` waits forever; the attribute may be changed after the start-up) raises
-      ``TimeoutError("env worker 1 (pid 1234, env 1 of planar_square) did not answer within 60 s during step;
-      it is stopped (SIGSTOP?) ...")``. The wait costs one ``select`` per answer: nothing measurable per step.
+    - A worker that is stopped (SIGSTOP) raises :class:`WorkerTimeout` (also a ``TimeoutError``) once it has
+      been seen stopped for :data:`STOPPED_WORKER_SECONDS` (2 s, polled every 0.5 s; Linux, from ``/proc``). One
+      that does not answer within ``worker_timeout`` seconds (default 60: a slow reset on a loaded machine fits;
+      ``None`` waits forever; the attribute may be changed after the start-up) raises ``WorkerTimeout("env
+      worker 1 (pid 1234, env 1 of planar_square) did not answer within 60 s during step ...")``. The wait
+      costs one ``select`` per answer when it is there: nothing measurable per step.
     - ``close()`` ends every worker, after a fault too: asked to close, else terminated, else killed, each with
       a timeout, so no process is left behind.
 
     Workers ignore SIGINT: a Ctrl-C, sent to the whole process group, reaches the learner alone, which decides
     how to stop (a trainer catching ``KeyboardInterrupt`` can still step, save its model, then ``close()``).
-    SIGTERM still ends a worker, reported as a death. A worker whose learner dies (its pipe closes or its
-    parent process ends) exits by itself.
+    SIGTERM still ends a worker, reported as a death (a learner that is stopping because of the same SIGTERM,
+    sent to the whole group, can treat that death as part of its stop). A worker whose learner dies (its pipe
+    closes or its parent process ends) exits by itself.
     """
 
     def __init__(self, factory: BatchedEnvFactory, n_envs: int, n_workers: int = 0,
                  info_keys: Sequence[str] | None = None, in_process_envs: int = 0,
                  worker_timeout: float | None = DEFAULT_WORKER_TIMEOUT):
+        exit_if_reimporting_main()  # a spawn child re-running an unguarded main script: start no workers from it
         if not callable(factory):
             raise TypeError(f"factory: expected a callable factory(num_envs=K) of a batched env, got "
                             f"{type(factory).__name__}")
@@ -321,7 +349,8 @@ class SharedPolicyVecEnv(VecEnv):
                     self._unanswered[index] -= 1
             except (OSError, EOFError):
                 pass
-            process.join(timeout=max(0.0, deadline - time.monotonic()))
+            if _process_state(process.pid) != "T":  # a stopped worker never ends by itself: killed below
+                process.join(timeout=max(0.0, deadline - time.monotonic()))
             if process.is_alive() and _process_state(process.pid) not in ("T", "t"):
                 process.terminate()
                 process.join(timeout=1.0)
@@ -361,14 +390,8 @@ class SharedPolicyVecEnv(VecEnv):
     def _start_worker(process: multiprocessing.Process) -> None:
         """Start ``process`` with SIGINT blocked (its worker then ignores it), so that a Ctrl-C during its
         start-up cannot end it; a SIGINT meant for this process meanwhile stays pending, delivered after."""
-        if not hasattr(signal, "pthread_sigmask"):
+        with interrupts_blocked():
             process.start()
-            return
-        previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            process.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
     def _split_per_worker(self, items: Sequence[Any]) -> list[list[Any]]:
         out, start = [], 0
@@ -399,7 +422,7 @@ class SharedPolicyVecEnv(VecEnv):
             try:
                 connection.send((command, payload))
             except OSError:  # its end of the pipe is closed: it died
-                self._raise_fault(index, self._death(index, command))
+                self._raise_fault(index, self._death(index, command), command)
             self._unanswered[index] += 1
 
     def _receive_workers(self, doing: str) -> list[Any]:
@@ -407,27 +430,50 @@ class SharedPolicyVecEnv(VecEnv):
 
     def _receive(self, index: int, doing: str) -> Any:
         connection, process = self._connections[index], self._processes[index]
-        # One wait for the answer, the worker's end or the timeout (a few microseconds when the answer is there).
-        ready = wait([connection, process.sentinel], self.worker_timeout)
+        ready = self._wait_for_answer(index, doing)
         if connection in ready:
             try:
                 status, payload = connection.recv()
             except (EOFError, OSError):  # it died before answering
-                self._raise_fault(index, self._death(index, doing))
-        elif ready:
-            self._raise_fault(index, self._death(index, doing))
+                self._raise_fault(index, self._death(index, doing), doing)
         else:
-            state = _process_state(process.pid)
-            how = {"T": "; it is stopped (SIGSTOP?)", "t": "; it is stopped by a debugger",
-                   "D": "; it is waiting on the disk"}.get(state, "")
-            self._raise_fault(index, f"{self._worker_labels[index]} did not answer within {self.worker_timeout:g} s "
-                                     f"during {doing}{how} (worker_timeout: None waits forever)", TimeoutError)
+            self._raise_fault(index, self._death(index, doing), doing)
         self._unanswered[index] -= 1
         if status == "error":
             error, trace = payload
             self._raise_fault(index, f"SharedPolicyVecEnv worker failed: {self._worker_labels[index]} raised "
-                                     f"{error} during {doing}\nWorker traceback:\n{trace.rstrip()}")
+                                     f"{error} during {doing}\nWorker traceback:\n{trace.rstrip()}", doing)
         return payload
+
+    def _wait_for_answer(self, index: int, doing: str) -> list[Any]:
+        """Wait for worker ``index``'s answer or its end (what is ready); raise :class:`WorkerTimeout` when it
+        has been stopped for :data:`STOPPED_WORKER_SECONDS` or has not answered within ``worker_timeout``. The
+        first wait returns at once when the answer is there; a worker that takes longer is polled for its state
+        every ``_STOPPED_POLL`` s (a stopped process never answers, whatever the timeout)."""
+        connection, process = self._connections[index], self._processes[index]
+        started = time.monotonic()
+        deadline = None if self.worker_timeout is None else started + self.worker_timeout
+        stopped_since = None
+        while True:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            ready = wait([connection, process.sentinel], _STOPPED_POLL if left is None else min(left, _STOPPED_POLL))
+            if ready:
+                return ready
+            now = time.monotonic()
+            state = _process_state(process.pid)
+            if state == "T":
+                stopped_since = now if stopped_since is None else stopped_since
+                if now - stopped_since >= STOPPED_WORKER_SECONDS:
+                    self._raise_fault(index, f"{self._worker_labels[index]} is stopped (SIGSTOP) during {doing}: "
+                                             f"seen stopped for {STOPPED_WORKER_SECONDS:g} s, it cannot answer "
+                                             "until it is continued (SIGCONT)", doing, WorkerTimeout)
+            else:
+                stopped_since = None
+            if deadline is not None and now >= deadline:
+                how = {"t": "; it is stopped by a debugger", "D": "; it is waiting on the disk"}.get(state, "")
+                self._raise_fault(index, f"{self._worker_labels[index]} did not answer within "
+                                         f"{self.worker_timeout:g} s during {doing}{how} (worker_timeout: None "
+                                         "waits forever)", doing, WorkerTimeout)
 
     def _death(self, index: int, doing: str) -> str:
         process = self._processes[index]
@@ -439,13 +485,15 @@ class SharedPolicyVecEnv(VecEnv):
             how = f"exit code {code}: {_signal_name(-code)}"
         else:
             how = f"exit code {code}"
-        return f"{self._worker_labels[index]} died ({how}) during {doing}"
+        message = f"{self._worker_labels[index]} died ({how}) during {doing}"
+        hint = unguarded_main_hint(code) if doing.startswith("start-up") and code is not None and code > 0 else None
+        return message if hint is None else f"{message}: {hint}"
 
-    def _raise_fault(self, index: int, message: str, kind: type[Exception] = RuntimeError):
+    def _raise_fault(self, index: int, message: str, doing: str, kind: type[WorkerFault] = WorkerFault):
         self._faulty.add(index)
         if self._fault is None:
             self._fault = message.split("\n", 1)[0]
-        raise kind(message)
+        raise kind(message, index, doing)
 
     def _check_usable(self) -> None:
         if self._fault is not None:

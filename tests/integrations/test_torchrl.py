@@ -261,7 +261,7 @@ def test_the_docs_benchmarl_snippet_runs_as_written(tmp_path, monkeypatch):
     assert len(blocks) == 1, "docs/training.md: expected one BenchMARL snippet using MAX_N_FRAMES"
     monkeypatch.setenv("MAX_N_FRAMES", "8000")
     monkeypatch.chdir(tmp_path)
-    namespace: dict = {}
+    namespace: dict = {"__name__": "__main__"}  # as a script run as written: its main guard lets it train
     exec(compile(blocks[0], "docs/training.md (BenchMARL snippet)", "exec"), namespace)
     assert namespace["config"].loggers == ["csv"]
     assert list(tmp_path.rglob("*.csv")) or list(tmp_path.iterdir())

@@ -1,27 +1,23 @@
-"""Runs you can trust: loading runs no code, interruption saves, resume continues, nothing is silently reused."""
+"""Runs you can trust: loading runs no code, checkpoint writes are atomic, nothing is silently reused.
+
+Signals, kills and worker faults of real trainer processes: test_run_processes.py; the run folder (refusals,
+--overwrite, the lock): test_run_folder.py; a saved run's files checked before use: test_saved_run.py."""
 
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
 pytest.importorskip("stable_baselines3")
 
+from trainer_processes import EVAL_FAST, FAST  # noqa: E402
+
 from ee_formation_env.baselines.cli import train_command  # noqa: E402
 from ee_formation_env.baselines.learned import checkpoint  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[3]
-EVAL_FAST = ["--eval-episodes", "1", "--eval-seconds", "0.2", "--no-progress", "--eval-workers", "0"]
-FAST = ["--n-envs", "1", "--n-workers", "0", "--train-episode-seconds", "0.5", *EVAL_FAST]
 
 
 class Payload:
@@ -162,93 +158,3 @@ def test_resume_refuses_what_it_cannot_continue(trained_run, tmp_path, capsys):
     assert "complete" in capsys.readouterr().err
     assert train_command(["--resume", str(tmp_path / "nothing")]) == 2
     assert "not found" in capsys.readouterr().err
-
-
-_TRAIN = [sys.executable, str(REPO / "train.py"), "--mode", "torque", "--n-steps", "64", "--train-episode-seconds",
-          "0.5", "--no-progress", *EVAL_FAST]
-
-
-def _children(pid: int) -> list[int]:
-    """Process ids whose parent is ``pid`` (from /proc)."""
-    children = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            children.append(int(stat.parent.name))
-    return children
-
-
-def _wait_for(condition, seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.2)
-    return False
-
-
-@pytest.mark.parametrize("signal_number, layout", [
-    pytest.param(signal.SIGINT, ["--n-envs", "2", "--n-workers", "1", "--in-process-envs", "1"], id="SIGINT"),  # Ctrl-C to the group
-    pytest.param(signal.SIGTERM, ["--n-envs", "1", "--n-workers", "0"], id="SIGTERM"),
-])
-def test_a_signal_stops_the_run_saves_it_and_resume_finishes_it(tmp_path, signal_number, layout):
-    run_dir = tmp_path / "run"
-    budget = 200_000  # far more than the seconds before the signal
-    process = subprocess.Popen([*_TRAIN, *layout, "--total-timesteps", str(budget), "--out", str(run_dir)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-                               start_new_session=True)
-    try:
-        assert _wait_for(lambda: (run_dir / "monitor.csv").is_file() and (run_dir / "monitor.csv").stat().st_size
-                         > 200, 240), "training did not start"
-        sent = time.monotonic()
-        os.killpg(process.pid, signal_number)
-        _, err = process.communicate(timeout=60)
-        assert time.monotonic() - sent < 30  # within seconds (a loaded 2-core machine included)
-    finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
-    assert process.returncode == 128 + signal_number, err
-    assert "--resume" in err and signal.Signals(signal_number).name in err
-    state = json.loads((run_dir / "model" / "state.json").read_text())
-    assert 0 < state["agent_steps"] < budget and state["interrupted"] == signal.Signals(signal_number).name
-    for name in ("policy.pt", "optimizer.pt", "vecnormalize.json", "obs_normalizer.json"):
-        assert (run_dir / "model" / name).is_file(), name
-    # Resume the run to a budget it can reach here: the saved configuration's, lowered in its config.json.
-    config = json.loads((run_dir / "config.json").read_text())
-    config["total_timesteps"] = state["agent_steps"] + 512
-    (run_dir / "config.json").write_text(json.dumps(config))
-    assert train_command(["--resume", str(run_dir), *EVAL_FAST]) == 0
-    timing = json.loads((run_dir / "timing.json").read_text())
-    assert [segment["interrupted"] for segment in timing["segments"]] == [signal.Signals(signal_number).name, None]
-    assert timing["segments"][1]["start_agent_steps"] == state["agent_steps"]
-    assert timing["agent_steps"] >= config["total_timesteps"]
-    assert json.loads((run_dir / "model" / "state.json").read_text())["interrupted"] is None
-    assert (run_dir / "comparison.json").is_file()
-    curve = (run_dir / "learning_curve.csv").read_text().splitlines()[1:]
-    steps = [int(line.split(",")[0]) for line in curve]
-    assert steps == sorted(steps) and steps[-1] > state["agent_steps"]
-
-
-def test_a_dead_worker_is_named_and_the_model_is_kept(tmp_path):
-    run_dir = tmp_path / "run"
-    process = subprocess.Popen([*_TRAIN, "--n-envs", "2", "--n-workers", "1", "--in-process-envs", "1",
-                                "--total-timesteps", "200000", "--out", str(run_dir)], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, cwd=tmp_path, start_new_session=True)
-    try:
-        assert _wait_for(lambda: (run_dir / "monitor.csv").is_file() and (run_dir / "monitor.csv").stat().st_size
-                         > 200, 240), "training did not start"
-        workers = _children(process.pid)
-        assert workers, "no worker process"
-        for pid in workers:
-            os.kill(int(pid), signal.SIGKILL)
-        _, err = process.communicate(timeout=60)
-    finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
-    assert process.returncode != 0
-    assert "env worker 0" in err and "SIGKILL" in err and "--resume" in err, err[-2000:]
-    state = json.loads((run_dir / "model" / "state.json").read_text())
-    assert state["agent_steps"] > 0 and "died" in state["interrupted"]
