@@ -112,6 +112,8 @@ def plot(curves: dict[str, list[dict[str, Any]]], references: dict[str, dict[str
         for (name, values), color in zip(references.items(), plt.cm.Dark2.colors):
             axis.axhline(values[key] * scale, linestyle="--", linewidth=1, color=color, label=name)
         axis.set(title=f"{scenario}: {title}", xlabel="agent steps (millions)", ylabel=f"{title} ({unit})")
+        if unit == "%":
+            axis.set_ylim(-3, 103)
     axes[0].legend(fontsize=7)
     figure.parent.mkdir(parents=True, exist_ok=True)
     return save_figure(fig, figure)
