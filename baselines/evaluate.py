@@ -94,8 +94,15 @@ def file_stem(name: str, fallback: str = "scenario", max_length: int = 100) -> s
 def video_path(video_dir: Path | str, scenario: str, policy: str, seed: int) -> Path:
     """Where an episode's video goes: ``video_dir/<scenario>-<policy>-seed<k>`` (the writer adds ``.mp4`` or
     ``.gif``), scenario and policy names made safe by :func:`file_stem`, so it is always inside ``video_dir``
-    and two scenario names never share a file."""
-    return Path(video_dir) / f"{file_stem(scenario)}-{file_stem(policy, 'policy')}-seed{int(seed)}"
+    and two scenario names never share a file. Where the scenario's stem holds the separator ``-`` (scenario
+    ``a-b`` with policy ``c`` would read as scenario ``a`` with policy ``b-c``), 8 hex digits of the pair's SHA-256
+    follow the policy; without one, the scenario is what comes before the first ``-``, so names stay plain."""
+    scenario_stem, policy_stem = file_stem(scenario), file_stem(policy, "policy")
+    name = f"{scenario_stem}-{policy_stem}"
+    if "-" in scenario_stem:
+        pair = f"{scenario}\0{policy}".encode("utf-8", "surrogatepass")
+        name += f"-{hashlib.sha256(pair).hexdigest()[:8]}"
+    return Path(video_dir) / f"{name}-seed{int(seed)}"
 
 
 def evaluate_policy(scenario: Any, policy: str | PolicySource, episodes: int, seed: int,
@@ -347,7 +354,8 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
         video_name=policy.video_name) for policy in evaluated}
     print(format_table({run.label if run is not None else key: value for key, value in results.items()}))
     if args.video is not None:
-        print(f"wrote {len(evaluated) * args.episodes} videos to {args.video.resolve()}")
+        count = len(evaluated) * args.episodes
+        print(f"wrote {count} video{'' if count == 1 else 's'} to {args.video.resolve()}")
     if args.json:
         record = {"scenario": scenario_name, "episodes": args.episodes, "seed": args.seed,
                   "overrides": evaluated[0].overrides}

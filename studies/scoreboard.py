@@ -114,6 +114,9 @@ METHODS: dict[str, Method] = {
     # The correction on the law that settles fastest on the spatial tasks (Theorem 3.1), not on the default.
     "residual-ppo-gradient": Method("residual-ppo-gradient", train_flags=(
         "--mode", "residual", "--reference", "gradient")),
+    # The same with the gate squared: the correction fades faster than the law's pull near the goal.
+    "residual-ppo-gradient-gate2": Method("residual-ppo-gradient-gate2", train_flags=(
+        "--mode", "residual", "--reference", "gradient", "--residual-gate-power", "2")),
     # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
     "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(

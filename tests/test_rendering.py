@@ -174,8 +174,12 @@ def test_gui_smoke_under_xvfb():
     server = subprocess.Popen(["Xvfb", display, "-screen", "0", "800x600x24", "-nolisten", "tcp"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        time.sleep(1.0)
-        assert server.poll() is None, "Xvfb did not start"
+        # Xvfb accepts clients once its socket exists: wait for it (a fixed sleep lost the race on a loaded machine).
+        socket = Path(f"/tmp/.X11-unix/X{display[1:]}")
+        deadline = time.monotonic() + 30.0
+        while not socket.exists() and server.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert server.poll() is None and socket.exists(), "Xvfb did not start"
         result = subprocess.run([sys.executable, "-c", _GUI_SMOKE.format(repo=str(REPO))], capture_output=True,
                                 text=True, timeout=300, env={**os.environ, "DISPLAY": display})
     finally:

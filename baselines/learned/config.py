@@ -78,6 +78,7 @@ class TrainConfig:
     action_acceleration: float = _option_flag("action_acceleration", type=float)
     correction_penalty: float = _option_flag("correction_penalty", type=float)
     residual_gate: bool = _option_flag("residual_gate", action=argparse.BooleanOptionalAction)
+    residual_gate_power: float = _option_flag("residual_gate_power", type=float)
     gravity_compensation: bool = _option_flag("gravity_compensation", action=argparse.BooleanOptionalAction)
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
                                 "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
@@ -270,7 +271,8 @@ class TrainConfig:
 
     #: Saved settings that a run's ``config.json`` may lack: added after the first saved runs, their defaults
     #: are what those runs trained with. Every other saved setting must be in the file.
-    LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction")
+    LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
+                          "residual_gate_power")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
 

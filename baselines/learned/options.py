@@ -48,6 +48,9 @@ class TrainingOptions:
                                     "in (0, 1]")
     residual_gate: bool = _option(True, "", "residual mode: scale the correction by min(1, the agent's error in "
                                   "success tolerances), so that it fades out at the goal")
+    residual_gate_power: float = _option(1.0, "", "residual mode, with the gate: the gate is min(1, x)^this, >= 1; "
+                                         "above 1 the correction fades faster than the reference's own pull near "
+                                         "the goal, so that it cannot hold the formation off there")
     correction_penalty: float = _option(0.5, "", "residual mode: each agent's reward is multiplied by 1 - this * "
                                         "mean(correction^2), in [0, 1]")
     obs_features: Optional[str] = _option(None, "", "features appended to each agent's observation, from it alone "
@@ -80,6 +83,7 @@ class TrainingOptions:
         if self.obs_features is not None and self.obs_features not in FEATURE_SETS:
             raise ValueError(f"obs_features: expected one of {list(FEATURE_SETS)} or None, got {self.obs_features!r}")
         self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
+        self._number("residual_gate_power", lambda x: 1 <= x <= 8, "a power in [1, 8]")
         self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
         self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
         self._number("contact_penalty", lambda x: x >= 0, "a finite value >= 0")

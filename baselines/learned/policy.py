@@ -44,34 +44,33 @@ class ObservationNormalizer:
 
     @classmethod
     def from_checkpoint(cls, directory: Path) -> "ObservationNormalizer":
-        """The observation normalization a checkpoint folder saved: its ``obs_normalizer.json`` (the final
-        model), else the observation statistics of its ``vecnormalize.json`` (SB3's ``VecNormalize``)."""
+        """The observation normalization a checkpoint folder saved: its ``obs_normalizer.json``, or, in a
+        checkpoint written before checkpoints held that file, the observation statistics of its
+        ``vecnormalize.json`` (SB3's ``VecNormalize``)."""
         directory = Path(directory)
         if (directory / "obs_normalizer.json").is_file():
             return cls.load(directory / "obs_normalizer.json")
-        data = read_json(directory / "vecnormalize.json", "vecnormalize.json")
-        try:
-            mean, var = np.asarray(data["obs_mean"], dtype=np.float64), np.asarray(data["obs_var"], dtype=np.float64)
-            clip, epsilon = float(data["clip_obs"]), float(data["epsilon"])
-        except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f"vecnormalize.json: {directory / 'vecnormalize.json'} is malformed ({error})") from None
-        if mean.shape != var.shape or mean.ndim != 1:
-            raise ValueError(f"vecnormalize.json: obs_mean and obs_var must be vectors of one length, got "
-                             f"{mean.shape} and {var.shape}")
-        return cls(mean, var, clip=clip, epsilon=epsilon)
+        return cls._read(directory / "vecnormalize.json", ("obs_mean", "obs_var", "clip_obs", "epsilon"))
 
     @classmethod
     def load(cls, path: Path) -> "ObservationNormalizer":
-        data = read_json(path, "obs_normalizer.json")
+        return cls._read(Path(path), ("mean", "var", "clip", "epsilon"))
+
+    @classmethod
+    def _read(cls, path: Path, keys: tuple[str, str, str, str]) -> "ObservationNormalizer":
+        """The normalizer in the JSON file ``path`` under the keys (mean, var, clip, epsilon); a malformed file
+        is a ``ValueError`` naming it."""
+        mean_key, var_key, clip_key, epsilon_key = keys
+        data = read_json(path, path.name)
         try:
-            mean, var = np.asarray(data["mean"], dtype=np.float64), np.asarray(data["var"], dtype=np.float64)
-            clip = np.inf if data["clip"] is None else float(data["clip"])
-            epsilon = float(data["epsilon"])
+            mean, var = np.asarray(data[mean_key], dtype=np.float64), np.asarray(data[var_key], dtype=np.float64)
+            clip = np.inf if data[clip_key] is None else float(data[clip_key])
+            epsilon = float(data[epsilon_key])
         except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f"obs_normalizer.json: malformed ({error})") from None
+            raise ValueError(f"{path.name}: malformed ({error})") from None
         if mean.shape != var.shape or mean.ndim != 1:
-            raise ValueError(f"obs_normalizer.json: mean and var must be vectors of one length, got {mean.shape} "
-                             f"and {var.shape}")
+            raise ValueError(f"{path.name}: {mean_key} and {var_key} must be vectors of one length, got "
+                             f"{mean.shape} and {var.shape}")
         return cls(mean, var, clip=clip, epsilon=epsilon)
 
 

@@ -4,10 +4,11 @@ For each agent row, with ``r = clip(learned, -1, 1)``:
 
 ``action = reference(observation) + residual_scale * g * joint_scale * r``
 
-``g = min(1, x)`` with ``residual_gate`` (:func:`error_gates`: ``x`` the agent's mean edge error in success
-tolerances, read from its own observation), else 1; ``joint_scale`` the per-joint physical scale of a learned
-action (:mod:`~ee_formation_env.baselines.learned.action_scale`; 1 on the built-in robots). Each agent's reward
-is multiplied by ``1 - correction_penalty * mean(r^2)``, in [0, 1]. A zero correction applies the reference's
+``g = min(1, x) ** p`` with ``residual_gate`` (:func:`error_gates`: ``x`` the agent's mean edge error in success
+tolerances, read from its own observation; ``p`` the ``residual_gate_power``, 1 by default), else 1;
+``joint_scale`` the per-joint physical scale of a learned action
+(:mod:`~ee_formation_env.baselines.learned.action_scale`; 1 on the built-in robots). Each agent's reward is
+multiplied by ``1 - correction_penalty * mean(r^2)``, in [0, 1]. A zero correction applies the reference's
 action bit for bit and receives the env's reward exactly.
 
 :class:`ResidualRows` is the rule over a stack of rows; the training env applies it to its K x N agents and
@@ -58,8 +59,9 @@ class ResidualRows(ActionRows):
     """
 
     def __init__(self, references: Sequence[Any], scale: float, correction_penalty: float,
-                 gate_layouts: Sequence[ObservationLayout | None], joint_scales: Sequence[np.ndarray | None]):
-        self.references, self.scale = list(references), float(scale)
+                 gate_layouts: Sequence[ObservationLayout | None], joint_scales: Sequence[np.ndarray | None],
+                 gate_power: float = 1.0):
+        self.references, self.scale, self.gate_power = list(references), float(scale), float(gate_power)
         self.correction_penalty = float(correction_penalty)
         self.gate_layouts, self.joint_scales = list(gate_layouts), list(joint_scales)
         self.team = PolicyTeam(dict(enumerate(self.references)))
@@ -85,7 +87,8 @@ class ResidualRows(ActionRows):
         references = self.team.act_on_stack(observations)
         scales = self._scales.copy()
         for layout, rows in self._gate_groups:
-            scales[rows] *= error_gates(layout, observations[rows])
+            gates = error_gates(layout, observations[rows])
+            scales[rows] *= gates if self.gate_power == 1.0 else gates ** self.gate_power
         scales = scales[:, None] if self._joint_scales is None else scales[:, None] * self._joint_scales
         factors = None
         if self.correction_penalty > 0:
@@ -93,24 +96,25 @@ class ResidualRows(ActionRows):
         return references + scales * residuals, factors
 
     def split(self) -> list["ResidualRows"]:
-        return [ResidualRows([reference], self.scale, self.correction_penalty, [layout], [scale])
+        return [ResidualRows([reference], self.scale, self.correction_penalty, [layout], [scale], self.gate_power)
                 for reference, layout, scale in zip(self.references, self.gate_layouts, self.joint_scales)]
 
     @property
     def stack_key(self) -> Any:
-        return type(self), self.scale, self.correction_penalty
+        return type(self), self.scale, self.correction_penalty, self.gate_power
 
     @classmethod
     def concatenate(cls, parts: Sequence["ResidualRows"]) -> "ResidualRows":
         """One rule over the rows of ``parts`` in order (the same controller objects); they must share the
-        scale and the penalty."""
+        scale, the penalty and the gate's power."""
         first = parts[0]
-        if any(part.scale != first.scale or part.correction_penalty != first.correction_penalty for part in parts):
-            raise ValueError("residual_scale: rows of different residual scales or correction penalties cannot "
-                             "be stacked into one rule")
+        if any((part.scale, part.correction_penalty, part.gate_power) !=
+               (first.scale, first.correction_penalty, first.gate_power) for part in parts):
+            raise ValueError("residual_scale: rows of different residual scales, correction penalties or gate "
+                             "powers cannot be stacked into one rule")
         return cls([r for part in parts for r in part.references], first.scale, first.correction_penalty,
                    [layout for part in parts for layout in part.gate_layouts],
-                   [scale for part in parts for scale in part.joint_scales])
+                   [scale for part in parts for scale in part.joint_scales], first.gate_power)
 
 
 @register_mode
@@ -140,4 +144,5 @@ class ResidualMode(TrainingMode):
             references += [team[agent] for agent in agents]
             layouts += [copy_env.observation_layout(agent) if options.residual_gate else None for agent in agents]
         scales = [None if joint_scales is None else joint_scales[agent] for _ in copies for agent in agents]
-        return ResidualRows(references, options.residual_scale, options.correction_penalty, layouts, scales)
+        return ResidualRows(references, options.residual_scale, options.correction_penalty, layouts, scales,
+                            options.residual_gate_power)

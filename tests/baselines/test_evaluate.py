@@ -309,3 +309,10 @@ def test_an_rllib_run_without_ray_is_refused_in_one_line_naming_the_extra(tmp_pa
         main(["--policy", str(tmp_path)])
     assert "--policy (a --backend rllib run) needs ray.rllib, not installed" in str(exit_info.value)
     assert 'pip install -e ".[train,distributed]"' in str(exit_info.value)
+
+
+def test_a_scenario_and_policy_split_differently_at_the_separator_get_two_video_files():
+    from ee_formation_env.baselines.evaluate import video_path
+
+    assert video_path("v", "a-b", "c", 0) != video_path("v", "a", "b-c", 0)
+    assert video_path("v", "planar_square", "gradient", 3).name == "planar_square-gradient-seed3"  # plain: kept

@@ -56,8 +56,9 @@ def test_a_short_run_stops_on_the_clock_and_writes_its_evaluation(tmp_path, caps
     assert "| mappo (residual) |" in printed and "training stopped: wall-clock budget of 12 s reached" in printed
 
 
-@needs_benchmarl
-def test_the_settings_reach_benchmarl_and_the_record(tmp_path, monkeypatch):
+@pytest.fixture
+def experiment_arguments(monkeypatch):
+    """The keyword arguments the next BenchMARL ``Experiment`` is built with (filled when it is built)."""
     import benchmarl.experiment
 
     seen = {}
@@ -68,6 +69,12 @@ def test_the_settings_reach_benchmarl_and_the_record(tmp_path, monkeypatch):
         original(self, *args, **kwargs)
 
     monkeypatch.setattr(benchmarl.experiment.Experiment, "__init__", spy)
+    return seen
+
+
+@needs_benchmarl
+def test_the_settings_reach_benchmarl_and_the_record(tmp_path, experiment_arguments):
+    seen = experiment_arguments
     out = tmp_path / "run"
     assert benchmarl_runs.main(["--minutes", "0.05", "--episodes", "1", "--mode", "residual", "--settings", "sb3",
                                 "--out", str(out)]) == 0
@@ -169,19 +176,10 @@ def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch)
 
 
 @needs_benchmarl
-def test_the_project_settings_are_the_shipped_yaml_files(tmp_path, monkeypatch):
-    import benchmarl.experiment
-
+def test_the_project_settings_are_the_shipped_yaml_files(tmp_path, experiment_arguments):
     from ee_formation_env.baselines.learned import benchmarl_configs
 
-    seen = {}
-    original = benchmarl.experiment.Experiment.__init__
-
-    def spy(self, *args, **kwargs):
-        seen.update(kwargs)
-        original(self, *args, **kwargs)
-
-    monkeypatch.setattr(benchmarl.experiment.Experiment, "__init__", spy)
+    seen = experiment_arguments
     out = tmp_path / "run"
     assert benchmarl_runs.main(["--minutes", "0.05", "--episodes", "1", "--mode", "torque", "--settings", "project",
                                 "--out", str(out)]) == 0

@@ -133,3 +133,42 @@ def test_bad_residuals_get_the_envs_error_before_anything_moves(closer, bad, mat
     assert all(np.all(policy.eta == 0) for policy in residual.batched.action_rows.references)  # nothing adapted
     after, *_ = residual.step(actions)  # the wrapper is still usable
     assert set(after) == set(observations)
+
+
+class _Constant:
+    """A reference controller that always asks for zero torque, so that the applied action is the correction."""
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return np.zeros(2)
+
+
+@pytest.mark.parametrize("power", [1.0, 2.0, 3.0])
+def test_the_gate_power_raises_the_error_gate_to_that_power(make_env, power):
+    env = make_env("planar_square")
+    observations, _ = env.reset(seed=0)
+    env.step({agent: np.full(2, 0.3, dtype=np.float32) for agent in env.agents})  # somewhere off the goal
+    observations = env.batch.step_arrays(np.zeros((1, 8))).observations.reshape(4, -1)  # (N, size)
+    layout = env.observation_layout("arm_0")
+    gates = error_gates(layout, observations)
+    rule = ResidualRows([_Constant() for _ in range(4)], 0.3, 0.0, [layout] * 4, [None] * 4, gate_power=power)
+    applied, _ = rule(observations, np.ones((4, 2)))
+    np.testing.assert_allclose(applied, 0.3 * (gates ** power)[:, None] * np.ones((4, 2)), rtol=0, atol=1e-15)
+    assert 0 < gates.min() and (power == 1.0 or np.all(gates ** power <= gates))
+
+
+def test_rules_of_different_gate_powers_do_not_stack():
+    one = ResidualRows([_Constant()], 0.3, 0.0, [None], [None], gate_power=1.0)
+    two = ResidualRows([_Constant()], 0.3, 0.0, [None], [None], gate_power=2.0)
+    assert ResidualRows.concatenate([two, two]).gate_power == 2.0 and two.split()[0].gate_power == 2.0
+    with pytest.raises(ValueError, match="gate powers"):
+        ResidualRows.concatenate([one, two])
+
+
+@pytest.mark.parametrize("power, error", [(0.5, ValueError), (9.0, ValueError), (float("nan"), ValueError),
+                                          ("2", TypeError), (True, TypeError)])
+def test_a_gate_power_outside_one_to_eight_is_refused_naming_the_field(power, error):
+    with pytest.raises(error, match="residual_gate_power"):
+        TrainingOptions(residual_gate_power=power)

@@ -18,14 +18,13 @@ import pytest
 pytest.importorskip("stable_baselines3")
 
 from conftest import mixed_team  # noqa: E402
-from trainer_processes import EVAL_FAST, FAST  # noqa: E402
+from trainer_processes import EVAL_FAST, FAST, TINY  # noqa: E402
 
 from ee_formation_env.baselines.cli import train_command  # noqa: E402
 from ee_formation_env.baselines.learned.config import TrainConfig  # noqa: E402
 from ee_formation_env.baselines.learned.run_folder import MARKER  # noqa: E402
 from ee_formation_env.baselines.learned.run_lock import LOCK_NAME, lock_holder, run_lock  # noqa: E402
 
-TINY = ["--mode", "torque", "--total-timesteps", "300", *FAST]
 
 
 @pytest.fixture(scope="module")

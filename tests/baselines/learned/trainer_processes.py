@@ -14,6 +14,7 @@ from typing import Callable, Sequence
 REPO = Path(__file__).resolve().parents[3]
 EVAL_FAST = ["--eval-episodes", "1", "--eval-seconds", "0.2", "--no-progress", "--eval-workers", "0"]
 FAST = ["--n-envs", "1", "--n-workers", "0", "--train-episode-seconds", "0.5", *EVAL_FAST]
+TINY = ["--mode", "torque", "--total-timesteps", "300", *FAST]  # a whole run in a few seconds
 #: A torque-mode trainer with short rollouts; the tests add the layout, budget and --out.
 TRAIN = [sys.executable, str(REPO / "train.py"), "--mode", "torque", "--n-steps", "64", "--train-episode-seconds",
          "0.5", "--no-progress", *EVAL_FAST]
