@@ -124,6 +124,9 @@ METHODS: dict[str, Method] = {
     # The gravity-compensated torque convention (docs/spaces.md, "Action conventions"), at the same budget.
     "torque-gc-ppo": Method("torque-gc-ppo", train_flags=(
         "--mode", "torque", "--gravity-compensation", "--max-train-seconds", "1800")),
+    # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
+    # compensation, from scratch, at the same budget.
+    "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
@@ -133,9 +136,9 @@ METHODS: dict[str, Method] = {
     "ippo-residual": Method("ippo-residual", benchmarl=BenchmarlRun("ippo", "residual", 10.0)),
     "masac-residual": Method("masac-residual", benchmarl=BenchmarlRun("masac", "residual", 10.0)),
     # From scratch with the project's BenchMARL configs (normalized observations and advantages, scaled rewards).
-    **{f"{algorithm}-torque-project": Method(f"{algorithm}-torque-project",
-                                             benchmarl=BenchmarlRun(algorithm, "torque", 30.0, "project"))
-       for algorithm in ("mappo", "ippo", "masac")},
+    **{f"{algorithm}-{mode}-project": Method(f"{algorithm}-{mode}-project",
+                                             benchmarl=BenchmarlRun(algorithm, mode, 30.0, "project"))
+       for mode in ("torque", "velocity") for algorithm in ("mappo", "ippo", "masac")},
 }
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
@@ -239,7 +242,8 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
         if current and (run_dir / "config.json").is_file():
             argv = ["--resume", str(run_dir), *evaluation]
         else:
-            argv = ["--scenario", scenario, *method.train_flags, *board.extra_train_flags, "--seed", str(seed),
+            argv = ["--scenario", scenario, "--recipe", "none", *method.train_flags, *board.extra_train_flags,
+                    "--seed", str(seed),
                     "--out", str(run_dir), "--overwrite", *evaluation]
         train(TrainConfig.from_args(argv))
     comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))

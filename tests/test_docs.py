@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.recipes import recipes_table
 
 import ee_formation_env
 from ee_formation_env.baselines.metrics import metric_definitions
@@ -50,6 +51,7 @@ def rst_simple_table_to_markdown(table: str) -> str:
 GENERATED = {
     "scenario_keys_table": ("scenarios.md", lambda: rst_simple_table_to_markdown(scenario_keys_table())),
     "train_flags": ("training.md", lambda: TrainConfig.flags_table()),
+    "recipes": ("training.md", lambda: recipes_table()),
     "metric_definitions": ("results.md", lambda: metric_definitions(markdown=True)),
 }
 

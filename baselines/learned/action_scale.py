@@ -38,22 +38,34 @@ def check_action_acceleration(acceleration: Any) -> float:
     return float(acceleration)
 
 
-def unit_torques(task: Any, acceleration: float = DEFAULT_ACTION_ACCELERATION) -> dict[str, np.ndarray]:
-    """Agent -> the torque (N m) of one unit of learned action on each of its joints (module docstring)."""
-    acceleration = check_action_acceleration(acceleration)
-    torques = {}
-    for i, agent in enumerate(task.agents):
+def initial_mass_matrices(task: Any) -> dict[str, np.ndarray]:
+    """Agent -> its arm's nominal mass matrix ``H(q_0)`` (n, n), kg m^2, at the initial configuration."""
+    return {agent: nominal_dynamics(task.scenario.arms[i].urdf, task.models[i].joint_names).mass_matrix(
+        task.initial_q[i]) for i, agent in enumerate(task.agents)}
+
+
+def joint_inertias(task: Any) -> dict[str, np.ndarray]:
+    """Agent -> each joint's effective inertia ``1 / (H(q_0)^-1)_jj`` (kg m^2) at the initial configuration:
+    what a torque on joint j alone drives, the other joints free (module docstring)."""
+    inertias = {}
+    for i, (agent, mass_matrix) in enumerate(initial_mass_matrices(task).items()):
         model = task.models[i]
-        mass_matrix = nominal_dynamics(task.scenario.arms[i].urdf, model.joint_names).mass_matrix(task.initial_q[i])
         try:
-            inertia = 1.0 / np.diag(np.linalg.inv(mass_matrix))  # kg m^2: what joint j alone drives
+            inertia = 1.0 / np.diag(np.linalg.inv(mass_matrix))
         except np.linalg.LinAlgError:
             inertia = np.zeros(model.n_joints)
         if not np.all(np.isfinite(inertia) & (inertia > 0)):
             raise ValueError(f"arms[{i}]: the nominal URDF's mass matrix at initial_q is singular (a joint without "
                              "inertia), so a learned action has no physical scale there")
-        torques[agent] = np.minimum(task.torque_limits[i], inertia * acceleration)
-    return torques
+        inertias[agent] = inertia
+    return inertias
+
+
+def unit_torques(task: Any, acceleration: float = DEFAULT_ACTION_ACCELERATION) -> dict[str, np.ndarray]:
+    """Agent -> the torque (N m) of one unit of learned action on each of its joints (module docstring)."""
+    acceleration = check_action_acceleration(acceleration)
+    limits = dict(zip(task.agents, task.torque_limits))
+    return {agent: np.minimum(limits[agent], inertia * acceleration) for agent, inertia in joint_inertias(task).items()}
 
 
 def action_scales(task: Any, acceleration: float = DEFAULT_ACTION_ACCELERATION) -> dict[str, np.ndarray]:

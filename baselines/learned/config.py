@@ -17,13 +17,14 @@ import json
 import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Collection, Iterator, Mapping, Sequence
 
 from ee_formation_env.baselines import MODEL_BASED_POLICIES
 from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
 from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.recipes import RECIPE_CHOICES, recipe_for
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
 
@@ -72,6 +73,9 @@ class TrainConfig:
     """Every setting of a training run; ``None`` fields take the mode's preset (:meth:`resolved`)."""
 
     scenario: Any = _flag("built-in name or YAML/JSON scenario file", "planar_square")
+    recipe: str = _flag("board: a built-in scenario's recipe (the learned method leading its scoreboard, "
+                        "recipes.py) sets every training flag not given, unless --mode names another mode; none: "
+                        "the flat defaults", "board", choices=RECIPE_CHOICES)
     mode: str = _option_flag("mode")
     reference: str = _option_flag("reference", choices=MODEL_BASED_POLICIES)
     residual_scale: float = _option_flag("residual_scale", type=float)
@@ -80,6 +84,8 @@ class TrainConfig:
     residual_gate: bool = _option_flag("residual_gate", action=argparse.BooleanOptionalAction)
     residual_gate_power: float = _option_flag("residual_gate_power", type=float)
     gravity_compensation: bool = _option_flag("gravity_compensation", action=argparse.BooleanOptionalAction)
+    joint_speed: float = _option_flag("joint_speed", type=float)
+    velocity_gain: float = _option_flag("velocity_gain", type=float)
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
                                 "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
                                 "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
@@ -272,7 +278,7 @@ class TrainConfig:
     #: Saved settings that a run's ``config.json`` may lack: added after the first saved runs, their defaults
     #: are what those runs trained with. Every other saved setting must be in the file.
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
-                          "residual_gate_power")
+                          "residual_gate_power", "joint_speed", "velocity_gain", "recipe")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
 
@@ -338,6 +344,24 @@ class TrainConfig:
     #: steps done: a finished run is extended).
     RESUME_FIELDS = ("total_timesteps",)
 
+    def with_recipe(self, given: Collection[str]) -> "TrainConfig":
+        """This configuration with its scenario's recipe (:mod:`~ee_formation_env.baselines.learned.recipes`)
+        for every field not in ``given`` (the fields the command line set); itself where no recipe applies."""
+        recipe = recipe_for(self.scenario) if self.recipe == "board" else None
+        if recipe is None or ("mode" in given and self.mode != recipe.mode):
+            return self
+        return dataclasses.replace(self, **{name: value for name, value in recipe.settings.items()
+                                            if name not in given})
+
+    @classmethod
+    def _given(cls, argv: Sequence[str] | None) -> set[str]:
+        """The fields ``argv`` sets (parsed as :meth:`from_args` parses it, defaults left out)."""
+        parser = argparse.ArgumentParser(argument_default=argparse.SUPPRESS, add_help=False)
+        for spec in fields(cls):
+            parser.add_argument("--" + spec.name.replace("_", "-"),
+                                **{key: value for key, value in spec.metadata.items() if key != "help"})
+        return set(vars(parser.parse_known_args(argv)[0]))
+
     @classmethod
     def from_args(cls, argv: Sequence[str] | None = None, prog: str = "train.py",
                   description: str | None = None) -> "TrainConfig":
@@ -346,6 +370,8 @@ class TrainConfig:
         namespace = parser.parse_args(argv)
         try:
             config = cls(**vars(namespace))
+            if not (config.resume or config.eval_only):
+                config = config.with_recipe(cls._given(argv))
             if config.resume or config.eval_only:  # the saved run's settings decide; only evaluation flags may change
                 defaults = vars(parser.parse_args([]))
                 allowed = (*cls.UNSAVED_FIELDS, *cls.EVALUATION_FIELDS, *(cls.RESUME_FIELDS if config.resume else ()))

@@ -5,8 +5,9 @@ its runs, :class:`ModePreset`) and :meth:`TrainingMode.action_rows`, its action 
 rows (:class:`ActionRows`). The training env (every backend) and the evaluated policy both apply that one
 rule, so a mode is written once. :func:`register_mode` adds a mode; :func:`training_mode` looks one up by the
 name the options carry (``TrainingOptions.mode``), and nothing else compares mode names. The built-in modes
-are ``residual`` (:mod:`~ee_formation_env.baselines.learned.residual`) and ``torque``
-(:mod:`~ee_formation_env.baselines.learned.torque`); adding one is shown in docs/extending.md.
+are ``residual`` (:mod:`~ee_formation_env.baselines.learned.residual`), ``torque``
+(:mod:`~ee_formation_env.baselines.learned.torque`) and ``velocity``
+(:mod:`~ee_formation_env.baselines.learned.velocity`); adding one is shown in docs/extending.md.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ if TYPE_CHECKING:
 #: The built-in modes and their modules, imported (and so registered) on the first lookup; they come first, in
 #: this order, in :func:`mode_names` (the default mode first).
 BUILTIN_MODES = {"residual": "ee_formation_env.baselines.learned.residual",
-                 "torque": "ee_formation_env.baselines.learned.torque"}
+                 "torque": "ee_formation_env.baselines.learned.torque",
+                 "velocity": "ee_formation_env.baselines.learned.velocity"}
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,9 @@ class TrainingMode:
     help: ClassVar[str]  # one line: what the learned action is
     preset: ClassVar[ModePreset]
     imitation: ClassVar[bool] = False  # whether --imitate may start its policy as a copy of a reference
+    #: Scenario settings every env the mode's policy acts in gets, training and evaluation (its action
+    #: convention, e.g. ``{"gravity_compensation": True}``); the reference laws act without them.
+    env_settings: ClassVar[Mapping[str, Any]] = {}
 
     def check(self, options: "TrainingOptions") -> None:
         """Raise ``ValueError`` naming the field for options this mode cannot use (before any env is built)."""

@@ -40,8 +40,9 @@ class TrainingOptions:
     (``TypeError`` for a wrong type) naming the field. Frozen and plain, so it pickles into worker processes."""
 
     mode: str = _option("residual", "", "what the learned action is: residual (a correction added to the "
-                        "reference controller's torques) or torque (the normalized joint torques); any registered "
-                        "mode (modes.py)")
+                        "reference controller's torques), torque (the normalized joint torques) or velocity (the "
+                        "joint speeds, turned into torques by a damped loop with gravity compensation); any "
+                        "registered mode (modes.py)")
     reference: str = _option("adaptive_jacobian", "", "residual mode: the reference controller (a model-based one: "
                              + ", ".join(MODEL_BASED_POLICIES) + ")")
     residual_scale: float = _option(0.3, "", "residual mode: the correction's share of one unit of learned action, "
@@ -66,6 +67,9 @@ class TrainingOptions:
     gravity_compensation: bool = _option(False, "", "the env adds each arm's own gravity torque g(q) to the "
                                          "learned torque, in training and evaluation (the scenario key of that "
                                          "name, docs/spaces.md); torque mode")
+    joint_speed: float = _option(1.0, "rad/s", "velocity mode: the joint speed one unit of learned action commands")
+    velocity_gain: float = _option(10.0, "1/s", "velocity mode: the velocity loop's gain, the inverse time constant "
+                                   "of reaching the commanded speed; at most 1 / control period for a stable loop")
     train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
                                                      "scenario's episode_seconds)")
     train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
@@ -88,6 +92,8 @@ class TrainingOptions:
         self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
         self._number("contact_penalty", lambda x: x >= 0, "a finite value >= 0")
         object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
+        self._number("joint_speed", lambda x: 0 < x <= 100, "a speed in (0, 100] rad/s")
+        self._number("velocity_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
         self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
         self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
         self.training_mode.check(self)
@@ -118,8 +124,12 @@ class TrainingOptions:
 
     def env_overrides(self) -> dict[str, Any]:
         """Scenario overrides of every env the learned policy acts in, training and evaluation: its action
-        convention (``gravity_compensation``, only when set). The reference laws act without them."""
-        return {"gravity_compensation": True} if self.gravity_compensation else {}
+        convention: the mode's own (:attr:`TrainingMode.env_settings`) and ``gravity_compensation`` when set.
+        The reference laws act without them."""
+        overrides = dict(self.training_mode.env_settings)
+        if self.gravity_compensation:
+            overrides["gravity_compensation"] = True
+        return overrides
 
     def episode_overrides(self) -> dict[str, Any]:
         """Scenario overrides of the training episodes (options resolved): episode length and, if set, start

@@ -66,7 +66,7 @@ class BatchedTrainingEnv:
     :class:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv` wraps (``from_batched``).
 
     ``overrides``: scenario overrides as given (a caller adds ``options.training_overrides()`` where it wants
-    them); ``options``: the training options (``None`` fields take the mode's preset); ``num_envs``: K.
+    them), always with the options' action convention (``options.env_overrides()``); ``options``: the training options (``None`` fields take the mode's preset); ``num_envs``: K.
     """
 
     def __init__(self, scenario: Any, overrides: Mapping[str, Any] | None = None,
@@ -78,7 +78,8 @@ class BatchedTrainingEnv:
         if not isinstance(options, TrainingOptions):
             raise TypeError(f"options: expected TrainingOptions, got {type(options).__name__}")
         self.options = options.resolved()
-        self.env = env = vector_env(scenario, num_envs=num_envs, **dict(overrides or {}))
+        self.env = env = vector_env(scenario, num_envs=num_envs, **{**dict(overrides or {}),
+                                                                    **self.options.env_overrides()})
         try:
             self._build()
         except Exception:

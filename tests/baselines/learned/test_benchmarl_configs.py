@@ -48,7 +48,8 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
     files = sorted(path.relative_to(CONFIG_DIR).as_posix() for path in CONFIG_DIR.rglob("*.yaml"))
     assert files == ["algorithm/ippo.yaml", "algorithm/mappo.yaml", "algorithm/masac.yaml",
                      "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/mlp.yaml",
-                     "task/ee_formation_training/residual.yaml", "task/ee_formation_training/torque.yaml"]
+                     "task/ee_formation_training/residual.yaml", "task/ee_formation_training/torque.yaml",
+                     "task/ee_formation_training/velocity.yaml"]
     for path in CONFIG_DIR.rglob("*.yaml"):
         assert isinstance(yaml.safe_load(path.read_text()), dict), path
 

@@ -1,0 +1,57 @@
+"""The built-in scenarios' recipes: a recipe is its scoreboard method's settings, the command line's flags win,
+another mode or --recipe none takes the flat defaults, and a saved run keeps what it trained with."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.recipes import RECIPES
+from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario
+from studies.scoreboard import METHODS
+
+
+def _config(*argv):
+    return TrainConfig.from_args([*argv, "--no-progress"])
+
+
+def _settings(config):
+    return {name: value for name, value in dataclasses.asdict(config).items() if name != "recipe"}
+
+
+@pytest.mark.parametrize("scenario", list(RECIPES))
+def test_a_recipe_is_its_scoreboard_methods_flags_on_a_builtin(scenario):
+    recipe = RECIPES[scenario]
+    assert scenario in BUILTIN_SCENARIOS
+    board = _config("--scenario", scenario, "--recipe", "none", *METHODS[recipe.method].train_flags)
+    assert _settings(_config("--scenario", scenario)) == _settings(board)
+    assert _settings(_config("--scenario", scenario, "--recipe", "none")) != _settings(board)
+
+
+def test_flags_given_win_over_the_recipe_and_another_mode_takes_no_recipe():
+    assert _config().reference == "gradient"  # planar_square's recipe: the default run
+    assert _config("--reference", "adaptive_jacobian").reference == "adaptive_jacobian"
+    assert _config("--reference", "gradient", "--recipe", "none").reference == "gradient"
+    assert _config("--recipe", "none").reference == "adaptive_jacobian"
+    torque = _config("--mode", "torque")
+    assert (torque.mode, torque.reference) == ("torque", "adaptive_jacobian")
+    displacement = _config("--scenario", "planar_square_displacement", "--total-timesteps", "10")
+    assert (displacement.obs_features, displacement.total_timesteps) == ("invariant", 10)
+    assert _config("--scenario", "planar_random").reference == "adaptive_jacobian"  # no recipe: the flat defaults
+
+
+def test_a_scenario_file_takes_no_recipe(tmp_path):
+    import yaml
+
+    path = tmp_path / "planar_square.yaml"
+    path.write_text(yaml.safe_dump(builtin_scenario("planar_square")))
+    assert _config("--scenario", str(path)).reference == "adaptive_jacobian"
+
+
+def test_a_bad_recipe_is_refused_naming_the_flag(capsys):
+    with pytest.raises(SystemExit):
+        _config("--recipe", "best")
+    assert "--recipe" in capsys.readouterr().err
+
