@@ -167,9 +167,18 @@ class Board:
         method's definition, the BenchMARL learning settings it names, and the flags every learned method gets."""
         protocol: dict[str, Any] = {"method": dataclasses.asdict(method)}
         if method.benchmarl is not None:
-            from studies.benchmarl_runs import SETTINGS
+            from studies.benchmarl_runs import PROJECT_SETTINGS, SETTINGS
 
-            protocol["benchmarl_settings"] = dataclasses.asdict(SETTINGS[method.benchmarl.settings])
+            run = method.benchmarl
+            if run.settings != PROJECT_SETTINGS:
+                protocol["benchmarl_settings"] = dataclasses.asdict(SETTINGS[run.settings])
+            else:  # the project's YAML files, read where the torchrl extra is installed
+                try:
+                    from ee_formation_env.baselines.learned.benchmarl_configs import config_files
+                except ImportError:
+                    protocol["benchmarl_settings"] = "the project's YAML files (unread: needs the torchrl extra)"
+                else:
+                    protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode)
         if method.learned:
             protocol["extra_train_flags"] = list(self.extra_train_flags)
         return protocol

@@ -121,6 +121,15 @@ def model_config() -> MlpConfig:
     return MlpConfig.get_from_yaml(str(CONFIG_DIR / "model" / "layers" / "mlp.yaml"))
 
 
+def config_files(algorithm: str, mode: str) -> dict[str, str]:
+    """The project's YAML files a run of ``algorithm`` in ``mode`` reads, path (relative to :data:`CONFIG_DIR`)
+    -> text: what defines it (the scoreboard records them in its cells)."""
+    layout = "on_policy" if _name(algorithm, "algorithm", ALGORITHM_CONFIGS) in ON_POLICY_ALGORITHMS else "off_policy"
+    paths = [CONFIG_DIR / "algorithm" / f"{algorithm}.yaml", CONFIG_DIR / "experiment" / f"{layout}.yaml",
+             CONFIG_DIR / "model" / "layers" / "mlp.yaml", task_config_path(mode)]
+    return {path.relative_to(CONFIG_DIR).as_posix(): path.read_text(encoding="utf-8") for path in paths}
+
+
 def task_config_path(mode: str) -> Path:
     """``task/ee_formation_training/<mode>.yaml`` of a built-in training mode."""
     return CONFIG_DIR / "task" / "ee_formation_training" / f"{_name(mode, 'mode', mode_names())}.yaml"

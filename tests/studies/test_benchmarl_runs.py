@@ -114,6 +114,21 @@ def test_the_scoreboard_runs_a_benchmarl_method_with_its_test_split(tmp_path, ca
     assert "running" not in capsys.readouterr().out
 
 
+@needs_benchmarl
+def test_a_project_settings_method_runs_on_the_board_and_its_cells_record_the_yaml_files(tmp_path):
+    from ee_formation_env.baselines.learned.benchmarl_configs import config_files
+    from studies import scoreboard
+
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods",
+            "mappo-velocity-project", "--seeds", "0", "--episodes", "1", "--no-test-sets"]
+    assert scoreboard.main(argv) == 0
+    cell = json.loads((tmp_path / "cells" / "planar_square" / "mappo-velocity-project" / "seed-0.json").read_text())
+    files = config_files("mappo", "velocity")
+    assert list(files) == ["algorithm/mappo.yaml", "experiment/on_policy.yaml", "model/layers/mlp.yaml",
+                           "task/ee_formation_training/velocity.yaml"]
+    assert json.dumps(files) in json.dumps(cell)
+
+
 def _finished_run(folder, settings=None):
     scalars = folder / "exp" / "exp" / "scalars"
     scalars.mkdir(parents=True)
