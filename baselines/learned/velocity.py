@@ -19,12 +19,14 @@ in training and evaluation. Rewards are the env's. Why this convention, with its
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from ee_formation_env.baselines.learned.action_scale import initial_mass_matrices
-from ee_formation_env.baselines.learned.modes import ActionRows, ModePreset, PPOSettings, TrainingMode, register_mode
+from ee_formation_env.baselines.learned.modes import ActionRows, TrainingMode, register_mode
+from ee_formation_env.baselines.learned.torque import TorqueMode
 from ee_formation_env.observation import ObservationLayout
 
 
@@ -77,14 +79,10 @@ class VelocityMode(TrainingMode):
     name = "velocity"
     help = "learn the joint speeds (a damped velocity loop with gravity compensation turns them into torques)"
     env_settings = {"gravity_compensation": True}
-    #: The torque preset's layout and budget (10 s episodes, start noise, log-scaled error features, the hold
-    #: penalty, 128 x 128), with a wider initial spread: a unit of action is a speed, not a torque, so exploring
-    #: at a third of it is safe. docs/training.md gives the evidence.
-    preset = ModePreset(
-        total_timesteps=5_000_000, train_episode_seconds=10.0, train_initial_q_noise=0.1, obs_features="log-error",
-        gamma=0.99, hold_penalty=0.5, log_std_init=-1.0,
-        ppo=PPOSettings(net_arch=(128, 128), n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
-        n_envs=8, n_steps=128, n_workers=0, in_process_envs=0)
+    #: The torque preset (10 s episodes, start noise, log-scaled error features, the hold penalty, 128 x 128),
+    #: with a wider initial spread: a unit of action is a speed, not a torque, so exploring at a third of it is
+    #: safe. docs/training.md gives the evidence.
+    preset = dataclasses.replace(TorqueMode.preset, log_std_init=-1.0)
 
     def action_rows(self, options: Any, copies: Sequence[Any], agents: Sequence[str],
                     joint_scales: Mapping[str, np.ndarray] | None) -> VelocityRows:
