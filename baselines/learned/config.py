@@ -309,11 +309,12 @@ class TrainConfig:
 
     # ------------------------------------------------------------------------------------------ the CLI
     @classmethod
-    def add_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        """One flag per field (``--n-envs`` for ``n_envs``), with the field's help, type and choices."""
+    def add_arguments(cls, parser: argparse.ArgumentParser, defaults: bool = True) -> None:
+        """One flag per field (``--n-envs`` for ``n_envs``), with the field's help, type and choices; with
+        ``defaults`` False a flag not given takes the parser's ``argument_default``."""
         for spec in fields(cls):
             kwargs = {key: value for key, value in spec.metadata.items()}
-            if kwargs.get("action") != "store_true":
+            if defaults and kwargs.get("action") != "store_true":
                 kwargs["default"] = spec.default
             parser.add_argument("--" + spec.name.replace("_", "-"), **kwargs)
 
@@ -357,9 +358,7 @@ class TrainConfig:
     def _given(cls, argv: Sequence[str] | None) -> set[str]:
         """The fields ``argv`` sets (parsed as :meth:`from_args` parses it, defaults left out)."""
         parser = argparse.ArgumentParser(argument_default=argparse.SUPPRESS, add_help=False)
-        for spec in fields(cls):
-            parser.add_argument("--" + spec.name.replace("_", "-"),
-                                **{key: value for key, value in spec.metadata.items() if key != "help"})
+        cls.add_arguments(parser, defaults=False)
         return set(vars(parser.parse_known_args(argv)[0]))
 
     @classmethod
