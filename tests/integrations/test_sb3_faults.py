@@ -190,7 +190,10 @@ def test_ctrl_c_reaches_the_learner_alone():
             venv.reset()
             try:
                 print("ready", flush=True)  # inside the try: the signal may arrive as soon as the line is read
-                time.sleep(60)
+                # Short sleeps: the kernel may hand the SIGINT to another thread (numpy's BLAS threads do not
+                # block it), and then Python raises it only when the main thread next runs bytecode.
+                for _ in range(600):
+                    time.sleep(0.1)
             except KeyboardInterrupt:
                 for _ in range(6):  # what a learner saving its model does not need, but may: the workers live
                     venv.step(np.zeros((venv.num_envs, 2), dtype=np.float32))
