@@ -180,11 +180,14 @@ def test_workers_exit_when_their_learner_is_killed():
 def test_ctrl_c_reaches_the_learner_alone():
     """SIGINT to the whole process group: the learner gets its KeyboardInterrupt, its workers keep stepping."""
     learner = textwrap.dedent("""
-        import functools, time
+        import functools, signal, time
         import numpy as np
         from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
         from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
         if __name__ == "__main__":
+            # A learner in a terminal: a shell's background job (CI) starts with SIGINT ignored, and the
+            # ignoring is inherited, so without this line no KeyboardInterrupt would ever come.
+            signal.signal(signal.SIGINT, signal.default_int_handler)
             factory = functools.partial(BatchedTrainingEnv, "planar_square", {"episode_seconds": 0.05})
             venv = SharedPolicyVecEnv(factory, 2, n_workers=1, in_process_envs=1)
             venv.reset()
