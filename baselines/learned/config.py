@@ -114,7 +114,7 @@ class TrainConfig:
     obs_features: str | None = _option_flag("obs_features", choices=FEATURE_SETS)
     hold_penalty: float | None = _option_flag("hold_penalty", type=float)
     contact_penalty: float = _option_flag("contact_penalty", type=float)
-    max_train_seconds: float | None = _flag("sb3: stop training after this wall time, s, even if --total-timesteps is "
+    max_train_seconds: float | None = _flag("stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     max_fault_fraction: float = _flag("sb3: stop training with an error naming the fault when more than this share "
                                       f"of the last {FAULT_WINDOW} training episodes ended in a physics fault "
@@ -226,6 +226,9 @@ class TrainConfig:
             raise ValueError("--in-process-envs: expected 0, or with --n-workers >= 1 a number below --n-envs")
         if self.backend == "rllib" and self.algo != "ppo":
             raise ValueError("--backend rllib supports --algo ppo only")
+        if self.backend == "rllib" and self.n_workers > 0 and self.n_envs % self.n_workers:
+            raise ValueError(f"--n-envs: --backend rllib gives each of its --n-workers {self.n_workers} env runners "
+                             f"the same number of copies; expected a multiple of {self.n_workers}, got {self.n_envs}")
         if not 0 <= self.correction_penalty <= 1:
             raise ValueError("--correction-penalty: expected a value in [0, 1]")
         if not 0 < self.gamma <= 1:

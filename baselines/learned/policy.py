@@ -347,7 +347,8 @@ def rllib_predictor(model_dir: Path) -> Callable[[np.ndarray], np.ndarray]:
     low = np.asarray(description["action_low"], dtype=np.float32)
     high = np.asarray(description["action_high"], dtype=np.float32)
     spec.action_space = gymnasium.spaces.Box(low, high, dtype=np.float32)
-    spec.model_config = config.model_config
+    # The module's own settings (older runs saved none: RLlib's defaults then).
+    spec.model_config = {**config.model_config, **description.get("model_config", {})}
     module = spec.build()
     module.load_state_dict(load_tensors(model_dir / "rllib_module.pt", "rllib_module.pt"))
 
