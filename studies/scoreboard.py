@@ -236,6 +236,7 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     learned policy's held-out episodes (the run's own comparison) and the budget."""
     from ee_formation_env.baselines.learned.config import TrainConfig
     from ee_formation_env.baselines.learned.run import train
+    from ee_formation_env.baselines.learned.saved_run import newest_intact_checkpoint
 
     run_dir = board.run_dir(scenario, method, seed)
     # A run started by another code version, or for another definition of the method, is trained again.
@@ -248,12 +249,11 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
         evaluation = ["--eval-episodes", str(len(board.eval_seeds(scenario))), "--eval-seconds", str(seconds),
                       "--no-progress",
                       *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
-        if current and (run_dir / "config.json").is_file():
+        # A run killed before its first checkpoint (a lost node, a killed process) starts again.
+        if current and (run_dir / "config.json").is_file() and newest_intact_checkpoint(run_dir) is not None:
             argv = ["--resume", str(run_dir), *evaluation]
         else:
-            argv = ["--scenario", scenario, "--recipe", "none", *method.train_flags, *board.extra_train_flags,
-                    "--seed", str(seed),
-                    "--out", str(run_dir), "--overwrite", *evaluation]
+            argv = [*train_argv(board, scenario, method, seed), "--out", str(run_dir), "--overwrite", *evaluation]
         train(TrainConfig.from_args(argv))
     comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))
     timing = json.loads((run_dir / "timing.json").read_text(encoding="utf-8"))
@@ -262,6 +262,12 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
               "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
               "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
     return comparison["results"]["learned"]["per_episode"], budget
+
+
+def train_argv(board: Board, scenario: str, method: Method, seed: int) -> list[str]:
+    """The ``train.py`` flags that define a learned cell's training run (its folder and evaluation aside)."""
+    return ["--scenario", scenario, "--recipe", "none", *method.train_flags, *board.extra_train_flags,
+            "--seed", str(seed)]
 
 
 def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None, test: str,
