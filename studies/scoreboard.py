@@ -10,7 +10,8 @@ where it stopped, and the board can be filled over several sessions (a learned c
 ``<out>/runs/`` resumes from its newest checkpoint). Each cell carries the schema, code version and protocol it
 was computed with; one computed otherwise, or a corrupt file, is recomputed, never aggregated silently
 (:mod:`studies.scoreboard_cells`). ``--quick``: tiny budgets and a few
-short episodes, into a temporary folder by default; never writes into ``docs/``.
+short episodes, into a temporary folder by default; never writes into ``docs/``. ``--address``: the missing
+cells run as tasks on a Ray cluster, and this command writes them (:mod:`studies.scoreboard_cluster`).
 
 Protocol (``docs/scoreboard.md`` has the rationale): reference controllers are evaluated on the held-out
 seeds (no training, so one "run"); learned methods are trained with ``train.py``'s presets at the stated
@@ -466,7 +467,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--accept-stale-cells", action="store_true",
                         help="aggregate cached cells of another code version, schema or method definition as they "
                              "are, each reported (default: recompute them, and leave out those not run here)")
+    from studies import scoreboard_cluster  # --address: the cells as tasks on a Ray cluster
+
+    scoreboard_cluster.add_arguments(parser)
     args = parser.parse_args(argv)
+    if problem := scoreboard_cluster.argument_problem(args):
+        parser.error(problem)
     unknown = sorted(set(args.scenarios) - set(BUILTIN_SCENARIOS))
     if unknown:
         parser.error(f"--scenarios: unknown {unknown}; available: {sorted(BUILTIN_SCENARIOS)}")
@@ -488,8 +494,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                   test_sets=not args.no_test_sets, accept_stale=args.accept_stale_cells)
     from ee_formation_env.baselines.learned.interruption import TrainingInterrupted
 
+    not_done: list[str] = []
     try:
-        fill(board)
+        if args.address:
+            not_done = scoreboard_cluster.fill_on_cluster(board, args.address, args.cpus_per_learned_cell)
+        else:
+            fill(board)
     except TrainingInterrupted as stopped:  # Ctrl-C or SIGTERM while a cell trained: one line, not a traceback
         print(f"scoreboard: {stopped.signal_name} stopped a cell's training at {stopped.agent_steps} agent steps; its "
               f"model is saved in {stopped.run_dir}. The same command resumes the board: finished cells are kept, "
@@ -503,7 +513,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(format_board(board_rows))
     print(f"wrote {out / 'scoreboard.json'} and {out / 'scoreboard.md'}" +
           (f", {DOCS_JSON} and {DOCS_PAGE}" if args.docs else ""))
-    return 0
+    if not_done:
+        print(f"scoreboard: {len(not_done)} cell group(s) not done: {'; '.join(not_done)}", file=sys.stderr)
+    return 1 if not_done else 0
 
 
 if __name__ == "__main__":
