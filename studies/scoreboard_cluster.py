@@ -20,7 +20,9 @@ them and that node's :func:`~studies.scoreboard_cells.code_version`; the driver 
 returned, complete result: a task that dies leaves nothing, so a half-written cell cannot exist, and the nodes
 need no shared filesystem for the cells. A task checks first that its node runs the driver's code version; one
 that does not is an error naming the node, and its cells are not written (never aggregated silently). The
-``studies`` folder travels with the job (Ray's ``py_modules``); the package must be installed on every node.
+``studies`` folder travels with the job (Ray's ``py_modules``); the package must be installed on every node
+(Ray also puts the command's working directory first on the workers' path, so where that folder exists, a
+checkout there is what a worker imports, and what its code version describes).
 
 Run folders: a learned task trains under the board's ``runs/`` path (absolute, as the driver resolves it) on
 whatever node runs it. On one machine or a shared filesystem that is one folder, so a retried task resumes its
@@ -319,9 +321,10 @@ def _write_result(board: Board, group: CellGroup, ref: Any, driver_code: dict[st
     try:
         result = ray.get(ref)
     except RayError as error:
-        if isinstance(error, RayTaskError):  # the task raised: its exception, and where
+        if isinstance(error, RayTaskError):  # the task raised: its exception, and where (Ray's header says)
             cause = error.cause if error.cause is not None else error
-            where = f" (on {error.ip}, worker pid {error.pid})"
+            found = re.search(r"\(pid=(\d+), ip=([^)\s]+)\)", str(error))
+            where = f" (on {found.group(2)}, worker pid {found.group(1)})" if found else ""
         else:  # its worker or node died on every attempt, or Ray could not run it
             cause, where = error, ""
         reason = (str(cause).strip().splitlines() or [""])[0]

@@ -4,9 +4,11 @@ and ``--address`` refused before any folder is made where it cannot be used (the
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -164,10 +166,11 @@ def _stop_node(process: subprocess.Popen) -> None:
     process.poll()
 
 
-@pytest.fixture
-def cluster(tmp_path):
+@contextlib.contextmanager
+def _local_cluster(tmp_path: Path, second_node: bool = True, head_pythonpath: str | None = None):
     """A head (1 CPU) and a second node (1 CPU) on this machine, in a temporary Ray folder of their own (short:
-    Ray's socket paths must stay under 108 characters); both stopped, by process group, on the way out."""
+    Ray's socket paths must stay under 108 characters); every process of both stopped on the way out. Yields
+    the head's address, the second node's ``ray start`` process (None without one) and the environment."""
     pytest.importorskip("ray")
     if not Path("/proc").is_dir():
         pytest.skip("finds a node's processes in /proc")
@@ -183,22 +186,29 @@ def cluster(tmp_path):
     common = ["--num-cpus", "1", "--disable-usage-stats", "--node-ip-address", "127.0.0.1", "--temp-dir", str(temp)]
     nodes = []
     try:
+        head_env = env if head_pythonpath is None else {**env, "PYTHONPATH": head_pythonpath}
         nodes.append(_start_node(ray_cli, ["--head", "--port", str(port), "--include-dashboard", "false", *common],
-                                 tmp_path / "head.log", env))
-        nodes.append(_start_node(ray_cli, ["--address", address, *common], tmp_path / "node.log", env))
-        yield address, nodes[1], env
+                                 tmp_path / "head.log", head_env))
+        if second_node:
+            nodes.append(_start_node(ray_cli, ["--address", address, *common], tmp_path / "node.log", env))
+        yield address, nodes[1] if second_node else None, env
     finally:
         for node in reversed(nodes):
             _stop_node(node)
-        subprocess.run(["rm", "-rf", str(temp)], check=False)
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    with _local_cluster(tmp_path) as running:
+        yield running
 
 
 def test_the_board_runs_on_a_cluster_and_a_lost_node_s_cell_is_retried(cluster, tmp_path):
     address, second_node, env = cluster
     out = tmp_path / "board"
     argv = [sys.executable, "-u", "-m", "studies.scoreboard", "--quick", "--out", str(out), "--address", address,
-            "--scenarios", "planar_square", "--methods", "gradient", "residual-ppo", "--seeds", "0", "1",
-            "--episodes", "1"]
+            "--scenarios", "planar_square", "--methods", "residual-ppo", "--seeds", "0", "1", "--episodes", "1"]
     started = time.monotonic()
     board = subprocess.Popen(argv, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
@@ -232,7 +242,7 @@ def test_the_board_runs_on_a_cluster_and_a_lost_node_s_cell_is_retried(cluster, 
     assert sum(line.startswith(f"started {killed[0]} on ") for line in lines) == 1
     assert sum(line.startswith(f"retry   {killed[0]}: attempt 2 on ") for line in lines) == 1
     tests = list(held_out_scenarios("planar_square"))
-    groups = ["planar_square / gradient", *(f"planar_square / residual-ppo / seed {seed}" for seed in (0, 1))]
+    groups = [f"planar_square / residual-ppo / seed {seed}" for seed in (0, 1)]  # one task on each node at first
     labels = [label for group in groups for label in (group, *(f"{group} -> test {test}" for test in tests))]
     done = [line.split(" (node ")[0][len("done    "):] for line in lines if line.startswith("done    ")]
     assert sorted(done) == sorted(labels)  # each cell exactly once
@@ -247,4 +257,27 @@ def test_the_board_runs_on_a_cluster_and_a_lost_node_s_cell_is_retried(cluster, 
         assert stale_reason(record, quick.protocol(scoreboard.METHODS[record["method"]])) is None
         assert len(record["episodes"]) == 1
     table = (out / "scoreboard.md").read_text()
-    assert "### planar_square" in table and "| residual-ppo | 0, 1 |" in table and "| gradient |" in table
+    assert "### planar_square" in table and "| residual-ppo | 0, 1 |" in table
+
+
+def test_a_node_of_another_code_version_fails_its_cells_by_name(tmp_path):
+    """A head whose package differs from the driver's by one comment: the task refuses to compute, the command
+    names the node and exits 1, and no cell is written. (The command runs outside the checkout, which Ray would
+    otherwise put first on the workers' path: on one machine they would import the driver's package.)"""
+    copy = tmp_path / "other-code"
+    shutil.copytree(REPO / "ee_formation_env", copy / "ee_formation_env",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    with (copy / "ee_formation_env" / "__init__.py").open("a") as handle:
+        handle.write("# another code version\n")
+    out = tmp_path / "board"
+    with _local_cluster(tmp_path, second_node=False,
+                        head_pythonpath=os.pathsep.join([str(copy), str(REPO)])) as (address, _, env):
+        board = subprocess.run([sys.executable, "-m", "studies.scoreboard", "--quick", "--out", str(out), "--address",
+                                address, "--scenarios", "planar_square", "--methods", "gradient", "--episodes", "1",
+                                "--no-test-sets"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    failed = [line for line in board.stdout.splitlines() if line.startswith("failed  planar_square / gradient")]
+    assert board.returncode == 1, board.stdout[-4000:] + board.stderr[-4000:]
+    assert len(failed) == 1 and "CodeVersionMismatch: node " in failed[0] and "the driver" in failed[0], failed
+    print(failed[0])
+    assert "1 cell group(s) not done: planar_square / gradient" in board.stderr
+    assert not (out / "cells").exists() and (out / "scoreboard.md").is_file()
