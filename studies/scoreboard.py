@@ -10,7 +10,8 @@ where it stopped, and the board can be filled over several sessions (a learned c
 ``<out>/runs/`` resumes from its newest checkpoint). Each cell carries the schema, code version and protocol it
 was computed with; one computed otherwise, or a corrupt file, is recomputed, never aggregated silently
 (:mod:`studies.scoreboard_cells`). ``--quick``: tiny budgets and a few
-short episodes, into a temporary folder by default; never writes into ``docs/``.
+short episodes, into a temporary folder by default; never writes into ``docs/``. ``--address``: the missing
+cells run as tasks on a Ray cluster, and this command writes them (:mod:`studies.scoreboard_cluster`).
 
 Protocol (``docs/scoreboard.md`` has the rationale): reference controllers are evaluated on the held-out
 seeds (no training, so one "run"); learned methods are trained with ``train.py``'s presets at the stated
@@ -236,6 +237,7 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
     learned policy's held-out episodes (the run's own comparison) and the budget."""
     from ee_formation_env.baselines.learned.config import TrainConfig
     from ee_formation_env.baselines.learned.run import train
+    from ee_formation_env.baselines.learned.saved_run import newest_intact_checkpoint
 
     run_dir = board.run_dir(scenario, method, seed)
     # A run started by another code version, or for another definition of the method, is trained again.
@@ -248,12 +250,11 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
         evaluation = ["--eval-episodes", str(len(board.eval_seeds(scenario))), "--eval-seconds", str(seconds),
                       "--no-progress",
                       *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
-        if current and (run_dir / "config.json").is_file():
+        # A run killed before its first checkpoint (a lost node, a killed process) starts again.
+        if current and (run_dir / "config.json").is_file() and newest_intact_checkpoint(run_dir) is not None:
             argv = ["--resume", str(run_dir), *evaluation]
         else:
-            argv = ["--scenario", scenario, "--recipe", "none", *method.train_flags, *board.extra_train_flags,
-                    "--seed", str(seed),
-                    "--out", str(run_dir), "--overwrite", *evaluation]
+            argv = [*train_argv(board, scenario, method, seed), "--out", str(run_dir), "--overwrite", *evaluation]
         train(TrainConfig.from_args(argv))
     comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))
     timing = json.loads((run_dir / "timing.json").read_text(encoding="utf-8"))
@@ -262,6 +263,12 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
               "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
               "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
     return comparison["results"]["learned"]["per_episode"], budget
+
+
+def train_argv(board: Board, scenario: str, method: Method, seed: int) -> list[str]:
+    """The ``train.py`` flags that define a learned cell's training run (its folder and evaluation aside)."""
+    return ["--scenario", scenario, "--recipe", "none", *method.train_flags, *board.extra_train_flags,
+            "--seed", str(seed)]
 
 
 def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None, test: str,
@@ -460,7 +467,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--accept-stale-cells", action="store_true",
                         help="aggregate cached cells of another code version, schema or method definition as they "
                              "are, each reported (default: recompute them, and leave out those not run here)")
+    from studies import scoreboard_cluster  # --address: the cells as tasks on a Ray cluster
+
+    scoreboard_cluster.add_arguments(parser)
     args = parser.parse_args(argv)
+    if problem := scoreboard_cluster.argument_problem(args):
+        parser.error(problem)
     unknown = sorted(set(args.scenarios) - set(BUILTIN_SCENARIOS))
     if unknown:
         parser.error(f"--scenarios: unknown {unknown}; available: {sorted(BUILTIN_SCENARIOS)}")
@@ -482,8 +494,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                   test_sets=not args.no_test_sets, accept_stale=args.accept_stale_cells)
     from ee_formation_env.baselines.learned.interruption import TrainingInterrupted
 
+    not_done: list[str] = []
     try:
-        fill(board)
+        if args.address:
+            not_done = scoreboard_cluster.fill_on_cluster(board, args.address, args.cpus_per_learned_cell)
+        else:
+            fill(board)
     except TrainingInterrupted as stopped:  # Ctrl-C or SIGTERM while a cell trained: one line, not a traceback
         print(f"scoreboard: {stopped.signal_name} stopped a cell's training at {stopped.agent_steps} agent steps; its "
               f"model is saved in {stopped.run_dir}. The same command resumes the board: finished cells are kept, "
@@ -497,7 +513,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(format_board(board_rows))
     print(f"wrote {out / 'scoreboard.json'} and {out / 'scoreboard.md'}" +
           (f", {DOCS_JSON} and {DOCS_PAGE}" if args.docs else ""))
-    return 0
+    if not_done:
+        print(f"scoreboard: {len(not_done)} cell group(s) not done: {'; '.join(not_done)}", file=sys.stderr)
+    return 1 if not_done else 0
 
 
 if __name__ == "__main__":

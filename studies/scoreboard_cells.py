@@ -126,11 +126,10 @@ def write_cell(path: Path, record: Mapping[str, Any], protocol: Mapping[str, Any
     return json.loads(path.read_text(encoding="utf-8"))
 
 
-def cached_cell(path: Path, label: str, protocol: Mapping[str, Any], compute: Callable[[], dict[str, Any]],
-                progress: Callable[[str], None], accept_stale: bool = False) -> dict[str, Any]:
-    """The cell at ``path`` if it is this code's result, else computed now and written (:func:`write_cell`).
-    A corrupt file, or a stale one (:func:`stale_reason`), is reported in one line naming it; a stale one is
-    used as it is with ``accept_stale``."""
+def cached_record(path: Path, label: str, protocol: Mapping[str, Any], progress: Callable[[str], None],
+                  accept_stale: bool = False) -> dict[str, Any] | None:
+    """The cell at ``path`` if it is this code's result (or stale, with ``accept_stale``), else None: the cell
+    is to be computed. A corrupt file, or a stale one (:func:`stale_reason`), is reported in one line naming it."""
     if path.is_file():
         record, problem = read_cell(path)
         if record is not None:
@@ -144,6 +143,16 @@ def cached_cell(path: Path, label: str, protocol: Mapping[str, Any], compute: Ca
             progress(f"stale   {label}: {path}: {stale}; recomputing")
         else:
             progress(f"corrupt {label}: {path}: {problem}; recomputing")
+    return None
+
+
+def cached_cell(path: Path, label: str, protocol: Mapping[str, Any], compute: Callable[[], dict[str, Any]],
+                progress: Callable[[str], None], accept_stale: bool = False) -> dict[str, Any]:
+    """The cell at ``path`` if it is this code's result (:func:`cached_record`), else computed now and written
+    (:func:`write_cell`)."""
+    record = cached_record(path, label, protocol, progress, accept_stale)
+    if record is not None:
+        return record
     progress(f"running {label}")
     return write_cell(path, compute(), protocol)
 

@@ -103,6 +103,25 @@ def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypat
     assert "training failed" in table and "- torque-ppo, seed 0: training: 100 of the last 100" in table
 
 
+def test_a_run_lost_before_its_first_checkpoint_trains_again(tmp_path, capsys):
+    """A process killed early (a lost cluster node, an OOM kill) leaves a run folder with its configuration but
+    no checkpoint: the cell trains it again instead of failing to resume it."""
+    import shutil
+
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "residual-ppo",
+            "--seeds", "0", "--episodes", "1", "--no-test-sets"]
+    assert scoreboard.main(argv) == 0
+    run_dir = tmp_path / "runs" / "planar_square" / "residual-ppo" / "seed-0"
+    for path in run_dir.iterdir():
+        if path.name not in ("config.json", "SHA256SUMS") and not path.name.startswith("."):  # as written at its start
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    (tmp_path / "cells" / "planar_square" / "residual-ppo" / "seed-0.json").unlink()
+    capsys.readouterr()
+    assert scoreboard.main(argv) == 0
+    assert "running planar_square / residual-ppo / seed 0" in capsys.readouterr().out
+    assert (run_dir / "comparison.json").is_file()
+
+
 def _record(scenario, method, seed, settle, **place):
     episode = {"success": True, "settling_time": settle, "final_formation_error": 0.0, "physics_fault": 0,
                "contact_steps": 0, "mean_return": 1.0}
