@@ -234,6 +234,20 @@ def test_a_mixed_team_s_run_acts_for_a_team_of_its_kinds(mixed_run):
     assert {np.shape(action) for action in actions.values()} == {(7,)}
 
 
+def test_a_stack_of_a_mixed_team_s_policies_acts_as_each_alone(mixed_run):
+    import ee_formation_env
+    from ee_formation_env.baselines.learned.policy import ComposedPolicy, SavedRun
+
+    source = SavedRun.load(mixed_run).policy_source()
+    with ee_formation_env.parallel_env(KUKA_PANDA_TEAM) as env:  # the batched evaluation stacks all three arms
+        observations, _ = env.reset(seed=4)
+        alone, stacked = source(env), source(env)
+        expected = np.stack([alone[agent](observations[agent]) for agent in env.possible_agents])
+        together = ComposedPolicy.stacked([stacked[agent] for agent in env.possible_agents])(
+            np.stack([observations[agent] for agent in env.possible_agents]))
+    assert np.array_equal(together, expected)
+
+
 def test_evaluating_a_mixed_team_s_run_on_an_unknown_robot_kind_is_refused_naming_the_agent(mixed_run, capsys):
     from ee_formation_env.baselines.evaluate import main
 
