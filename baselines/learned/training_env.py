@@ -63,8 +63,8 @@ class BatchedTrainingEnv:
     reward factors and the shaping, observations (K, N * size) carry the features (``infos["final_observation"]``
     too: the observation each copy ended in, featured). One policy is shared by every agent: a mixed team
     (agents of different spaces) gets padded spaces (:mod:`~ee_formation_env.baselines.learned.team`,
-    ``padding``), its actions (K * N, A) or (K, N, A). The other infos are the batched env's, and so are ``state()``,
-    ``state_space`` and the copies' generators ``np_randoms``: it has the array API that
+    ``padding``), its actions (K * N, A) or (K, N, A). The other infos are the batched env's, and so are
+    ``state()``, ``state_space`` and the copies' generators ``np_randoms``: it has the array API that
     :class:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv` wraps (``from_batched``).
 
     ``overrides``: scenario overrides as given (a caller adds ``options.training_overrides()`` where it wants
