@@ -71,6 +71,7 @@ from torchrl.modules.distributions import IndependentNormal, TanhNormal
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.policy import LearnedPolicy, ObservationNormalizer, composed_policy_factory
+from ee_formation_env.baselines.learned.team import refuse_mixed_team
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, BatchedTrainingEnv
 from ee_formation_env.baselines.metrics import DEFAULT_POSITION_TOLERANCE, run_episodes, summarize
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
@@ -90,8 +91,10 @@ TrainingTaskOptions = TrainingOptions
 def training_env(options: TrainingOptions, scenario: Any, overrides: Mapping[str, Any],
                  num_envs: int) -> BatchedTrainingEnv:
     """The training env of ``options``: ``num_envs`` copies of ``scenario`` with ``overrides`` and then the
-    options' training overrides (episode length, start noise)."""
-    return BatchedTrainingEnv(scenario, {**overrides, **options.training_overrides()}, options, num_envs=num_envs)
+    options' training overrides (episode length, start noise). A mixed team is refused (team.py)."""
+    env = BatchedTrainingEnv(scenario, {**overrides, **options.training_overrides()}, options, num_envs=num_envs)
+    refuse_mixed_team(env, "the BenchMARL task")
+    return env
 
 
 class RunningObservationNorm(VecNormV2):

@@ -1,8 +1,9 @@
 """A saved run's learned policy as per-agent policies: the normalizer, the actor, the training env's transforms.
 
 :func:`learned_policies` rebuilds what the learner stepped around the shared network: observation
-normalization, then the training env's own transforms (:class:`ComposedPolicy`): the observation features and
-the mode's action rule (residual mode: the reference controller with its error gate). The result plugs into
+normalization, then the training env's own transforms (:class:`ComposedPolicy`): the observation features, a
+mixed team's padding (the run's ``team_padding``, :mod:`~ee_formation_env.baselines.learned.team`) and the mode's
+action rule (residual mode: the reference controller with its error gate). The result plugs into
 :func:`ee_formation_env.baselines.metrics.run_episode` like a reference policy. :class:`SavedRun` is a run
 folder as the comparison and ``ee-formation evaluate --policy RUN_DIR`` evaluate it: the same policies, in
 the env settings the run trained with.
@@ -20,6 +21,7 @@ from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tens
 from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_size
 from ee_formation_env.baselines.learned.modes import ActionRows
 from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.team import AgentPadding, PaddingRows, TeamPadding, agent_rules
 
 
 class ObservationNormalizer:
@@ -209,15 +211,20 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], chec
     options = TrainingOptions.from_saved(config)
     size = normalizer.mean.shape[0]
     actions = np.asarray(predict(np.zeros(size, dtype=np.float32))).shape[-1]  # the actor's own output size
-    check_team(env, size, actions, options.resolved().obs_features)
+    padding = TeamPadding.from_saved(config)
+    if padding is None:
+        check_team(env, size, actions, options.resolved().obs_features)
+    else:
+        padding.check_fits(size, actions)
     learned = LearnedPolicy(predict, normalizer)
-    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, options)
+    return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, options, padding)
 
 
 def check_team(env: Any, observation_size: int, action_size: int, obs_features: str) -> None:
     """Refuse, in one line, a team a shared policy of these sizes cannot act for: an agent whose observation
     (featured by ``obs_features``, as in training) or action has another size. A network fed a vector of the
-    wrong length would fail deep inside torch or numpy, or, worse, broadcast."""
+    wrong length would fail deep inside torch or numpy, or, worse, broadcast. A mixed team's run checks its
+    team by its padding instead (:meth:`~ee_formation_env.baselines.learned.team.TeamPadding.agent_paddings`)."""
     for agent in env.possible_agents:
         layout = env.observation_layout(agent)
         observed = env.observation_space(agent).shape[0] + feature_size(layout, obs_features)
@@ -237,23 +244,25 @@ def _check_fits(normalizer: ObservationNormalizer, shape: tuple[int, ...], model
                          "the one the run wrote")
 
 
-def composed_policy_factory(learned: Mapping[str, Any], env: Any, options: TrainingOptions
-                            ) -> Callable[[Any], dict[str, Any]]:
+def composed_policy_factory(learned: Mapping[str, Any], env: Any, options: TrainingOptions,
+                            padding: TeamPadding | None = None) -> Callable[[Any], dict[str, Any]]:
     """``copy_env -> per-agent policies`` around ``learned`` (agent -> a policy on the observation the learner
     saw: featured by ``options.obs_features``), by the training env's own transforms (:class:`ComposedPolicy`).
     Each call gives fresh state (the residual mode's reference controllers); the learned parts are shared
-    (stateless)."""
+    (stateless). ``padding``: a mixed team's run's (each agent's observation padded, its joints taken from the
+    learned action, as the training env does); a team it cannot serve is refused here, naming the agent."""
     options = options.resolved()
     if options.obs_features == "invariant":
         check_invariant_arms(env.task)
+    paddings = None if padding is None else padding.agent_paddings(env, options.obs_features)
     scales = rescaling(env.task, options.action_acceleration)
     mode = options.training_mode
 
     def build(copy_env: Any) -> dict[str, Any]:
-        agents = list(copy_env.possible_agents)
-        rows = mode.action_rows(options, [copy_env], agents, scales).split()  # one rule of one row per agent
-        return {agent: ComposedPolicy(learned[agent], copy_env.observation_layout(agent), options.obs_features, row)
-                for agent, row in zip(agents, rows)}
+        rules = agent_rules(mode, options, copy_env, scales)  # one rule of one row per agent
+        return {agent: ComposedPolicy(learned[agent], copy_env.observation_layout(agent), options.obs_features,
+                                      rules[agent], None if paddings is None else paddings[agent])
+                for agent in copy_env.possible_agents}
 
     return build
 
@@ -261,12 +270,16 @@ def composed_policy_factory(learned: Mapping[str, Any], env: Any, options: Train
 class ComposedPolicy:
     """One agent's learned part composed as the training env composes it: its raw observation featured
     (:class:`~ee_formation_env.baselines.learned.features.FeatureRows`), the learned action, then the mode's
-    action rule (``rows``, a rule of one row). It is the one-row case of the training env's transforms, and a
-    stack of them (:meth:`stacked`) is their many-row case."""
+    action rule (``rows``, a rule of one row); with a mixed team's ``padding``, the featured observation padded
+    and the agent's own joints taken from the learned action. It is the one-row case of the training env's
+    transforms, and a stack of them (:meth:`stacked`) is their many-row case."""
 
-    def __init__(self, learned: Any, layout: Any, obs_features: str, rows: ActionRows):
+    def __init__(self, learned: Any, layout: Any, obs_features: str, rows: ActionRows,
+                 padding: AgentPadding | None = None):
         self.learned, self.layout, self.obs_features, self.rows = learned, layout, obs_features, rows
         self.features = FeatureRows([layout], [obs_features])
+        self.padding = padding
+        self._padding_rows = None if padding is None else PaddingRows([padding])
 
     def reset(self) -> None:
         self.rows.reset()
@@ -274,8 +287,12 @@ class ComposedPolicy:
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         raw = np.asarray(observation)[None]
-        action = self.learned(self.features(raw)[0])
-        return self.rows(raw, np.asarray(action)[None])[0][0]
+        if self._padding_rows is None:
+            action = np.asarray(self.learned(self.features(raw)[0]))[None]
+        else:
+            padded = self._padding_rows.observations(self.features(raw))
+            action = self._padding_rows.actions(np.asarray(self.learned(padded[0]))[None])
+        return self.rows(raw, action)[0][0]
 
     @classmethod
     def stacked(cls, policies: Sequence["ComposedPolicy"]) -> Callable[[np.ndarray], np.ndarray]:
@@ -287,6 +304,12 @@ class ComposedPolicy:
         policies = list(policies)
         learned = stack_policies([policy.learned for policy in policies])
         features = FeatureRows([policy.layout for policy in policies], [policy.obs_features for policy in policies])
+        if any(policy.padding is not None for policy in policies):  # a mixed team's run: every policy is padded
+            padding = PaddingRows([policy.padding for policy in policies])
+            unpadded = features
+            features = lambda observations: padding.observations(unpadded(observations))  # noqa: E731
+            actor = learned
+            learned = lambda observations: padding.actions(np.asarray(actor(observations)))  # noqa: E731
         groups: dict[Any, list[int]] = {}
         for row, policy in enumerate(policies):
             groups.setdefault(policy.rows.stack_key, []).append(row)

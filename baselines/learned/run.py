@@ -28,6 +28,7 @@ from ee_formation_env.baselines.learned.run_lock import run_lock
 from ee_formation_env.baselines.learned.saved_run import (load_saved_config, model_from_checkpoint,
                                                           newest_intact_checkpoint, write_saved_config)
 from ee_formation_env.baselines.learned.segments import TIMING, read_timing
+from ee_formation_env.baselines.learned.team import TEAM_PADDING_KEY, TeamPadding
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, batched_env_factory
 from ee_formation_env.worker_processes import exit_if_reimporting_main
 
@@ -63,8 +64,8 @@ def train(config: TrainConfig) -> Path:
 
     Everything is checked before the run folder is made: ``--out`` (:func:`~ee_formation_env.baselines.learned.
     run_folder.check_out`: a folder that holds files is refused unless ``overwrite``, which replaces only a run
-    folder the project wrote and no live trainer holds), the scenario and the training env it builds (one
-    shared policy needs identical agents), the seeds, the extras. A run that fails before anything could be
+    folder the project wrote and no live trainer holds), the scenario and the training env it builds (a mixed
+    team trains with --backend sb3 only), the seeds, the extras. A run that fails before anything could be
     continued from leaves no folder behind. A SIGINT or SIGTERM stops training within a step, saves the model
     and raises :class:`TrainingInterrupted`; a worker or disk fault raises :class:`RunStopped`, one line."""
     exit_if_reimporting_main()  # a spawn child re-running an unguarded main script touches no run folder
@@ -73,10 +74,12 @@ def train(config: TrainConfig) -> Path:
     started = time.time()
     run_dir = Path(config.out) if config.out is not None else Path("runs") / run_name(config)
     check_out(run_dir, config.overwrite)
-    scenario = _validated_scenario(config)
+    scenario, padding = _validated_scenario(config)
     require_training_extras(config)
     saved = config.to_dict()
     saved["scenario_data"] = scenario.to_dict()
+    if padding is not None:  # a mixed team: how evaluation pads each agent as training did
+        saved[TEAM_PADDING_KEY] = padding.to_dict()
     saved["versions"] = package_versions()
     try:
         with created_run_folder(run_dir, config.overwrite, ee_formation_env.__version__):
@@ -147,17 +150,25 @@ def resume(config: TrainConfig) -> Path:
                              details=stopped.details, signal_name=stopped.signal_name) from stopped
 
 
-def _validated_scenario(config: TrainConfig) -> Any:
-    """The parsed scenario, after building one copy of the training env: every geometric check runs here, and
-    the agents' spaces are checked (one shared policy needs identical ones), before any folder or process
-    exists. The training reset seeds must stay below the held-out evaluation seeds."""
+def _validated_scenario(config: TrainConfig) -> tuple[Any, TeamPadding | None]:
+    """The parsed scenario and, for a mixed team, its padding (:mod:`~ee_formation_env.baselines.learned.team`),
+    after building one copy of the training env: every geometric check runs here, before any folder or process
+    exists. A mixed team trains with ``--backend sb3`` and without ``--imitate`` only. The training reset seeds
+    must stay below the held-out evaluation seeds."""
     scenario = ee_formation_env.load_scenario(config.scenario)
-    batched_env_factory(dataclasses.replace(config, scenario=scenario))(num_envs=1).close()
+    with batched_env_factory(dataclasses.replace(config, scenario=scenario))(num_envs=1) as probe:
+        padding = probe.padding
+    if padding is not None:
+        team = f"scenario {scenario.name} is a mixed team ({', '.join(padding.kinds)})"
+        if config.backend != "sb3":
+            raise ValueError(f"--backend: {config.backend} cannot train a mixed team yet: {team}; use --backend sb3")
+        if config.imitate not in (None, "none"):
+            raise ValueError(f"--imitate: the imitation cannot start a mixed team's policy yet: {team}")
     slots = config.n_envs * scenario.n_agents
     if config.seed + slots > EVAL_SEED_OFFSET:
         raise ValueError(f"--seed: {config.seed} + {slots} env slots reaches the held-out evaluation seeds "
                          f"({EVAL_SEED_OFFSET} and up): expected at most {EVAL_SEED_OFFSET - slots}")
-    return scenario
+    return scenario, padding
 
 
 def _train_and_compare(config: TrainConfig, saved: dict[str, Any], run_dir: Path, started: float,

@@ -46,12 +46,13 @@ def shaped_rewards(rewards: np.ndarray, observations: np.ndarray, contacts: np.n
                    layout_rows: Sequence[tuple[Any, np.ndarray]], hold_penalty: float,
                    contact_penalty: float) -> np.ndarray:
     """The rewards (K, N) with both penalties (module docstring). ``observations`` (K * N, size): the raw
-    observations each step ended in, copy-major; ``contacts`` (K, N): each arm's contact points with other
+    observations each step ended in, copy-major (rows of a mixed team zero-padded: each layout reads its own
+    entries); ``contacts`` (K, N): each arm's contact points with other
     arms; ``layout_rows``: (layout, the rows of that layout). A penalty of 0 leaves the rewards as they are."""
     if hold_penalty > 0:
         factors = np.empty(len(observations))
         for layout, rows in layout_rows:
-            factors[rows] = hold_penalty_factors(layout, observations[rows])
+            factors[rows] = hold_penalty_factors(layout, observations[rows, :layout.size])
         rewards = rewards - hold_penalty * factors.reshape(rewards.shape)
     if contact_penalty > 0:
         rewards = rewards - contact_penalty * (contacts > 0)

@@ -26,6 +26,7 @@ from ee_formation_env.baselines.learned.action_scale import rescaling
 from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_space
 from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.shaping import shaped_rewards
+from ee_formation_env.baselines.learned.team import PaddedTeamRows, TeamPadding
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 from ee_formation_env.vector import BatchedStep
 
@@ -60,9 +61,10 @@ class BatchedTrainingEnv:
     :class:`ee_formation_env.vector.VectorFormationEnv` (per-copy seeds, SAME_STEP autoreset, ``reset_mask``;
     actions (K * N, n) or (K, N, n)): the actions are learned actions (the mode's), rewards carry the mode's
     reward factors and the shaping, observations (K, N * size) carry the features (``infos["final_observation"]``
-    too: the observation each copy ended in, featured). Every agent must have the same observation size and
-    joints (one policy is shared by all). The other infos are the batched env's, and so are ``state()``,
-    ``state_space`` and the copies' generators ``np_randoms``: it has the array API that
+    too: the observation each copy ended in, featured). One policy is shared by every agent: a mixed team
+    (agents of different spaces) gets padded spaces (:mod:`~ee_formation_env.baselines.learned.team`,
+    ``padding``), its actions (K * N, A) or (K, N, A). The other infos are the batched env's, and so are
+    ``state()``, ``state_space`` and the copies' generators ``np_randoms``: it has the array API that
     :class:`ee_formation_env.integrations.torchrl.BatchedTorchRLEnv` wraps (``from_batched``).
 
     ``overrides``: scenario overrides as given (a caller adds ``options.training_overrides()`` where it wants
@@ -91,16 +93,21 @@ class BatchedTrainingEnv:
         self.num_envs, self.scenario, self.task = env.num_envs, env.scenario, env.task
         self.possible_agents = self.agents = list(env.possible_agents)
         self.render_mode = None
-        spaces = [(env.observation_space(a), env.action_space(a)) for a in self.possible_agents]
-        if any(space != spaces[0] for space in spaces) or env.uniform_joints is None:
-            other = next((k for k, space in enumerate(spaces) if space != spaces[0]), None)
-            differs = "" if other is None else (
-                f": {self.possible_agents[other]} has observation {spaces[other][0].shape} and action "
-                f"{spaces[other][1].shape}, {self.possible_agents[0]} {spaces[0][0].shape} and {spaces[0][1].shape}")
-            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent"
-                             f"{differs} (one policy serves every agent: a team of one robot kind)")
         if options.obs_features == "invariant":
             check_invariant_arms(self.task)
+        copies = [env.copy_view(k) for k in range(self.num_envs)]
+        scales = rescaling(self.task, options.action_acceleration)
+        #: A mixed team's padded spaces (team.py), or None: a uniform team's agents see their own spaces.
+        self.padding = TeamPadding.of_team(env, options.obs_features)
+        if self.padding is not None:
+            self.action_rows = team = PaddedTeamRows(env, self.padding, options, copies, scales)
+            self._layout_rows, self._size = team.layout_rows, team.raw_size
+            space = self.padding.observation_space(env, options.obs_features)
+            self._observation_spaces = {agent: space for agent in self.possible_agents}
+            self._action_space = self.padding.action_space()
+            self._raw = None
+            return
+        spaces = [(env.observation_space(a), env.action_space(a)) for a in self.possible_agents]
         layouts = [env.observation_layout(agent) for agent in self.possible_agents]
         self._size = spaces[0][0].shape[0]
         row_layouts = layouts * self.num_envs  # copy-major rows
@@ -111,9 +118,8 @@ class BatchedTrainingEnv:
         self._features = FeatureRows(row_layouts, [options.obs_features] * len(row_layouts))
         self._observation_spaces = {agent: feature_space(space, layout, options.obs_features)
                                     for agent, (space, _), layout in zip(self.possible_agents, spaces, layouts)}
-        self.action_rows = options.training_mode.action_rows(
-            options, [env.copy_view(k) for k in range(self.num_envs)], self.possible_agents,
-            rescaling(self.task, options.action_acceleration))
+        self._action_space = None
+        self.action_rows = options.training_mode.action_rows(options, copies, self.possible_agents, scales)
         self._raw: np.ndarray | None = None  # the batched env's last observations (K * N, size)
 
     # -- spaces ---------------------------------------------------------------------------------------
@@ -121,7 +127,7 @@ class BatchedTrainingEnv:
         return self._observation_spaces[agent]
 
     def action_space(self, agent: str) -> gymnasium.spaces.Box:
-        return self.env.action_space(agent)
+        return self.env.action_space(agent) if self._action_space is None else self._action_space
 
     def observation_layout(self, agent: str) -> Any:
         """The layout of the raw part of ``agent``'s observation (the batched env's; features are appended)."""
@@ -189,7 +195,10 @@ class BatchedTrainingEnv:
 
     # -- internals ------------------------------------------------------------------------------------
     def _rows(self, observations: np.ndarray) -> np.ndarray:
-        """(K, N * size) -> (K * N, size): one row per agent, copy-major."""
+        """(K, N * size) -> (K * N, size): one row per agent, copy-major (a mixed team's zero-padded to its
+        largest raw size)."""
+        if self.padding is not None:
+            return self.action_rows.raw_rows(observations)
         return observations.reshape(-1, self._size)
 
     def _copy_rows(self, copies: np.ndarray) -> np.ndarray:
@@ -199,7 +208,9 @@ class BatchedTrainingEnv:
 
     def _featured(self, rows: np.ndarray, copies: int | None = None) -> np.ndarray:
         """(C * N, size) raw rows of ``copies`` = C copies (default all K) -> (C, N * featured size)
-        observations with the features appended."""
+        observations with the features appended (a mixed team's padded, with the robot kind's one-hot)."""
+        if self.padding is not None:
+            return self.action_rows.featured(rows)
         return self._features(rows).reshape(self.num_envs if copies is None else copies, -1)
 
     def _checked_actions(self, actions: Any) -> np.ndarray:
@@ -209,6 +220,8 @@ class BatchedTrainingEnv:
         K, N, n = self.num_envs, len(self.possible_agents), self.env.uniform_joints
         if self._raw is None:
             raise RuntimeError("step: call reset() first (the batched env has never been reset)")
+        if self.padding is not None:
+            return self.action_rows.checked_actions(actions)  # (K * N, A): each rule takes its rows' own joints
         return self.env.checked_action_array(actions).reshape(K * N, n)  # a copy; raises the env's errors
 
 

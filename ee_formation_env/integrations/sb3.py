@@ -13,7 +13,8 @@ project has its own VecEnv"), and each is tested:
 - every copy has its own PyBullet client, and with ``n_workers > 0`` the copies are spread over worker
   processes, so rollouts use several cores.
 
-Requires stable-baselines3 (the ``train`` extra). Agents must be homogeneous (same spaces).
+Requires stable-baselines3 (the ``train`` extra). Every agent must have the same spaces; the training env of
+``ee_formation_env.baselines.learned`` gives a mixed team's agents padded ones.
 """
 
 from __future__ import annotations
@@ -264,7 +265,10 @@ class SharedPolicyVecEnv(VecEnv):
         finally:
             probe.close()
         if any(s != spaces[0] for s in spaces):
-            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent")
+            other = next(k for k, s in enumerate(spaces) if s != spaces[0])
+            raise ValueError("agents: parameter sharing needs identical observation and action spaces for every agent: "
+                             f"{self.agents[other]} differs from {self.agents[0]} (the training env of "
+                             "ee_formation_env.baselines.learned pads a mixed team's spaces)")
         self.n_envs = n_envs
         self.n_workers = min(n_workers, self.n_envs - in_process_envs)
         self.n_local = self.n_envs if self.n_workers == 0 else in_process_envs  # copies stepped in this process

@@ -78,13 +78,13 @@ def test_an_empty_out_is_refused_naming_out_instead_of_training_into_a_default_f
         TrainConfig(out="  ").resolved()
 
 
-def test_a_team_one_shared_policy_cannot_serve_is_refused_before_any_run_folder(tmp_path, capsys):
+def test_a_mixed_team_a_backend_cannot_train_is_refused_before_any_run_folder(tmp_path, capsys):
     scenario = tmp_path / "mixed.json"
     scenario.write_text(json.dumps(mixed_team()))
-    assert train_command(["--scenario", str(scenario), "--out", str(tmp_path / "run"), *TINY]) == 2
+    assert train_command(["--scenario", str(scenario), "--backend", "rllib", "--out", str(tmp_path / "run"),
+                          *TINY]) == 2
     line = _one_error_line(capsys)
-    assert "parameter sharing needs identical observation and action spaces for every agent" in line
-    assert "arm_1 has observation" in line  # which agent differs
+    assert line.startswith("error: --backend: rllib cannot train a mixed team yet") and "--backend sb3" in line
     assert not (tmp_path / "run").exists()
 
 

@@ -9,7 +9,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from conftest import mixed_team
 from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, ParallelTrainingEnv
 
@@ -92,11 +91,6 @@ def test_bad_settings_name_the_field_before_any_client_starts(settings, message,
     monkeypatch.setattr(ee_formation_env, "vector_env", lambda *a, **k: pytest.fail("a client was built"))
     with pytest.raises(ValueError, match=message):
         BatchedTrainingEnv("planar_square", options=TrainingOptions(**settings), num_envs=2)
-
-
-def test_mixed_robot_teams_are_refused_for_parameter_sharing():
-    with pytest.raises(ValueError, match="agents: parameter sharing needs identical"):
-        BatchedTrainingEnv(mixed_team(), num_envs=2)
 
 
 @pytest.mark.parametrize("bad, match", [
