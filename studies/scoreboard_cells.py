@@ -13,7 +13,7 @@ with
   edits change a number, and a board that mixes code silently is worse than one recomputed;
 - ``protocol``: what the study itself sets for the cell (the method's definition: its ``train.py`` flags or
   BenchMARL run and learning settings, and the flags every learned method gets, such as ``--quick``'s), so that
-  redefining a method in ``studies/scoreboard.py`` recomputes its cells while editing that file's tables or
+  redefining a method in ``studies/scoreboard_methods.py`` recomputes its cells while editing that file's tables or
   prose does not.
 
 A cached cell is used only when all three match this code's (:func:`stale_reason`); otherwise it is recomputed,

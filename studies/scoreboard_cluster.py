@@ -49,7 +49,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, held_out_scenarios
-from studies.scoreboard import METHODS, TRAIN_SET, Board, Method, run_cell, run_test_cell, train_argv
+from studies.scoreboard_methods import METHODS, TRAIN_SET, Board, Method, run_cell, run_test_cell, train_argv
 from studies.scoreboard_cells import _describe, cached_record, code_version, write_cell
 
 #: Retries of a task whose worker process or node died (Ray's ``max_retries``; exceptions are not retried).

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ee_formation_env.scenario_sets import held_out_scenarios
-from studies import scoreboard
+from studies import scoreboard, scoreboard_methods
 
 
 def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
@@ -92,7 +92,7 @@ def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypat
     def stopped(*args, **kwargs):
         raise TrainingFaults("training: 100 of the last 100 training episodes ended in a physics fault (...)")
 
-    monkeypatch.setattr(scoreboard, "_learned_cell", stopped)
+    monkeypatch.setattr(scoreboard_methods, "_learned_cell", stopped)
     argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "torque-ppo",
             "--seeds", "0", "--episodes", "1", "--no-test-sets"]
     assert scoreboard.main(argv) == 0
@@ -199,7 +199,7 @@ def test_docs_keeps_the_committed_board_when_refused_and_replaces_it_with_replac
     board.write_text(json.dumps({"rows": committed}))
     monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
     monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
-    monkeypatch.setattr(scoreboard, "run_cell", lambda *args: _record("planar_square", "gradient", None, 3.0))
+    monkeypatch.setattr(scoreboard_methods, "run_cell", lambda *args: _record("planar_square", "gradient", None, 3.0))
     argv = ["--out", str(tmp_path / "out"), "--scenarios", "planar_square", "--methods", "gradient", "--episodes", "1",
             "--no-test-sets", "--docs"]
     before = board.read_text(), page.read_text()

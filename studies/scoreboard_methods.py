@@ -1,0 +1,339 @@
+"""The scoreboard's methods and cells: what each method is, what one invocation evaluates (:class:`Board`), how
+one cell is computed (:func:`run_cell`, :func:`run_test_cell`) and the local, in-order filling of a board
+(:func:`fill`). The command, its aggregation and the protocol are :mod:`studies.scoreboard`'s; the cell cache
+is :mod:`studies.scoreboard_cells`'s; running the cells on a Ray cluster, :mod:`studies.scoreboard_cluster`'s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from ee_formation_env.baselines import REFERENCE_CONTROLLERS
+from ee_formation_env.baselines.metrics import run_episodes
+from ee_formation_env.scenario import load_scenario
+from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
+from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
+
+
+@dataclass(frozen=True)
+class BenchmarlRun:
+    """A studies.benchmarl_runs run: algorithm, training-task mode, wall-clock budget and learning settings."""
+
+    algorithm: str
+    mode: str
+    minutes: float
+    settings: str = "benchmarl"  # a name of studies.benchmarl_runs.SETTINGS_NAMES
+
+
+@dataclass(frozen=True)
+class Method:
+    """One row kind of the board: a reference controller, or a ``train.py`` configuration (its flags)."""
+
+    name: str
+    reference: str | None = None  # the reference controller's name, for a reference method
+    train_flags: tuple[str, ...] = ()  # train.py flags of a learned method (its preset sets the rest)
+    needs_invariant_arms: bool = False  # its observation features need arms turning about their base z axis
+    benchmarl: BenchmarlRun | None = None  # a BenchMARL method's run
+
+    @property
+    def learned(self) -> bool:
+        return self.reference is None
+
+    def unavailable(self, scenario: str) -> str | None:
+        """Why the method cannot run on ``scenario`` here (None if it can): features the arms cannot have, or a
+        BenchMARL method without the ``torchrl`` extra installed."""
+        if self.benchmarl is not None:
+            import importlib.util
+
+            if importlib.util.find_spec("benchmarl") is None:
+                return "needs the torchrl extra (benchmarl)"
+        if self.needs_invariant_arms and not self._invariant_arms(scenario):
+            return "its features need arms whose first joint turns about their base z axis"
+        return None
+
+    @staticmethod
+    def _invariant_arms(scenario: str) -> bool:
+        from ee_formation_env.baselines.learned.features import check_invariant_arms
+        from ee_formation_env.task import build_task
+
+        try:
+            check_invariant_arms(build_task(load_scenario(scenario)))
+        except ValueError:
+            return False
+        return True
+
+
+#: The board's methods: the paper's three laws, PPO in residual and torque mode at train.py's presets, residual
+#: PPO with the log-error features (``-contact``: and the contact penalty, shaping.py) and on the base-yaw-
+#: invariant ones (the generalization design; arms turning about base z only), and BenchMARL's MAPPO, IPPO and MASAC on the training task (``-sb3``: with the learning
+#: settings of train.py's torque preset, studies.benchmarl_runs.SETTINGS).
+METHODS: dict[str, Method] = {
+    **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
+    "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
+    "residual-ppo-log-error": Method("residual-ppo-log-error", train_flags=(
+        "--mode", "residual", "--obs-features", "log-error")),
+    "residual-ppo-log-error-contact": Method("residual-ppo-log-error-contact", train_flags=(
+        "--mode", "residual", "--obs-features", "log-error", "--contact-penalty", "1.0")),
+    "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
+        "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
+    # The correction on the law that settles fastest on the spatial tasks (Theorem 3.1), not on the default.
+    "residual-ppo-gradient": Method("residual-ppo-gradient", train_flags=(
+        "--mode", "residual", "--reference", "gradient")),
+    # The same with the gate squared: the correction fades faster than the law's pull near the goal.
+    "residual-ppo-gradient-gate2": Method("residual-ppo-gradient-gate2", train_flags=(
+        "--mode", "residual", "--reference", "gradient", "--residual-gate-power", "2")),
+    # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
+    "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
+    "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(
+        "--mode", "torque", "--max-train-seconds", "1800", "--contact-penalty", "1.0")),
+    # The gravity-compensated torque convention (docs/spaces.md, "Action conventions"), at the same budget.
+    "torque-gc-ppo": Method("torque-gc-ppo", train_flags=(
+        "--mode", "torque", "--gravity-compensation", "--max-train-seconds", "1800")),
+    # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
+    # compensation, from scratch, at the same budget.
+    "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),
+    # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
+    "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
+    "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
+    "mappo-torque-sb3-decay": Method("mappo-torque-sb3-decay",
+                                     benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3-decay")),
+    "mappo-residual": Method("mappo-residual", benchmarl=BenchmarlRun("mappo", "residual", 10.0)),
+    "ippo-residual": Method("ippo-residual", benchmarl=BenchmarlRun("ippo", "residual", 10.0)),
+    "masac-residual": Method("masac-residual", benchmarl=BenchmarlRun("masac", "residual", 10.0)),
+    # From scratch with the project's BenchMARL configs (normalized observations and advantages, scaled rewards).
+    **{f"{algorithm}-{mode}-project": Method(f"{algorithm}-{mode}-project",
+                                             benchmarl=BenchmarlRun(algorithm, mode, 30.0, "project"))
+       for mode in ("torque", "velocity") for algorithm in ("mappo", "ippo", "masac")},
+}
+QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
+DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
+DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
+QUICK_FLAGS = ("--total-timesteps", "64", "--n-envs", "1", "--n-steps", "16", "--n-workers", "0")
+
+# ------------------------------------------------------------------------------------------ cells
+@dataclass(frozen=True)
+class Board:
+    """What one invocation evaluates: where, which cells, with which evaluation and training settings."""
+
+    out: Path
+    scenarios: tuple[str, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    episodes: int
+    episode_seconds: float | None  # None: each scenario's own episode length
+    extra_train_flags: tuple[str, ...] = ()  # train.py flags added to every learned method's (--quick's budget)
+    eval_workers: int | None = None  # train.py's --eval-workers (None: its default)
+
+    test_sets: bool = True  # also evaluate on each scenario's test set (scenario_sets)
+    accept_stale: bool = False  # aggregate cells of another code version as they are (each reported)
+
+    def protocol(self, method: Method) -> dict[str, Any]:
+        """What the study sets for a cell of ``method`` (recorded in it; studies.scoreboard_cells): the
+        method's definition, the BenchMARL learning settings it names, and the flags every learned method gets."""
+        protocol: dict[str, Any] = {"method": dataclasses.asdict(method)}
+        if method.benchmarl is not None:
+            from studies.benchmarl_runs import PROJECT_SETTINGS, SETTINGS
+
+            run = method.benchmarl
+            if run.settings != PROJECT_SETTINGS:
+                protocol["benchmarl_settings"] = dataclasses.asdict(SETTINGS[run.settings])
+            else:  # the project's YAML files, read where the torchrl extra is installed
+                try:
+                    from ee_formation_env.baselines.learned.benchmarl_configs import config_files
+                except ImportError:
+                    protocol["benchmarl_settings"] = "the project's YAML files (unread: needs the torchrl extra)"
+                else:
+                    protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode)
+        if method.learned:
+            protocol["extra_train_flags"] = list(self.extra_train_flags)
+        return protocol
+
+    def cell_path(self, scenario: str, method: Method, seed: int | None, test: str | None = None) -> Path:
+        """A training-split cell, or with ``test`` the cell of that test scenario (of training ``scenario``)."""
+        name = "reference.json" if seed is None else f"seed-{seed}.json"
+        folder = self.out / "cells" / scenario / method.name
+        return folder / name if test is None else folder / "test" / test / name
+
+    def run_dir(self, scenario: str, method: Method, seed: int) -> Path:
+        return self.out / "runs" / scenario / method.name / f"seed-{seed}"
+
+    def eval_seeds(self, scenario: str | None = None) -> list[int]:
+        """The held-out evaluation seeds: ``episodes`` of them from ``EVAL_SEED_OFFSET``; a scenario
+        distribution's test set (``scenario_sets.TEST_SEEDS``, at most ``episodes`` of them under ``--quick``)."""
+        from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
+
+        if scenario in DISTRIBUTIONS:
+            return list(TEST_SEEDS[:self.episodes] if self.extra_train_flags else TEST_SEEDS)
+        return [EVAL_SEED_OFFSET + k for k in range(self.episodes)]
+
+    def train_seeds(self) -> list[int]:
+        """A distribution's train-set draws (``scenario_sets.TRAIN_SEEDS``; fewer under ``--quick``)."""
+        return list(TRAIN_SEEDS[:self.episodes] if self.extra_train_flags else TRAIN_SEEDS)
+
+
+def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> dict[str, Any]:
+    """Train (a learned method) and evaluate one cell; its record (per-episode metrics, budget, wall time)."""
+    started = time.time()
+    seconds = board.episode_seconds or load_scenario(scenario).episode_seconds
+    overrides = {"episode_seconds": seconds}
+    seeds = board.eval_seeds(scenario)
+    split = {"split": "test"} if scenario in DISTRIBUTIONS else {}  # a distribution's held-out draws
+    if method.learned:
+        from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
+
+        try:
+            episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
+        except TrainingFaults as fault:  # a result too: this method does not train on this scenario
+            return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
+                    "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
+                    "episodes": [], "failed": str(fault)}
+    else:
+        metrics = run_episodes(scenario, method.reference, seeds, overrides=overrides)
+        episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
+    return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
+            "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
+            "episodes": [{k: v for k, v in e.items() if k != "trajectory"} for e in episodes]}
+
+
+def _learned_cell(board: Board, scenario: str, method: Method, seed: int, seconds: float
+                  ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Train ``method`` on ``scenario`` with ``seed`` (resuming its run folder if a run stopped) and return the
+    learned policy's held-out episodes (the run's own comparison) and the budget."""
+    from ee_formation_env.baselines.learned.config import TrainConfig
+    from ee_formation_env.baselines.learned.run import train
+    from ee_formation_env.baselines.learned.saved_run import newest_intact_checkpoint
+
+    run_dir = board.run_dir(scenario, method, seed)
+    # A run started by another code version, or for another definition of the method, is trained again.
+    current = run_is_current(run_dir, board.protocol(method))
+    if not current:
+        mark_run(run_dir, board.protocol(method))
+    if method.benchmarl is not None:
+        return _benchmarl_cell(board, scenario, method, seed, run_dir, current)
+    if not current or not (run_dir / "comparison.json").is_file():
+        evaluation = ["--eval-episodes", str(len(board.eval_seeds(scenario))), "--eval-seconds", str(seconds),
+                      "--no-progress",
+                      *(() if board.eval_workers is None else ("--eval-workers", str(board.eval_workers)))]
+        # A run killed before its first checkpoint (a lost node, a killed process) starts again.
+        if current and (run_dir / "config.json").is_file() and newest_intact_checkpoint(run_dir) is not None:
+            argv = ["--resume", str(run_dir), *evaluation]
+        else:
+            argv = [*train_argv(board, scenario, method, seed), "--out", str(run_dir), "--overwrite", *evaluation]
+        train(TrainConfig.from_args(argv))
+    comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))
+    timing = json.loads((run_dir / "timing.json").read_text(encoding="utf-8"))
+    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    budget = {"agent_steps": int(timing["agent_steps"]), "train_seconds": float(timing["train_seconds"]),
+              "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
+              "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
+    return comparison["results"]["learned"]["per_episode"], budget
+
+
+def train_argv(board: Board, scenario: str, method: Method, seed: int) -> list[str]:
+    """The ``train.py`` flags that define a learned cell's training run (its folder and evaluation aside)."""
+    return ["--scenario", scenario, "--recipe", "none", *method.train_flags, *board.extra_train_flags,
+            "--seed", str(seed)]
+
+
+def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None, test: str,
+                  test_scenario: Any, trained: dict[str, Any], seeds: Sequence[int] | None = None,
+                  split: str = "test") -> dict[str, Any]:
+    """Evaluate one cell of a test scenario: a reference controller there, or the policy of the training run
+    of (``scenario``, ``method``, ``seed``) (its training cell ``trained``) unchanged there; on ``seeds``
+    (default: the held-out ones). A distribution's train-set cell is the distribution itself on its
+    ``TRAIN_SEEDS``, ``split="train"``."""
+    started = time.time()
+    seconds = board.episode_seconds or load_scenario(test_scenario).episode_seconds
+    seeds = board.eval_seeds() if seeds is None else list(seeds)
+    record = {"scenario": test, "trained_on": scenario, "split": split, "method": method.name, "seed": seed,
+              "eval_seeds": seeds, "episode_seconds": seconds, "budget": trained["budget"]}
+    if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
+        return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
+    run_dir = board.run_dir(scenario, method, seed)
+    if method.benchmarl is not None:
+        metrics = run_episodes(test_scenario, trained_policies(method, run_dir), seeds,
+                               overrides={"episode_seconds": seconds})
+    elif method.learned:  # as the run's own comparison evaluates it: in the env settings it trained with
+        from ee_formation_env.baselines.learned.policy import SavedRun
+
+        run = SavedRun.load(run_dir, f"{method.name} run")
+        metrics = run_episodes(test_scenario, run.policy_source(), seeds,
+                               overrides={"episode_seconds": seconds, **run.env_overrides()})
+    else:
+        metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds})
+    episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]
+    return {**record, "wall_seconds": time.time() - started, "episodes": episodes}
+
+
+def trained_policies(method: Method, run_dir: Path, env: Any = None) -> Callable[[Any], dict[str, Any]]:
+    """``copy_env -> per-agent policies`` of a learned method's trained run in ``run_dir``: a BenchMARL run's
+    exported actor, or a ``train.py`` run's model (whose observation layouts and action scales are read from
+    ``env``, a single or batched env of the scenario it acts on)."""
+    if method.benchmarl is not None:
+        from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
+
+        return load_benchmarl_policy(run_dir / "policy").policy_factory()
+    from ee_formation_env.baselines.learned.policy import learned_policy_factory
+
+    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+    return learned_policy_factory(run_dir, env, config)
+
+
+def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_dir: Path, current: bool = True
+                    ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Train and evaluate a BenchMARL method (studies.benchmarl_runs; a stopped run starts again: BenchMARL runs
+    are not resumed; one ``current`` is False for, another code version's, too) and return its held-out
+    episodes and budget."""
+    from studies import benchmarl_runs
+
+    spec = method.benchmarl
+    if not current or not (run_dir / "evaluation.json").is_file():
+        benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if board.extra_train_flags else spec.minutes,
+                           seed, run_dir, len(board.eval_seeds(scenario)), episode_seconds=board.episode_seconds,
+                           settings=benchmarl_runs.SETTINGS.get(spec.settings, spec.settings))
+    record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
+    budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
+              "minutes": float(record["minutes"]), "mode": spec.mode, "algorithm": spec.algorithm,
+              "settings": spec.settings}
+    return record["evaluation"]["per_episode"], budget
+
+
+def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Run every cell of ``board`` that is not cached (written atomically when complete), the test-set cells
+    after their training cell; every cell record."""
+    records = []
+    for scenario in board.scenarios:
+        tests = held_out_scenarios(scenario) if board.test_sets else {}
+        for name in board.methods:
+            method = METHODS[name]
+            why = method.unavailable(scenario)
+            if why:
+                progress(f"skipped {scenario} / {name}: {why}")
+                continue
+            for seed in (board.seeds if method.learned else (None,)):
+                label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
+
+                def cached(path: Path, label: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+                    return cached_cell(path, label, board.protocol(method), compute, progress, board.accept_stale)
+
+                trained = cached(board.cell_path(scenario, method, seed), label,
+                                 lambda: run_cell(board, scenario, method, seed))
+                records.append(trained)
+                for test, test_scenario in tests.items():
+                    records.append(cached(
+                        board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
+                        lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained)))
+                if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
+                    records.append(cached(
+                        board.cell_path(scenario, method, seed, TRAIN_SET), f"{label} -> train set",
+                        lambda: run_test_cell(board, scenario, method, seed, scenario, scenario, trained,
+                                              board.train_seeds(), split="train")))
+    return records
+
+
+TRAIN_SET = "train-set"  # a distribution's train-set cells' folder (beside its test scenarios')
