@@ -1,10 +1,10 @@
 """RLlib PPO throughput against the number of env runners: ``python -m benchmarks.rllib_scaling``.
 
 Builds ``train.py --backend rllib``'s PPO (``rllib_backend.ppo_config``, the run's preset) with 0, 1, 2, ...
-env runners, the same ``n_envs`` copies split among them, runs a few training iterations each and prints, per
-layout, agent steps per second of training (sampling and learning, what a run gets) and of sampling alone
-(RLlib's env-runner sampling timer), with the ratio to one env runner. Needs the ``distributed`` extra; every
-layout runs in one fresh local Ray instance, one after the other, so compare ratios within one invocation.
+env runners, the same ``n_envs`` copies split among them, runs a few training iterations each (after one
+untimed) and prints, per layout, the agent steps per second of training (sampling and PPO updates, what a run
+gets, timed by wall clock), per env runner, and the ratio to one env runner. Needs the ``distributed`` extra;
+every layout runs in a fresh local Ray instance, one after the other, so compare ratios within one invocation.
 """
 
 from __future__ import annotations
@@ -39,11 +39,10 @@ def measure(scenario: str, runners: int, n_envs: int, iterations: int, warmup: i
         algorithm = ppo_config(args, agents).build_algo()
         for _ in range(warmup):
             algorithm.train()
-        env_steps, sampling_seconds, started = 0, 0.0, time.perf_counter()
+        env_steps, started = 0, time.perf_counter()
         for _ in range(iterations):
             result = algorithm.train()
             env_steps += int(result["env_runners"]["num_env_steps_sampled"])
-            sampling_seconds += float(result["timers"]["env_runner_sampling_timer"])
         seconds = time.perf_counter() - started
         algorithm.stop()
     finally:
@@ -51,20 +50,18 @@ def measure(scenario: str, runners: int, n_envs: int, iterations: int, warmup: i
     _, copies = env_runner_copies(args)
     return {"scenario": scenario, "env_runners": runners, "copies_per_runner": copies, "agents": agents,
             "agent_steps": env_steps * agents, "seconds": seconds,
-            "training_agent_steps_per_s": env_steps * agents / seconds,
-            "sampling_agent_steps_per_s": env_steps * agents / sampling_seconds}
+            "training_agent_steps_per_s": env_steps * agents / seconds}
 
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
     one = next((r for r in rows if r["env_runners"] == 1), rows[0])
-    lines = ["| scenario | env runners | copies per runner | training agent steps/s | x 1 runner | "
-             "sampling agent steps/s | x 1 runner |", "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| scenario | env runners | copies per runner | training agent steps/s | per env runner | x 1 runner |",
+             "|---|---:|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['scenario']} | {r['env_runners']} | {r['copies_per_runner']} | "
-                     f"{r['training_agent_steps_per_s']:,.0f} | "
-                     f"{r['training_agent_steps_per_s'] / one['training_agent_steps_per_s']:.2f} | "
-                     f"{r['sampling_agent_steps_per_s']:,.0f} | "
-                     f"{r['sampling_agent_steps_per_s'] / one['sampling_agent_steps_per_s']:.2f} |")
+        rate = r["training_agent_steps_per_s"]
+        per_runner = f"{rate / r['env_runners']:,.0f}" if r["env_runners"] else "(driver)"
+        lines.append(f"| {r['scenario']} | {r['env_runners']} | {r['copies_per_runner']} | {rate:,.0f} | {per_runner} | "
+                     f"{rate / one['training_agent_steps_per_s']:.2f} |")
     return "\n".join(lines)
 
 

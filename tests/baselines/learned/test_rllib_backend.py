@@ -78,3 +78,12 @@ def test_the_saved_module_starts_with_the_runs_action_noise_and_is_rebuilt_with_
     assert action.shape == (len(description["action_low"]),)
     timing = json.loads((run_dir / "timing.json").read_text())
     assert timing["env_runners"] == 0 and timing["copies_per_env_runner"] == 2 and timing["agent_steps"] >= 64
+
+
+def test_the_scaling_benchmark_prints_a_row_per_env_runner_count(capsys):
+    pytest.importorskip("ray.rllib")
+    from benchmarks import rllib_scaling
+
+    assert rllib_scaling.main(["--runners", "0", "--n-envs", "2", "--iterations", "1"]) == 0
+    table = capsys.readouterr().out
+    assert "| planar_square | 0 | 2 |" in table and "(driver)" in table
