@@ -49,7 +49,7 @@ FEEDFORWARDS: dict[str, dict[str, float] | None] = {"hold": None, "velocity": {"
 QUICK = {"episode_seconds": 2.0, "manoeuvre": {"start": 0.5, "duration": 1.0}}  # a smoke run's squeezed motion
 
 
-#: The scoreboard's learned methods this study evaluates (``--learned``; loaded by studies.scoreboard.trained_policies).
+#: The scoreboard's learned methods this study evaluates (``--learned``; loaded by studies.scoreboard_methods.trained_policies).
 LEARNED = ("residual-ppo", "mappo-residual")
 
 
@@ -94,7 +94,7 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
         if run is None:
             policies = make_policies(LAWS[law], env, gains=FEEDFORWARDS[feedforward])
         else:
-            from studies.scoreboard import METHODS, trained_policies
+            from studies.scoreboard_methods import METHODS, trained_policies
 
             policies = trained_policies(METHODS[law], run[1], env)(env)
         metrics = run_episode(env, policies, seed, on_reset=sample, on_step=sample)
