@@ -59,20 +59,7 @@ class ActionCheck:
         (K * N, n) or (K, N, n); a ``ValueError`` starting ``actions:`` otherwise."""
         K, T, n, N = copies, self.n_joints, self.uniform_joints, len(self.agents)
         shapes = [(K, T)] + ([(K * N, n), (K, N, n)] if n else [])
-        try:
-            raw = np.asarray(actions)
-            if raw.dtype.kind not in "biuf":
-                raise ValueError
-        except (TypeError, ValueError):
-            raise ValueError(f"actions: expected a numeric array of shape {' or '.join(map(str, shapes))}, got "
-                             f"{type(actions).__name__} {excerpt(actions)}") from None
-        if raw.shape not in shapes:
-            raise ValueError(f"actions: expected shape {' or '.join(map(str, shapes))}, got {raw.shape}")
-        normalized = raw.reshape(K, T).astype(np.float64)  # always a copy: clipped in place
-        if not np.isfinite(normalized).all():
-            bad = np.flatnonzero(~np.isfinite(normalized).all(axis=1)).tolist()
-            raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad}")
-        return normalized
+        return numeric_action_array(actions, shapes, (K, T))  # always a copy: clipped in place
 
     def clip(self, normalized: np.ndarray) -> np.ndarray:
         """Clip checked (K, T) actions to [-1, 1] in place; the entries clipped per (copy, agent) (K, N)."""
@@ -92,3 +79,24 @@ class ActionCheck:
         bad = ~finite.all(axis=1)
         raise ValueError(f"actions[{agent!r}]: expected finite values of shape {shape}, got non-finite values in "
                          f"copies {np.flatnonzero(bad).tolist()}: {array[bad].tolist()[:3]}")
+
+
+def numeric_action_array(actions: Any, shapes: Sequence[tuple[int, ...]], flat_shape: tuple[int, int],
+                         rows_per_copy: int = 1) -> np.ndarray:
+    """A fresh float64 array of ``flat_shape`` from ``actions``, an array of one of ``shapes``; a ``ValueError``
+    starting ``actions:`` for anything else or for non-finite values, naming their copies (row // rows_per_copy
+    of the flat array)."""
+    try:
+        raw = np.asarray(actions)
+        if raw.dtype.kind not in "biuf":
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ValueError(f"actions: expected a numeric array of shape {' or '.join(map(str, shapes))}, got "
+                         f"{type(actions).__name__} {excerpt(actions)}") from None
+    if raw.shape not in shapes:
+        raise ValueError(f"actions: expected shape {' or '.join(map(str, shapes))}, got {raw.shape}")
+    flat = raw.reshape(flat_shape).astype(np.float64)
+    if not np.isfinite(flat).all():
+        bad = sorted({int(row) // rows_per_copy for row in np.flatnonzero(~np.isfinite(flat).all(axis=1))})
+        raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad}")
+    return flat

@@ -49,7 +49,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, held_out_scenarios
-from studies.scoreboard_methods import METHODS, TRAIN_SET, Board, Method, run_cell, run_test_cell, train_argv
+from studies.scoreboard_methods import (METHODS, TRAIN_SET, Board, Method, run_cell, run_test_cell, train_argv,
+                                        training_cells)
 from studies.scoreboard_cells import _describe, cached_record, code_version, write_cell
 
 #: Retries of a task whose worker process or node died (Ray's ``max_retries``; exceptions are not retried).
@@ -128,31 +129,23 @@ def cell_groups(board: Board, progress: Callable[[str], None] = print) -> list[C
     """The groups of ``board`` with a missing cell, in board order (as ``fill`` runs them); each cached cell is
     reported as ``fill`` reports it."""
     groups = []
-    for scenario in board.scenarios:
+    for scenario, method, seed, label in training_cells(board, progress):
         tests = list(held_out_scenarios(scenario)) if board.test_sets else []
-        for name in board.methods:
-            method = METHODS[name]
-            why = method.unavailable(scenario)
-            if why:
-                progress(f"skipped {scenario} / {name}: {why}")
-                continue
-            protocol = board.protocol(method)
-            for seed in (board.seeds if method.learned else (None,)):
-                label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
 
-                def cell(test: str | None, text: str) -> Cell:
-                    path = board.cell_path(scenario, method, seed, test).relative_to(board.out)
-                    return Cell(test, path.as_posix(), text)
+        def cell(test: str | None, text: str) -> Cell:
+            path = board.cell_path(scenario, method, seed, test).relative_to(board.out)
+            return Cell(test, path.as_posix(), text)
 
-                training = cell(None, label)
-                cells = [training, *(cell(test, f"{label} -> test {test}") for test in tests)]
-                if scenario in DISTRIBUTIONS:
-                    cells.append(cell(TRAIN_SET, f"{label} -> train set"))
-                cached = {c: cached_record(board.out / c.path, c.label, protocol, progress, board.accept_stale)
-                          for c in cells}
-                missing = tuple(c for c in cells if cached[c] is None)
-                if missing:
-                    groups.append(CellGroup(scenario, name, seed, label, training, missing, cached[training]))
+        training = cell(None, label)
+        cells = [training, *(cell(test, f"{label} -> test {test}") for test in tests)]
+        if scenario in DISTRIBUTIONS:
+            cells.append(cell(TRAIN_SET, f"{label} -> train set"))
+        protocol = board.protocol(method)
+        cached = {c: cached_record(board.out / c.path, c.label, protocol, progress, board.accept_stale)
+                  for c in cells}
+        missing = tuple(c for c in cells if cached[c] is None)
+        if missing:
+            groups.append(CellGroup(scenario, method.name, seed, label, training, missing, cached[training]))
     return groups
 
 

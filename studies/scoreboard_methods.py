@@ -11,7 +11,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import run_episodes
@@ -307,8 +307,32 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
     """Run every cell of ``board`` that is not cached (written atomically when complete), the test-set cells
     after their training cell; every cell record."""
     records = []
-    for scenario in board.scenarios:
+    for scenario, method, seed, label in training_cells(board, progress):
         tests = held_out_scenarios(scenario) if board.test_sets else {}
+
+        def cached(path: Path, label: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+            return cached_cell(path, label, board.protocol(method), compute, progress, board.accept_stale)
+
+        trained = cached(board.cell_path(scenario, method, seed), label,
+                         lambda: run_cell(board, scenario, method, seed))
+        records.append(trained)
+        for test, test_scenario in tests.items():
+            records.append(cached(
+                board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
+                lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained)))
+        if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
+            records.append(cached(
+                board.cell_path(scenario, method, seed, TRAIN_SET), f"{label} -> train set",
+                lambda: run_test_cell(board, scenario, method, seed, scenario, scenario, trained,
+                                      board.train_seeds(), split="train")))
+    return records
+
+
+def training_cells(board: Board, progress: Callable[[str], None] = print
+                   ) -> Iterator[tuple[str, Method, int | None, str]]:
+    """(scenario, method, training seed or None for a reference, label) of every training cell of ``board``, in
+    board order; a method that cannot run on a scenario is reported (``skipped``) and left out."""
+    for scenario in board.scenarios:
         for name in board.methods:
             method = METHODS[name]
             why = method.unavailable(scenario)
@@ -316,24 +340,7 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
                 progress(f"skipped {scenario} / {name}: {why}")
                 continue
             for seed in (board.seeds if method.learned else (None,)):
-                label = f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
-
-                def cached(path: Path, label: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-                    return cached_cell(path, label, board.protocol(method), compute, progress, board.accept_stale)
-
-                trained = cached(board.cell_path(scenario, method, seed), label,
-                                 lambda: run_cell(board, scenario, method, seed))
-                records.append(trained)
-                for test, test_scenario in tests.items():
-                    records.append(cached(
-                        board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
-                        lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained)))
-                if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
-                    records.append(cached(
-                        board.cell_path(scenario, method, seed, TRAIN_SET), f"{label} -> train set",
-                        lambda: run_test_cell(board, scenario, method, seed, scenario, scenario, trained,
-                                              board.train_seeds(), split="train")))
-    return records
+                yield scenario, method, seed, f"{scenario} / {name}" + ("" if seed is None else f" / seed {seed}")
 
 
 TRAIN_SET = "train-set"  # a distribution's train-set cells' folder (beside its test scenarios')

@@ -27,6 +27,7 @@ from typing import Any, Mapping, Sequence
 import gymnasium
 import numpy as np
 
+from ee_formation_env.actions import numeric_action_array
 from ee_formation_env.baselines.learned.features import FeatureRows, feature_size, feature_space
 
 TEAM_PADDING_KEY = "team_padding"  # the run's config.json key
@@ -293,21 +294,7 @@ class PaddedTeamRows:
         """The learned actions (K * N, A) float64 from (K * N, A) or (K, N, A); a ``ValueError`` starting
         ``actions:`` for bad ones."""
         K, N, A = self.K, self.N, self.action_size
-        shapes = [(K * N, A), (K, N, A)]
-        try:
-            raw = np.asarray(actions)
-            if raw.dtype.kind not in "biuf":
-                raise ValueError
-        except (TypeError, ValueError):
-            raise ValueError(f"actions: expected a numeric array of shape {' or '.join(map(str, shapes))}, got "
-                             f"{type(actions).__name__}") from None
-        if raw.shape not in shapes:
-            raise ValueError(f"actions: expected shape {' or '.join(map(str, shapes))}, got {raw.shape}")
-        learned = raw.reshape(K * N, A).astype(np.float64)
-        if not np.isfinite(learned).all():
-            bad = sorted({int(row) // N for row in np.flatnonzero(~np.isfinite(learned).all(axis=1))})
-            raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad}")
-        return learned
+        return numeric_action_array(actions, [(K * N, A), (K, N, A)], (K * N, A), rows_per_copy=N)
 
     def reset(self, rows: Sequence[int] | np.ndarray | None = None) -> None:
         for group, (_, _, _, rule, _, _) in enumerate(self._groups):
