@@ -33,15 +33,20 @@ def _torque_commands(arm_sets: Sequence[Any]) -> list[tuple[int, list[int], list
     return [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm_set in arm_sets for arm in arm_set.arms]
 
 
-def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None) -> float:
+def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None, reads: bool = False) -> float:
     """Raw floor, one client per formation: every copy of ``venv`` (reset) steps its own client ``steps``
     physics steps, zero torques re-sent before each; no env logic. ``lockstep = frame_skip``: the clients take
     turns, ``frame_skip`` physics steps each (what any env that steps all copies per call must do); None:
-    each client runs all its steps in one go (free-running, cache-warm: a bound no lockstep env reaches)."""
+    each client runs all its steps in one go (free-running, cache-warm: a bound no lockstep env reaches).
+    ``reads`` (lockstep only): after each turn, the reads every env step needs and PyBullet cannot batch, one
+    ``getJointStates`` per arm and one ``getContactPoints`` per client, results unused: the floor of an env
+    that computes nothing from what it reads."""
     venv.reset(seed=0)
     set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
+    joint_states, contact_points = pybullet.getJointStates, pybullet.getContactPoints
     clients = [(world.client, _torque_commands([arm_set])) for world, arm_set in zip(venv._worlds, venv._arm_sets)]
     chunk = lockstep or steps
+    read = reads and lockstep is not None
     start = time.perf_counter()
     for _ in range(steps // chunk):
         for client, commands in clients:
@@ -49,6 +54,10 @@ def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None) -> fl
                 for body, joints, forces in commands:
                     set_motors(body, joints, torque_control, forces=forces, physicsClientId=client)
                 step(physicsClientId=client)
+            if read:
+                for body, joints, _ in commands:
+                    joint_states(body, joints, physicsClientId=client)
+                contact_points(physicsClientId=client)
     return time.perf_counter() - start
 
 
@@ -159,6 +168,7 @@ def bench_vector(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
             try:
                 times = interleaved({
                     "clients": lambda: time_floor_clients(venv, physics, lockstep=fs),
+                    "clients_reads": lambda: time_floor_clients(venv, physics, lockstep=fs, reads=True),
                     "clients_free": lambda: time_floor_clients(venv, physics),
                     "one_client": lambda: one_client.time(physics),
                     "vector": lambda: time_vector_steps(venv, env_steps),
@@ -166,17 +176,20 @@ def bench_vector(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
             finally:
                 venv.close()
                 one_client.close()
-            floors = {key: count * physics / min(times[key]) for key in ("clients", "clients_free", "one_client")}
+            floors = {key: count * physics / min(times[key]) for key in ("clients", "clients_reads", "clients_free",
+                                                                               "one_client")}
             floor_layout = max(("clients", "one_client"), key=floors.get)
             floor = floors[floor_layout]
             common = dict(scenario=name, n_arms=scenario.n_agents, num_envs=count, raw_physics_steps_per_s=floor,
                           floor_layout=floor_layout, floor_clients_physics_steps_per_s=floors["clients"],
                           floor_clients_free_physics_steps_per_s=floors["clients_free"],
+                          floor_clients_reads_physics_steps_per_s=floors["clients_reads"],
                           floor_one_client_physics_steps_per_s=floors["one_client"])
             for key, what in (("clients", f"raw floor, {count} clients in lockstep ({fs} physics steps each per turn)"),
+                              ("clients_reads", f"raw floor and the per-step reads, {count} clients in lockstep"),
                               ("clients_free", f"raw floor, {count} clients, each run through (free-running)"),
                               ("one_client", f"raw floor, one client holding {count} formations")):
-                rss = memory["one_client" if key == "one_client" else "clients"][count]
+                rss = memory["one_client" if key == "one_client" else "clients"][count]  # same bodies
                 rows.append(_row("vector", f"{name}, K={count}: {what}", times[key], count * physics, 1, hz, floor,
                                  layout=key, rss_mb=rss, rss_mb_per_formation=rss / count, **common))
             rss = memory["clients"][count]
