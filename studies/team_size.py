@@ -257,7 +257,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m studies.team_size", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("runs/team_size"), help="runs and results folder")
     parser.add_argument("--seeds", type=int, nargs="+", default=list(DEFAULT_SEEDS), help="training seeds")
-    parser.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), help="team sizes N")
+    parser.add_argument("--sizes", type=int, nargs="+", default=None,
+                        help=f"team sizes N (default {DEFAULT_SIZES[0]} to {DEFAULT_SIZES[-1]}; --quick: 3 and 8)")
     parser.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="test draws per N (<= 50)")
     parser.add_argument("--max-train-seconds", type=float, default=DEFAULT_TRAIN_SECONDS,
                         help="wall time per training seed, s")
@@ -269,8 +270,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         help="a smoke run: one seed, N = 3 and 8, 1 draw of 1 s, 2,048 training steps")
     args = parser.parse_args(argv)
     if args.quick:
-        args.seeds, args.sizes, args.episodes = args.seeds[:1], [3, 8], 1
+        args.seeds, args.sizes, args.episodes = args.seeds[:1], args.sizes or [3, 8], 1
         args.total_timesteps, args.episode_seconds = 2048, args.episode_seconds or 1.0
+    args.sizes = args.sizes or list(DEFAULT_SIZES)
     if not 1 <= args.episodes <= len(TEST_SEEDS):
         parser.error(f"--episodes: expected 1 to {len(TEST_SEEDS)}, got {args.episodes}")
     try:
