@@ -5,19 +5,21 @@ Rule: ``team_scenario(family, n_agents)`` is the plain scenario data (with a ``d
 layout, the shape and the start as any distribution does (docs/scenarios.md, "Team-size families"):
 
 - ``planar_team`` (N = 3..8): ``planar_2link`` arms (2 DOF), distance formation, ``dim = 2``. At N = 4 it is
-  ``planar_random``'s distribution with a trilateration graph. The bases sit on a ring whose radius grows with
-  N so that neighbouring bases stay as far apart as in ``planar_random`` (chord ``2 R sin(pi / N)`` fixed,
-  about 5.7 m); the shape is a regular N-gon of circumradius ``R - (2.0 .. 2.8) m``, so every target vertex
-  lies 1.2-3.2 m from its own base (at most the reach less ``reach_margin``, 0.3 m, is kept), stretched and
-  turned by at most planar_random's amounts, scaled down as the polygon grows (a turn of the polygon moves
-  its vertices by ``circumradius x angle``).
+  ``planar_random``'s distribution on the complete graph. The bases sit on a ring whose radius grows with N so
+  that neighbouring bases stay as far apart as in ``planar_random`` (radius ``4 m x sin(pi / 4) / sin(pi / N)``,
+  chord about 5.7 m), and never below planar_random's 4 m (on a smaller ring three arms crowd the centre);
+  drawn within 0.5 m of it. The shape is a regular N-gon of circumradius ``R - (2.0 .. 2.8) m`` (R the mid
+  radius), so every target vertex lies about 1.5-3.3 m from its own base before the stretch and turn (a draw
+  beyond the reach less ``reach_margin``, 0.3 m, is redrawn), stretched and turned by at most
+  planar_random's amounts, scaled down as the polygon grows (a turn moves a vertex by ``circumradius x
+  angle``). Graph: the ring and its second-neighbour chords (:func:`ring_chord_edges`), globally rigid, so that
+  a law has no flipped realization to settle in.
 - ``spatial_team`` (N = 3..6): PERA-like 7-DOF arms, distance formation, ``dim = 3``, gravity on. At N = 4 it is
-  ``spatial_random``'s distribution (a trilateration graph is the complete one there); the ring and the shared
-  region above its centre grow as the planar ring does.
+  ``spatial_random``'s distribution; the ring's radius range and the shared region above its centre grow by
+  ``sin(pi / 4) / sin(pi / N)``. Graph: the complete graph.
 
-Graph: the trilateration graph (:func:`~ee_formation_env.generators.trilateration_edges`: minimally rigid in
-general position). Each draw is validated like every distribution draw (reach, rigidity, singularities, the
-margins, no start contact). The fixed test draws of a family at N are its draws at the reset seeds
+Each draw is validated like every distribution draw (reach, rigidity, singularities, the margins, no start
+contact). The fixed test draws of a family at N are its draws at the reset seeds
 :data:`~ee_formation_env.scenario_sets.TEST_SEEDS` (:func:`team_test_draws`).
 """
 
@@ -70,11 +72,18 @@ def _arms(template: dict[str, Any], n_agents: int, radius: float) -> list[dict[s
     return arms
 
 
-def _planar(n_agents: int) -> dict[str, Any]:
-    from ee_formation_env.generators import trilateration_edges
+def ring_chord_edges(n_agents: int) -> list[list[int]]:
+    """The ring and its second-neighbour chords (the circulant graph C_N(1, 2)): every vertex joined to the two
+    next to it on each side; the complete graph for N <= 5 (without repeats). For N >= 5 it is 3-connected and
+    stays rigid with any one edge removed, so generically globally rigid in the plane: the shape is unique up to
+    a congruence, with no flipped realization for a law to settle in."""
+    edges = {tuple(sorted((i, (i + step) % n_agents))) for i in range(n_agents) for step in (1, 2)}
+    return sorted([list(edge) for edge in edges if edge[0] != edge[1]])
 
+
+def _planar(n_agents: int) -> dict[str, Any]:
     template = builtin_scenario("planar_random")
-    radius = _PLANAR_RING_RADIUS_AT_4 * ring_growth(n_agents)
+    radius = _PLANAR_RING_RADIUS_AT_4 * max(1.0, ring_growth(n_agents))
     circumradius = (radius - _PLANAR_VERTEX_INSET[1], radius - _PLANAR_VERTEX_INSET[0])
     shrink = min(1.0, _PLANAR_SHAPE_AT_4 / (radius - sum(_PLANAR_VERTEX_INSET) / 2))
     source = template["distribution"]
@@ -86,30 +95,28 @@ def _planar(n_agents: int) -> dict[str, Any]:
     distribution.update({
         "ring_radius": [radius - _PLANAR_RING_HALF_WIDTH, radius + _PLANAR_RING_HALF_WIDTH],
         "shape_scale": list(circumradius), "shape_aspect": [1.0 / stretch, stretch],
-        "shape_rotation": [-turn, turn], "graph": "trilateration"})
+        "shape_rotation": [-turn, turn], "graph": "scenario"})
     return {"name": f"planar_team_{n_agents}", "arms": _arms(template, n_agents, radius),
-            "edges": trilateration_edges(n_agents, 2),
+            "edges": ring_chord_edges(n_agents),
             "shape": [[mid * math.cos(a), mid * math.sin(a)] for a in angles],
             "formation": "distance", "dim": 2, "episode_seconds": template["episode_seconds"],
             "distribution": distribution}
 
 
 def _spatial(n_agents: int) -> dict[str, Any]:
-    from ee_formation_env.generators import trilateration_edges
-
     template = builtin_scenario("spatial_random")
     growth = ring_growth(n_agents)
     low, high = _SPATIAL_RING_AT_4
     radius = (low + high) / 2 * growth
     distribution = dict(template["distribution"])
     distribution.update({"ring_radius": [low * growth, high * growth],
-                         "region_radius": _SPATIAL_REGION_AT_4 * growth, "graph": "trilateration"})
+                         "region_radius": _SPATIAL_REGION_AT_4 * growth, "graph": "complete"})
     height = sum(distribution["region_height"]) / 2
     angles = [2 * math.pi * i / n_agents for i in range(n_agents)]
     scale = _SPATIAL_REGION_AT_4 * growth
     data = {key: value for key, value in template.items() if key not in ("arms", "edges", "shape", "distribution")}
     data.update({"name": f"spatial_team_{n_agents}", "arms": _arms(template, n_agents, radius),
-                 "edges": trilateration_edges(n_agents, 3),
+                 "edges": [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)],
                  "shape": [[scale * math.cos(a), scale * math.sin(a), height + 0.1 * (-1) ** i]
                            for i, a in enumerate(angles)],
                  "distribution": distribution})

@@ -9,8 +9,8 @@ import pytest
 
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.formation import required_rigidity_rank, rigidity_matrix
-from ee_formation_env.generators import trilateration_edges
-from ee_formation_env.team_families import TEAM_FAMILIES, ring_growth, team_scenario, team_test_draws
+from ee_formation_env.team_families import (TEAM_FAMILIES, ring_chord_edges, ring_growth, team_scenario,
+                                             team_test_draws)
 
 CASES = [(family, n) for family, (low, high) in TEAM_FAMILIES.items() for n in range(low, high + 1)]
 
@@ -22,7 +22,9 @@ def test_every_team_size_draws_valid_test_problems(family, n_agents):
     assert sorted(draws) == [10_000, 10_001]
     for scenario in draws.values():
         assert scenario.n_agents == n_agents and not scenario.distribution.active
-        assert [list(edge) for edge in scenario.edges] == trilateration_edges(n_agents, dim)
+        complete = [[i, j] for i in range(n_agents) for j in range(i + 1, n_agents)]
+        expected = ring_chord_edges(n_agents) if family == "planar_team" else complete
+        assert [list(edge) for edge in scenario.edges] == expected
         with FormationEnv(scenario) as env:  # the fixed draw passes the env's checks on its own
             rank = np.linalg.matrix_rank(rigidity_matrix(env.task.graph, np.asarray(scenario.shape)))
             assert rank == required_rigidity_rank(n_agents, dim)
@@ -33,6 +35,13 @@ def test_the_test_draws_are_fixed_by_their_seeds(family):
     first = team_test_draws(family, 5, seeds=(10_003,))[10_003]
     again = team_test_draws(family, 5, seeds=(10_003,))[10_003]
     np.testing.assert_array_equal(np.asarray(first.shape), np.asarray(again.shape))
+
+
+def test_the_ring_chord_graph_joins_first_and_second_neighbours():
+    assert ring_chord_edges(3) == [[0, 1], [0, 2], [1, 2]]
+    assert len(ring_chord_edges(4)) == 6  # complete
+    assert ring_chord_edges(8) == sorted([sorted([i, (i + k) % 8]) for i in range(8) for k in (1, 2)])
+    assert len(ring_chord_edges(8)) == 16
 
 
 def test_the_ring_keeps_the_neighbour_spacing_of_four_arms():
