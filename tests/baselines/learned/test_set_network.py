@@ -211,3 +211,20 @@ def test_a_mixed_team_is_refused_naming_policy_network():
     with ee_formation_env.parallel_env(mixed, episode_seconds=0.2) as env:
         with pytest.raises(ValueError, match="policy_network: 'set' shares one network"):
             team_signature(Team(env))
+
+
+def test_torque_mode_trains_a_set_network_that_acts_for_another_team_size(tmp_path):
+    from ee_formation_env.baselines.learned.run import train
+
+    out = tmp_path / "torque"
+    train(TrainConfig.from_args(["--scenario", "planar_random", "--mode", "torque", "--obs-features", "none",
+                                 "--policy-network", "set", "--total-timesteps", "512", "--n-envs", "1",
+                                 "--n-steps", "64", "--n-workers", "0", "--eval-episodes", "1", "--eval-seconds",
+                                 "0.2", "--eval-workers", "0", "--no-progress", "--out", str(out)]))
+    config = json.loads((out / "config.json").read_text())
+    assert (config["mode"], config["policy_network"]) == ("torque", "set")
+    with ee_formation_env.parallel_env(team_scenario("planar_team", 6), episode_seconds=0.2) as env:
+        observations, _ = env.reset(seed=10_000)
+        policies = learned_policies(out, env, config)
+        actions = [policies[agent](observations[agent]) for agent in env.possible_agents]
+        assert all(np.isfinite(action).all() and np.abs(action).max() <= 1.0 for action in actions)
