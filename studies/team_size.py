@@ -2,7 +2,7 @@
 
     python -m studies.team_size                                   # 3 seeds x 10 min, N = 3..8, ~1 h on 2 cores
     python -m studies.team_size --max-train-seconds 300 --episodes 20 --out runs/team_size
-    python -m studies.team_size --quick --out /tmp/team_size      # the pipeline end to end in seconds
+    python -m studies.team_size --quick --out runs/team_size_quick      # the pipeline end to end in seconds
 
 Rule: residual PPO on the ``gradient`` law with the permutation-invariant set network
 (``--policy-network set``, :mod:`ee_formation_env.baselines.learned.set_network`) is trained on
