@@ -5,7 +5,7 @@
   metrics table;
 - ``validate SCENARIO``: run every check the env runs on a scenario (:func:`ee_formation_env.validate_scenario`),
   without stepping physics: one ``OK`` line and exit status 0, or the error and exit status 2;
-- ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``: the studies (``python -m studies.<name>``), which run
+- ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``, ``team-size``: the studies (``python -m studies.<name>``), which run
   from the repository root of a checkout (they are not part of the installed package): the command runs the
   study in a child Python process whose working directory is the checkout, so that ``studies`` imports from
   there as it does for ``python -m``; this process's import path is left as it is.
@@ -117,6 +117,8 @@ COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {
                    _study("manoeuvres")),
     "scoreboard": ("every built-in scenario x method over training seeds, with intervals (checkout only)",
                    _study("scoreboard")),
+    "team-size": ("one set policy trained on 4 arms, zero-shot on teams of 3 to 8 (checkout only)",
+                  _study("team_size")),
 }
 
 

@@ -175,6 +175,9 @@ def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[Trai
         raise TypeError(f"config: expected a dict of options and scenario overrides, got {type(config).__name__}")
     names = set(TrainingOptions.fields())
     options = TrainingOptions(**{key: value for key, value in config.items() if key in names})
+    if options.policy_network != "mlp":
+        raise ValueError(f"policy_network: {options.policy_network!r} is train.py's SB3 network; a BenchMARL "
+                         "experiment builds its own models (expected 'mlp')")
     skipped = names | set(TaskTransforms.fields()) | {"scenario"}
     overrides = {key: value for key, value in config.items() if key not in skipped}
     return options, config.get("scenario", default_scenario), overrides

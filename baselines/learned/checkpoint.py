@@ -227,10 +227,14 @@ def policy_description(model: Any, algo: str, policy_kwargs: dict[str, Any]) -> 
                               for key, value in policy_kwargs.items()}}
 
 
-def load_policy(directory: Path) -> Any:
-    """The SB3 policy network saved in ``directory`` (``policy.json`` + ``policy.pt``), on the CPU, in eval mode."""
+def load_policy(directory: Path, n_slots: int | None = None) -> Any:
+    """The SB3 policy network saved in ``directory`` (``policy.json`` + ``policy.pt``), on the CPU, in eval mode.
+    ``n_slots``: a set network's (``policy_network`` set) rebuilt for observations of that many neighbour slots
+    (the same weights: none depends on the slot count); None: the observation it trained on."""
     import gymnasium
     from stable_baselines3 import PPO, SAC
+
+    from ee_formation_env.baselines.learned.set_network import sb3_policy_kwargs
 
     description = read_json(Path(directory) / "policy.json", "policy.json")
     classes = {"ppo": PPO, "sac": SAC}
@@ -241,8 +245,11 @@ def load_policy(directory: Path) -> Any:
         shape = tuple(int(n) for n in description["observation_shape"])
         low = np.asarray(description["action_low"], dtype=np.float32)
         high = np.asarray(description["action_high"], dtype=np.float32)
-        kwargs = {key: description["policy_kwargs"][key] for key in ("net_arch", "log_std_init")
-                  if key in description["policy_kwargs"]}
+        kwargs = sb3_policy_kwargs(description["policy_kwargs"])
+        if n_slots is not None and "features_extractor_kwargs" in kwargs:
+            extractor = kwargs["features_extractor_kwargs"]
+            extractor["n_slots"] = int(n_slots)
+            shape = (extractor["n_slots"] * extractor["slot_size"] + extractor["own_size"],)
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"policy.json: malformed ({error})") from None
     observation_space = gymnasium.spaces.Box(-np.inf, np.inf, shape, dtype=np.float32)

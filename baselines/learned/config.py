@@ -25,6 +25,7 @@ from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMI
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
 from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.recipes import RECIPE_CHOICES, recipe_for
+from ee_formation_env.baselines.learned.set_network import POLICY_NETWORKS
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
 
@@ -112,6 +113,7 @@ class TrainConfig:
     log_std_init: float | None = _flag("initial log standard deviation of the Gaussian policy (ppo; default "
                                        f"{_preset_text('log_std_init')})", type=float)
     obs_features: str | None = _option_flag("obs_features", choices=FEATURE_SETS)
+    policy_network: str = _option_flag("policy_network", choices=POLICY_NETWORKS)
     hold_penalty: float | None = _option_flag("hold_penalty", type=float)
     contact_penalty: float = _option_flag("contact_penalty", type=float)
     max_train_seconds: float | None = _flag("stop training after this wall time, s, even if --total-timesteps is "
@@ -224,6 +226,8 @@ class TrainConfig:
             raise ValueError("--n-workers and --eval-workers must be >= 0")
         if self.in_process_envs and not (self.n_workers > 0 and 0 < self.in_process_envs < self.n_envs):
             raise ValueError("--in-process-envs: expected 0, or with --n-workers >= 1 a number below --n-envs")
+        if self.policy_network == "set" and (self.backend != "sb3" or self.algo != "ppo" or imitating):
+            raise ValueError("--policy-network: set trains with --backend sb3 and --algo ppo, without --imitate")
         if self.backend == "rllib" and self.algo != "ppo":
             raise ValueError("--backend rllib supports --algo ppo only")
         if self.backend == "rllib" and self.n_workers > 0 and self.n_envs % self.n_workers:
@@ -281,7 +285,7 @@ class TrainConfig:
     #: Saved settings that a run's ``config.json`` may lack: added after the first saved runs, their defaults
     #: are what those runs trained with. Every other saved setting must be in the file.
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
-                          "residual_gate_power", "joint_speed", "velocity_gain", "recipe")
+                          "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
 

@@ -20,12 +20,13 @@ from ee_formation_env.baselines import MODEL_BASED_POLICIES
 from ee_formation_env.baselines.learned.action_scale import DEFAULT_ACTION_ACCELERATION, check_action_acceleration
 from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.modes import TrainingMode, mode_names, training_mode
+from ee_formation_env.baselines.learned.set_network import POLICY_NETWORKS
 from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
 
 #: The fields a run's config.json may lack (saved before the option existed), and the value the run had then:
 #: no gate, no features, the default action acceleration (which leaves the built-in robots as they were).
 SAVED_RUN_DEFAULTS = {"residual_gate": False, "obs_features": "none", "hold_penalty": 0.0, "contact_penalty": 0.0,
-                      "action_acceleration": DEFAULT_ACTION_ACCELERATION}
+                      "action_acceleration": DEFAULT_ACTION_ACCELERATION, "policy_network": "mlp"}
 
 
 def _option(default: Any, unit: str, meaning: str) -> Any:
@@ -72,6 +73,10 @@ class TrainingOptions:
                                    "of reaching the commanded speed; at most 1 / control period for a stable loop")
     train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
                                                      "scenario's episode_seconds)")
+    policy_network: str = _option("mlp", "", "the shared policy network: mlp (SB3's MLP on the whole observation, "
+                                  "one team size) or set (a slot encoder shared over the neighbour slots, masked "
+                                  "mean and max pooling and an own-state encoder: one policy for any team size of "
+                                  "the same robot, set_network.py); set needs obs_features none")
     train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
                                                      "joint positions while training (None in a preset: the "
                                                      "scenario's; evaluation: the scenario's)")
@@ -86,6 +91,12 @@ class TrainingOptions:
                 raise TypeError(f"{flag}: expected True or False, got {getattr(self, flag)!r}")
         if self.obs_features is not None and self.obs_features not in FEATURE_SETS:
             raise ValueError(f"obs_features: expected one of {list(FEATURE_SETS)} or None, got {self.obs_features!r}")
+        if self.policy_network not in POLICY_NETWORKS:
+            raise ValueError(f"policy_network: expected one of {list(POLICY_NETWORKS)}, got {self.policy_network!r}")
+        features = self.training_mode.preset.obs_features if self.obs_features is None else self.obs_features
+        if self.policy_network == "set" and features != "none":
+            raise ValueError(f"policy_network: 'set' reads the observation's neighbour slots and needs obs_features "
+                             f"none; {features!r} appends entries that mix slots with the own state")
         self._number("residual_scale", lambda x: 0 < x <= 1, "a value in (0, 1]")
         self._number("residual_gate_power", lambda x: 1 <= x <= 8, "a power in [1, 8]")
         self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")

@@ -21,6 +21,8 @@ from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tens
 from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_size
 from ee_formation_env.baselines.learned.modes import ActionRows
 from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.set_network import (check_serves, expanded_statistics, numpy_set_actor,
+                                                            pooled_statistics, slot_layout, slot_layout_of)
 from ee_formation_env.baselines.learned.team import AgentPadding, PaddingRows, TeamPadding, agent_rules
 
 
@@ -200,6 +202,10 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], chec
     if checkpoint is not None and config["backend"] != "sb3":
         raise ValueError(f"checkpoint: only SB3 runs keep checkpoints (this run: --backend {config['backend']})")
     normalizer = ObservationNormalizer.from_checkpoint(model_dir)
+    options = TrainingOptions.from_saved(config)
+    if options.policy_network == "set":
+        learned = _set_policy(model_dir, env, normalizer)
+        return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, options)
     if config["backend"] == "sb3":
         policy = load_policy(model_dir)
         _check_fits(normalizer, tuple(policy.observation_space.shape), model_dir)
@@ -208,7 +214,6 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], chec
             predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
     else:
         predict = rllib_predictor(model_dir)
-    options = TrainingOptions.from_saved(config)
     size = normalizer.mean.shape[0]
     actions = np.asarray(predict(np.zeros(size, dtype=np.float32))).shape[-1]  # the actor's own output size
     padding = TeamPadding.from_saved(config)
@@ -218,6 +223,24 @@ def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], chec
         padding.check_fits(size, actions)
     learned = LearnedPolicy(predict, normalizer)
     return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, options, padding)
+
+
+def _set_policy(model_dir: Path, env: Any, normalizer: ObservationNormalizer) -> LearnedPolicy:
+    """A set network's learned part (:mod:`~ee_formation_env.baselines.learned.set_network`) for ``env``'s team
+    size: the team checked against the one it trained with (``ValueError`` naming the field), the network
+    rebuilt for the env's slot count around the saved weights, the pooled normalization expanded to it."""
+    description = read_json(model_dir / "policy.json", "policy.json")
+    saved = description.get("policy_kwargs", {}).get("set_network") if isinstance(description, dict) else None
+    if not isinstance(saved, dict) or "layout" not in saved or "team" not in saved:
+        raise ValueError(f"{model_dir / 'policy.json'}: policy_kwargs.set_network missing: the file is not a set "
+                         "network's; restore the one the run wrote")
+    check_serves(saved["team"], env)
+    trained = slot_layout_of(saved)
+    target = slot_layout(env.observation_layout(env.possible_agents[0]), "none")
+    mean, var = expanded_statistics(target, *pooled_statistics(trained, normalizer.mean, normalizer.var))
+    policy = load_policy(model_dir, n_slots=target.n_slots)
+    return LearnedPolicy(numpy_set_actor(policy, target), ObservationNormalizer(mean, var, normalizer.clip,
+                                                                                normalizer.epsilon))
 
 
 def check_team(env: Any, observation_size: int, action_size: int, obs_features: str) -> None:

@@ -28,6 +28,7 @@ from ee_formation_env.baselines.learned.run_lock import run_lock
 from ee_formation_env.baselines.learned.saved_run import (load_saved_config, model_from_checkpoint,
                                                           newest_intact_checkpoint, write_saved_config)
 from ee_formation_env.baselines.learned.segments import TIMING, read_timing
+from ee_formation_env.baselines.learned.set_network import set_description
 from ee_formation_env.baselines.learned.team import TEAM_PADDING_KEY, TeamPadding
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, batched_env_factory
 from ee_formation_env.worker_processes import exit_if_reimporting_main
@@ -164,6 +165,14 @@ def _validated_scenario(config: TrainConfig) -> tuple[Any, TeamPadding | None]:
             raise ValueError(f"--backend: {config.backend} cannot train a mixed team yet: {team}; use --backend sb3")
         if config.imitate not in (None, "none"):
             raise ValueError(f"--imitate: the imitation cannot start a mixed team's policy yet: {team}")
+    if config.policy_network == "set":  # one robot and layout, slots kept by the features: refused here
+        if padding is not None:
+            raise ValueError(f"--policy-network: set shares one network over agents of one robot and layout; "
+                             f"scenario {scenario.name} is a mixed team ({', '.join(padding.kinds)})")
+        try:
+            set_description(scenario, config.obs_features)
+        except ValueError as error:
+            raise ValueError(f"--policy-network: {str(error).partition(': ')[2]}") from None
     slots = config.n_envs * scenario.n_agents
     if config.seed + slots > EVAL_SEED_OFFSET:
         raise ValueError(f"--seed: {config.seed} + {slots} env slots reaches the held-out evaluation seeds "

@@ -27,6 +27,8 @@ from ee_formation_env.baselines.learned.config import FAULT_WINDOW, TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import RunStopped, StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
+from ee_formation_env.baselines.learned.set_network import (pooled_running_statistics, sb3_policy_kwargs,
+                                                            set_description, slot_layout_of)
 from ee_formation_env.baselines.learned.segments import (close_killed_segments, new_monitor_name, read_timing,
                                                          start_segment, update_segment, write_learning_curve,
                                                          write_timing)
@@ -44,10 +46,17 @@ def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
     """The policy network's settings: the mode's hidden layers and, for PPO, the initial log standard deviation.
 
     A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
-    policy starts far from "no correction" and a torque policy saturates its joints half of the time."""
+    policy starts far from "no correction" and a torque policy saturates its joints half of the time.
+
+    A run with ``policy_network`` set adds ``set_network``: the slot layout and the team signature of its
+    scenario (:func:`~ee_formation_env.baselines.learned.set_network.set_description`). Plain data (a run's
+    ``policy.json`` saves it); :func:`~ee_formation_env.baselines.learned.set_network.sb3_policy_kwargs` turns
+    it into SB3's."""
     kwargs: dict[str, Any] = dict(net_arch=list(args.ppo.net_arch))  # --imitate: the wider actor
     if args.algo == "ppo":
         kwargs["log_std_init"] = args.log_std_init
+    if args.policy_network == "set":
+        kwargs["set_network"] = set_description(args.scenario, args.obs_features)
     return kwargs
 
 
@@ -67,8 +76,11 @@ def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str =
                               in_process_envs=args.in_process_envs)
     venv = VecMonitor(venv, filename=None if out_dir is None else str(out_dir / monitor_name))
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=args.gamma)
+    plain_kwargs = policy_kwargs(args)
+    if "set_network" in plain_kwargs:  # statistics shared across slots (set_network.py)
+        venv.obs_rms = pooled_running_statistics(slot_layout_of(plain_kwargs["set_network"]))
     settings = args.ppo
-    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=policy_kwargs(args),
+    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=sb3_policy_kwargs(plain_kwargs),
                   tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
     if args.algo == "ppo":
         rate = settings.learning_rate
