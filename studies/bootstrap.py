@@ -1,9 +1,11 @@
-"""Interval statistics of the scoreboard: the interquartile mean and the stratified bootstrap (rliable's
-estimators, in a few lines of numpy), and one (scenario, method) metric aggregated over training runs.
+"""Interval statistics of the studies: the interquartile mean and the stratified bootstrap (rliable's
+estimators, in a few lines of numpy), one (scenario, method) metric aggregated over training runs, and the
+Wilson score interval of a success rate.
 docs/scoreboard.md says how the board uses them."""
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -55,3 +57,13 @@ def aggregate(per_run: Sequence[Sequence[float]]) -> dict[str, Any]:
             "ci_low": intervals["mean"][0], "ci_high": intervals["mean"][1],
             "iqm_ci_low": intervals["iqm"][0], "iqm_ci_high": intervals["iqm"][1],
             "per_seed": [float(np.mean(run)) for run in scores]}
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a success rate (a fraction in [0, 1]); (nan, nan) for n = 0."""
+    if n == 0:
+        return math.nan, math.nan
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)

@@ -39,6 +39,8 @@ from ee_formation_env.baselines.metrics import EpisodeMetrics, run_policies  # n
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET, TEST_SEEDS, held_out_scenarios  # noqa: E402
 from ee_formation_env.team_families import TEAM_FAMILIES, team_scenario  # noqa: E402
 
+from studies.bootstrap import stratified_bootstrap, wilson_interval  # noqa: E402
+
 TRAIN_SCENARIO = "planar_random"  # 4 planar_2link arms
 FAMILY = "planar_team"
 DEFAULT_SEEDS = (0, 1, 2)
@@ -53,28 +55,16 @@ TARGET_TRAIN_SET = 0.95  # on planar_random's test set
 TRAIN_FLAGS = ("--scenario", TRAIN_SCENARIO, "--recipe", "none", "--mode", "residual", "--reference", "gradient",
                "--policy-network", "set")
 LEARNED = "learned (set)"
-BOOTSTRAP_REPS = 2000
 
 
 # ------------------------------------------------------------------------------------------ statistics
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The 95 % Wilson score interval of a success rate (a fraction in [0, 1]); (nan, nan) for n = 0."""
-    if n == 0:
-        return math.nan, math.nan
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def mean_interval(values: Sequence[float], seed: int = 0) -> tuple[float, float, float]:
-    """Mean and 95 % percentile-bootstrap interval of ``values`` (nan for none)."""
+def mean_interval(values: Sequence[float]) -> tuple[float, float, float]:
+    """Mean and 95 % percentile-bootstrap interval of ``values``, the episodes resampled (nan for none)."""
     values = np.asarray([v for v in values if np.isfinite(v)], dtype=np.float64)
     if not len(values):
         return math.nan, math.nan, math.nan
-    picks = np.random.default_rng(seed).integers(0, len(values), size=(BOOTSTRAP_REPS, len(values)))
-    low, high = np.percentile(values[picks].mean(axis=1), [2.5, 97.5])
-    return float(values.mean()), float(low), float(high)
+    low, high = stratified_bootstrap(values[:, None])["mean"]
+    return float(values.mean()), low, high
 
 
 def summary_row(episodes: Sequence[EpisodeMetrics]) -> dict[str, Any]:

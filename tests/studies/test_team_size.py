@@ -10,13 +10,14 @@ import pytest
 pytest.importorskip("stable_baselines3")
 
 from studies import team_size  # noqa: E402
+from studies.bootstrap import wilson_interval  # noqa: E402
 
 
 def test_wilson_interval_brackets_the_rate():
-    assert team_size.wilson_interval(20, 20)[1] == 1.0
-    low, high = team_size.wilson_interval(18, 20)
+    assert wilson_interval(20, 20)[1] == 1.0
+    low, high = wilson_interval(18, 20)
     assert low == pytest.approx(0.699, abs=1e-3) and high == pytest.approx(0.972, abs=1e-3)
-    assert all(np.isnan(team_size.wilson_interval(0, 0)))
+    assert all(np.isnan(wilson_interval(0, 0)))
 
 
 def test_the_best_law_is_the_most_successful_then_the_fastest():
