@@ -20,6 +20,7 @@ from ee_formation_env.baselines.learned.action_scale import rescaling
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_size
 from ee_formation_env.baselines.learned.modes import ActionRows
+from ee_formation_env.baselines.learned.numpy_layers import apply_numpy_layers, numpy_layers
 from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.set_network import (check_serves, expanded_statistics, numpy_set_actor,
                                                             pooled_statistics, slot_layout, slot_layout_of)
@@ -353,26 +354,20 @@ class ComposedPolicy:
 
 
 def _numpy_actor(policy: Any) -> Callable[[np.ndarray], np.ndarray] | None:
-    """PPO's deterministic action (the Gaussian's mean) as numpy matrix products, or None if the policy is not
-    a plain MLP of ``Linear`` and ``Tanh`` layers. One agent at a time, as the evaluation calls it, this is
-    ~20x cheaper than ``policy.predict``, whose per-call overhead would dominate a 30 s evaluation."""
+    """PPO's deterministic action (the Gaussian's mean) as numpy matrix products
+    (:mod:`~ee_formation_env.baselines.learned.numpy_layers`), or None if the policy is not a plain MLP of
+    ``Linear`` and ``Tanh`` layers."""
     import torch
 
-    layers = [*policy.mlp_extractor.policy_net, policy.action_net]
-    if not isinstance(policy.features_extractor.flatten, torch.nn.Flatten) or not all(
-            isinstance(layer, (torch.nn.Linear, torch.nn.Tanh)) for layer in layers):
+    steps = numpy_layers([*policy.mlp_extractor.policy_net, policy.action_net])
+    if not isinstance(policy.features_extractor.flatten, torch.nn.Flatten) or steps is None:
         return None
-    steps = [(layer.weight.detach().numpy().astype(np.float64).T, layer.bias.detach().numpy().astype(np.float64))
-             if isinstance(layer, torch.nn.Linear) else None for layer in layers]
 
     def predict(observation: np.ndarray) -> np.ndarray:
         hidden = np.asarray(observation, dtype=np.float64)
-        stack = hidden.ndim == 2
-        if stack:  # (k, 1, d) @ (d, h): a stacked matmul, row by row the products of one observation, exactly
-            hidden = hidden[:, None, :]
-        for step in steps:
-            hidden = np.tanh(hidden) if step is None else hidden @ step[0] + step[1]
-        return hidden[:, 0, :] if stack else hidden
+        if hidden.ndim == 2:  # a stack: row by row the products of one observation, exactly
+            return apply_numpy_layers(steps, hidden[:, None, :])[:, 0, :]
+        return apply_numpy_layers(steps, hidden)
 
     predict.stacks = True  # a stack (k, d) gives each row's action bit for bit (LearnedPolicy.stacked)
     return predict

@@ -33,6 +33,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from ee_formation_env.baselines.learned.numpy_layers import apply_numpy_layers, numpy_layers
+
 #: ``policy_network`` values: SB3's MLP on the whole observation, or the set network of this module.
 POLICY_NETWORKS = ("mlp", "set")
 SET_HIDDEN = 64  # units of the slot encoder's two layers and of the own-state encoder
@@ -247,21 +249,11 @@ def numpy_set_actor(policy: Any, layout: SlotLayout) -> Callable[[np.ndarray], n
     """The set network's deterministic action (the Gaussian's mean) as numpy products for observations of
     ``layout`` (any slot count), one row (size,) or a stack (k, size), each row of a stack bit for bit its
     own call (stacked matrix products)."""
-    import torch
-
     extractor = policy.features_extractor
-    heads = [*policy.mlp_extractor.policy_net, policy.action_net]
-
-    def numpy_layers(layers: Any) -> list[Any]:
-        return [(layer.weight.detach().numpy().astype(np.float64).T, layer.bias.detach().numpy().astype(np.float64))
-                if isinstance(layer, torch.nn.Linear) else None for layer in layers]
-
-    phi, own, head = numpy_layers(extractor.phi), numpy_layers(extractor.own), numpy_layers(heads)
-
-    def run(steps: list[Any], hidden: np.ndarray) -> np.ndarray:
-        for step in steps:
-            hidden = np.tanh(hidden) if step is None else hidden @ step[0] + step[1]
-        return hidden
+    phi, own, head = (numpy_layers(layers) for layers in (extractor.phi, extractor.own,
+                                                          [*policy.mlp_extractor.policy_net, policy.action_net]))
+    if phi is None or own is None or head is None:
+        raise ValueError("policy: the set network's numpy actor needs Linear and Tanh layers only")
 
     def predict(observation: np.ndarray) -> np.ndarray:
         rows = np.asarray(observation, dtype=np.float64)
@@ -269,12 +261,12 @@ def numpy_set_actor(policy: Any, layout: SlotLayout) -> Callable[[np.ndarray], n
         rows = rows[None] if single else rows
         slots, own_state = layout.split(rows)
         real = slots[..., :1] > 0.5  # (k, D, 1)
-        encoded = run(phi, slots[..., None, 1:])[..., 0, :]  # (k, D, 1, s) @ (s, h): row by row exactly
+        encoded = apply_numpy_layers(phi, slots[..., None, 1:])[..., 0, :]  # (k, D, 1, s) @ (s, h): row by row exactly
         mean = np.where(real, encoded, 0.0).sum(axis=1) / np.maximum(real.sum(axis=1), 1)
         peak = np.where(real, encoded, -np.inf).max(axis=1)
         peak = np.where(real.any(axis=1), peak, 0.0)
-        features = np.concatenate([mean, peak, run(own, own_state[:, None, :])[:, 0, :]], axis=1)
-        actions = run(head, features[:, None, :])[:, 0, :]
+        features = np.concatenate([mean, peak, apply_numpy_layers(own, own_state[:, None, :])[:, 0, :]], axis=1)
+        actions = apply_numpy_layers(head, features[:, None, :])[:, 0, :]
         return actions[0] if single else actions
 
     predict.stacks = True  # LearnedPolicy.stacked: one call for a stack of rows
