@@ -100,8 +100,9 @@ def check_transfer(sizes: Sequence[int]) -> None:
 
 
 def train_runs(out: Path, seeds: Sequence[int], max_train_seconds: float, total_timesteps: int,
-               quick: bool) -> list[Path]:
-    """One training run per seed in ``out/seed_<s>`` (a finished run is reused); the run folders."""
+               quick: bool, train_episode_seconds: float | None = None) -> list[Path]:
+    """One training run per seed in ``out/seed_<s>`` (a finished run is reused); the run folders.
+    ``train_episode_seconds``: train.py's ``--train-episode-seconds`` (None: its residual default)."""
     from ee_formation_env.baselines.learned.config import TrainConfig
     from ee_formation_env.baselines.learned.run import train
 
@@ -112,6 +113,8 @@ def train_runs(out: Path, seeds: Sequence[int], max_train_seconds: float, total_
             argv = [*TRAIN_FLAGS, "--seed", str(seed), "--total-timesteps", str(total_timesteps),
                     "--max-train-seconds", str(max_train_seconds), "--out", str(run_dir), "--overwrite",
                     "--eval-episodes", "1", "--eval-seconds", "1", "--eval-workers", "0", "--no-progress"]
+            if train_episode_seconds is not None:
+                argv += ["--train-episode-seconds", str(train_episode_seconds)]
             if quick:
                 argv += ["--n-envs", "2", "--n-steps", "64", "--n-workers", "0"]
             train(TrainConfig.from_args(argv))
@@ -255,6 +258,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--total-timesteps", type=int, default=DEFAULT_TIMESTEPS, help="agent steps per seed")
     parser.add_argument("--episode-seconds", type=float, default=None,
                         help="evaluation episode length, s (default: each scenario's)")
+    parser.add_argument("--train-episode-seconds", type=float, default=None,
+                        help="training episode length, s (default: train.py's residual default)")
     parser.add_argument("--figure", type=Path, default=None, help="the success-vs-N PNG (default OUT/team_size_success.png)")
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run: one seed, N = 3 and 8, 1 draw of 1 s, 2,048 training steps")
@@ -269,7 +274,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         check_transfer(args.sizes)
     except ValueError as error:
         parser.error(str(error))
-    runs = train_runs(args.out, args.seeds, args.max_train_seconds, args.total_timesteps, args.quick)
+    runs = train_runs(args.out, args.seeds, args.max_train_seconds, args.total_timesteps, args.quick,
+                      args.train_episode_seconds)
     results = evaluate(runs, args.sizes, args.episodes, args.episode_seconds)
     (args.out / "team_size.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
     text = markdown(results)

@@ -12,10 +12,11 @@ The files lie in :data:`CONFIG_DIR` as BenchMARL lays out its own ``conf/``: ``a
 ``experiment/on_policy.yaml`` and ``off_policy.yaml`` (every field of BenchMARL's ``base_experiment.yaml``),
 ``model/layers/mlp.yaml`` and ``task/ee_formation_training/<mode>.yaml``; each loads with BenchMARL's own
 ``get_from_yaml(path)`` (the task's with the task member's). What they set and why: train.py's PPO settings
-where BenchMARL has the knob, the task's TorchRL transforms (observation normalization, reward scale) and
-advantage normalization, which BenchMARL's MAPPO and IPPO hard-code to off: :class:`NormalizedAdvantageMappo`
-and :class:`NormalizedAdvantageIppo` turn it on through their configs' ``normalize_advantage`` field. The
-measurements behind them: docs/training.md ("TorchRL and BenchMARL").
+where BenchMARL has the knob, the task's TorchRL transforms (observation normalization, reward scale), and two
+things BenchMARL's MAPPO and IPPO hard-code: advantage normalization (off there) and a Gaussian scale output by
+the actor (a state-dependent one). :class:`FormationMappo` and :class:`FormationIppo` turn the first on and
+make the scale one learned parameter through their configs' ``normalize_advantage`` and
+``state_independent_scale`` fields. The measurements behind them: docs/training.md ("TorchRL and BenchMARL").
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Type
 
+import torch
 import yaml
 from benchmarl.algorithms import Ippo, IppoConfig, Mappo, MappoConfig, MasacConfig
 from benchmarl.algorithms.common import AlgorithmConfig
@@ -37,13 +39,41 @@ CONFIG_DIR = Path(__file__).with_name("benchmarl_conf")
 ON_POLICY_ALGORITHMS = ("mappo", "ippo")
 
 
-class _NormalizedAdvantage:
-    """Mixin of an on-policy BenchMARL algorithm whose PPO loss normalizes the advantages of each minibatch when
-    ``normalize_advantage`` (BenchMARL builds the loss with it off)."""
+class StateIndependentScale(torch.nn.Module):
+    """The Gaussian's standard deviation as a learned parameter, the same in every state (SB3's and the MAPPO
+    authors' ``log_std``): in place of BenchMARL's ``NormalParamExtractor``, it takes the actor's logits
+    ``(..., 2 n)``, keeps the first ``n`` as the mean and maps one parameter vector through ``scale_mapping``
+    (its value 0 maps to the mapping's bias, the initial standard deviation). The other ``n`` logits are unused."""
 
-    def __init__(self, normalize_advantage: bool, **kwargs: Any):
+    def __init__(self, n_actions: int, scale_mapping: str, device: Any = None):
+        super().__init__()
+        from tensordict.nn.utils import mappings
+
+        self.scale_parameter = torch.nn.Parameter(torch.zeros(n_actions, device=device))
+        self.scale_mapping = mappings(scale_mapping)
+
+    def forward(self, logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = logits[..., : self.scale_parameter.shape[-1]]
+        return loc, self.scale_mapping(self.scale_parameter).expand_as(loc)
+
+
+class _FormationPPO:
+    """Mixin of an on-policy BenchMARL algorithm: its PPO loss normalizes each minibatch's advantages when
+    ``normalize_advantage`` (BenchMARL builds the loss with it off), and its Gaussian's scale is
+    :class:`StateIndependentScale` when ``state_independent_scale`` (BenchMARL's is an output of the actor)."""
+
+    def __init__(self, normalize_advantage: bool, state_independent_scale: bool, **kwargs: Any):
         super().__init__(**kwargs)
         self.normalize_advantage = normalize_advantage
+        self.state_independent_scale = state_independent_scale
+
+    def _get_policy_for_loss(self, group: str, model_config: Any, continuous: bool) -> Any:
+        policy = super()._get_policy_for_loss(group, model_config, continuous)
+        if continuous and self.state_independent_scale:
+            extractor = policy.module[0].module[1]  # ProbabilisticActor(TensorDictSequential(actor, extractor))
+            n_actions = self.action_spec[group, "action"].shape[-1]
+            extractor.module = StateIndependentScale(n_actions, self.scale_mapping, device=self.device)
+        return policy
 
     def _get_loss(self, group: str, policy_for_loss: Any, continuous: bool) -> Any:
         loss, done = super()._get_loss(group, policy_for_loss, continuous)
@@ -51,50 +81,53 @@ class _NormalizedAdvantage:
         return loss, done
 
 
-class NormalizedAdvantageMappo(_NormalizedAdvantage, Mappo):
-    """BenchMARL's MAPPO with the advantage normalization of :class:`_NormalizedAdvantage`."""
+class FormationMappo(_FormationPPO, Mappo):
+    """BenchMARL's MAPPO with the options of :class:`_FormationPPO`."""
 
 
-class NormalizedAdvantageIppo(_NormalizedAdvantage, Ippo):
-    """BenchMARL's IPPO with the advantage normalization of :class:`_NormalizedAdvantage`."""
+class FormationIppo(_FormationPPO, Ippo):
+    """BenchMARL's IPPO with the options of :class:`_FormationPPO`."""
 
 
-def _check_flag(config: Any) -> None:
-    if not isinstance(config.normalize_advantage, bool):
-        raise TypeError(f"normalize_advantage: expected True or False, got {config.normalize_advantage!r}")
+def _check_flags(config: Any) -> None:
+    for name in ("normalize_advantage", "state_independent_scale"):
+        if not isinstance(getattr(config, name), bool):
+            raise TypeError(f"{name}: expected True or False, got {getattr(config, name)!r}")
 
 
 @dataclass
-class NormalizedAdvantageMappoConfig(MappoConfig):
-    """:class:`~benchmarl.algorithms.MappoConfig` plus ``normalize_advantage``."""
+class FormationMappoConfig(MappoConfig):
+    """:class:`~benchmarl.algorithms.MappoConfig` plus ``normalize_advantage`` and ``state_independent_scale``."""
 
     normalize_advantage: bool = True
+    state_independent_scale: bool = True
 
     def __post_init__(self) -> None:
-        _check_flag(self)
+        _check_flags(self)
 
     @staticmethod
     def associated_class() -> Type[Mappo]:
-        return NormalizedAdvantageMappo
+        return FormationMappo
 
 
 @dataclass
-class NormalizedAdvantageIppoConfig(IppoConfig):
-    """:class:`~benchmarl.algorithms.IppoConfig` plus ``normalize_advantage``."""
+class FormationIppoConfig(IppoConfig):
+    """:class:`~benchmarl.algorithms.IppoConfig` plus ``normalize_advantage`` and ``state_independent_scale``."""
 
     normalize_advantage: bool = True
+    state_independent_scale: bool = True
 
     def __post_init__(self) -> None:
-        _check_flag(self)
+        _check_flags(self)
 
     @staticmethod
     def associated_class() -> Type[Ippo]:
-        return NormalizedAdvantageIppo
+        return FormationIppo
 
 
 #: Algorithm name -> the config class its YAML file loads into.
-ALGORITHM_CONFIGS: Dict[str, Type[AlgorithmConfig]] = {"mappo": NormalizedAdvantageMappoConfig,
-                                                       "ippo": NormalizedAdvantageIppoConfig,
+ALGORITHM_CONFIGS: Dict[str, Type[AlgorithmConfig]] = {"mappo": FormationMappoConfig,
+                                                       "ippo": FormationIppoConfig,
                                                        "masac": MasacConfig}
 
 

@@ -118,9 +118,10 @@ class TrainConfig:
     contact_penalty: float = _option_flag("contact_penalty", type=float)
     max_train_seconds: float | None = _flag("stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
-    max_fault_fraction: float = _flag("sb3: stop training with an error naming the fault when more than this share "
-                                      f"of the last {FAULT_WINDOW} training episodes ended in a physics fault "
-                                      "(1: never stop)", 0.5, type=float)
+    max_fault_fraction: float | None = _flag("sb3: stop training with an error naming the fault when more than this "
+                                             f"share of the last {FAULT_WINDOW} training episodes ended in a physics "
+                                             f"fault (1: never stop; default {_preset_text('max_fault_fraction')})",
+                                             type=float)
     seed: int = _flag(f"training seed, an integer >= 0; the first reset of env slot j uses seed + j, which stays below "
                       f"the held-out evaluation seeds ({HELD_OUT_SEED_OFFSET} and up)", 0, type=int)
     out: str | None = _flag("run directory (default runs/<name>); a folder that already holds files is refused "
@@ -174,7 +175,7 @@ class TrainConfig:
         if config.obs_features is None:  # an imitated policy sees what its reference sees
             config.obs_features = "none" if imitating else preset.obs_features
         for name in ("train_episode_seconds", "gamma", "log_std_init", "hold_penalty", "n_envs", "n_steps",
-                     "n_workers"):
+                     "n_workers", "max_fault_fraction"):
             if getattr(config, name) is None:
                 setattr(config, name, getattr(preset, name))
         if config.train_initial_q_noise is None:

@@ -55,6 +55,9 @@ class ModePreset:
     n_steps: int  # PPO steps per env slot per update
     n_workers: int  # worker processes for the envs
     in_process_envs: int  # with worker processes: envs the learner's process steps itself
+    #: sb3: a run stops when more than this share of its last 100 training episodes faulted. A mode that learns
+    #: from scratch passes through an exploration phase of many faults and learns after it (docs/training.md).
+    max_fault_fraction: float = 0.5
 
 
 class ActionRows:

@@ -1,4 +1,5 @@
-"""Each built-in scenario's training recipe: the learned method that leads the scoreboard on it.
+"""Each built-in scenario's training recipe: the learned method that leads the scoreboard on it at the flat
+default run's budget (:func:`recipe_budget`).
 
 Rule: ``train.py --scenario S``, with ``S`` the name of a built-in that has a recipe in :data:`RECIPES`, takes
 the recipe's value for every setting the command line does not give, unless the command line gives a
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 RECIPE_CHOICES = ("board", "none")  # --recipe: the scenario's recipe, or the flat defaults
+FLAT_DEFAULT_METHOD = "residual-ppo"  # the scoreboard's name of train.py's flat defaults
 
 
 @dataclass(frozen=True)
@@ -30,8 +32,16 @@ class Recipe:
         return self.settings["mode"]
 
 
-#: Built-in scenario -> its recipe, where the board's leading learned method is not the flat defaults
-#: (``residual-ppo``): the method with the highest success, then the shortest settling time, over 3 seeds.
+def recipe_budget() -> int:
+    """Agent steps of the runs a recipe is chosen among: the flat default run's budget (residual mode's
+    preset), so that ``python train.py`` stays a run of minutes; longer methods are reported beside it."""
+    from ee_formation_env.baselines.learned.modes import training_mode
+
+    return training_mode("residual").preset.total_timesteps
+
+
+#: Built-in scenario -> its recipe, where the board's leading learned method at :func:`recipe_budget` is not
+#: the flat defaults (``residual-ppo``): the highest success, then the shortest settling time, over 3 seeds.
 RECIPES: dict[str, Recipe] = {
     "planar_square": Recipe("residual-ppo-gradient", {"mode": "residual", "reference": "gradient"}),
     "planar_square_displacement": Recipe("residual-ppo-invariant", {"mode": "residual", "obs_features": "invariant"}),

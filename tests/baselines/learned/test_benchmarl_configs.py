@@ -64,7 +64,7 @@ def test_an_unknown_algorithm_is_refused_naming_the_field(name, error):
 
 def test_a_non_boolean_advantage_normalization_is_refused():
     with pytest.raises(TypeError, match="normalize_advantage"):
-        benchmarl_configs.NormalizedAdvantageMappoConfig(**{**algorithm_config("mappo").__dict__,
+        benchmarl_configs.FormationMappoConfig(**{**algorithm_config("mappo").__dict__,
                                                             "normalize_advantage": "yes"})
 
 
@@ -153,6 +153,29 @@ def normalized_experiment(tmp_path_factory):
 def test_the_shipped_mappo_normalizes_advantages(normalized_experiment):
     losses = normalized_experiment.losses
     assert losses and all(loss.normalize_advantage for loss in losses.values())
+
+
+def test_the_shipped_mappo_has_one_learned_scale_per_joint_in_every_state(normalized_experiment):
+    """The Gaussian's scale is a parameter (trained: it moved from its initial value), not an actor output: two
+    different observations get the same scale, their means differ."""
+    from tensordict import TensorDict
+
+    experiment = normalized_experiment
+    (group, agents), = experiment.group_map.items()
+    policy = experiment.algorithm.get_policy_for_loss(group)
+    scales = [module for module in policy.modules() if isinstance(module, benchmarl_configs.StateIndependentScale)]
+    assert len(scales) == 1 and scales[0].scale_parameter.shape == (experiment.action_spec[group, "action"].shape[-1],)
+    assert scales[0].scale_parameter.abs().max() > 0  # the optimizer updated it
+    observation = experiment.observation_spec[group, "observation"]
+    batch = TensorDict({group: TensorDict({"observation": torch.randn(2, *observation.shape)}, [2, len(agents)])}, [2])
+    out = policy.module[0](batch)
+    assert not torch.allclose(out[group, "loc"][0], out[group, "loc"][1])
+    torch.testing.assert_close(out[group, "scale"][0], out[group, "scale"][1])
+
+
+def test_the_scale_option_is_refused_when_not_a_bool():
+    with pytest.raises(TypeError, match="state_independent_scale"):
+        benchmarl_configs.FormationIppoConfig(**{**algorithm_config("ippo").__dict__, "state_independent_scale": 1})
 
 
 def test_the_export_carries_the_observation_statistics_and_acts_as_the_experiment(normalized_experiment, tmp_path):

@@ -98,3 +98,15 @@ def test_a_registered_mode_trains_and_evaluates_through_train_py(half_torque, tm
         featured = policy.features(observations[agent][None])[0]  # the preset's features, as in training
         raw = policy.learned(featured)  # the actor's own action, in [-1, 1]
         np.testing.assert_array_equal(policy(observations[agent]), 0.5 * np.asarray(raw, dtype=np.float64))
+
+
+def test_the_fault_guard_is_the_modes_own_and_the_flag_wins():
+    """A mode learning from scratch tolerates its exploration faults (0.9); a residual on a law does not (0.5)."""
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    def guard(*argv):
+        return TrainConfig.from_args([*argv, "--recipe", "none", "--no-progress"]).max_fault_fraction
+
+    assert guard("--mode", "residual") == 0.5
+    assert guard("--mode", "torque") == guard("--mode", "velocity") == 0.9
+    assert guard("--mode", "torque", "--max-fault-fraction", "0.3") == 0.3

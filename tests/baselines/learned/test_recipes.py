@@ -4,11 +4,13 @@ another mode or --recipe none takes the flat defaults, and a saved run keeps wha
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import pytest
 
 from ee_formation_env.baselines.learned.config import TrainConfig
-from ee_formation_env.baselines.learned.recipes import RECIPES
+from ee_formation_env.baselines.learned.recipes import FLAT_DEFAULT_METHOD, RECIPES, recipe_budget
 from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario
 from studies.scoreboard import METHODS
 
@@ -55,3 +57,31 @@ def test_a_bad_recipe_is_refused_naming_the_flag(capsys):
         _config("--recipe", "best")
     assert "--recipe" in capsys.readouterr().err
 
+
+
+def _board_leaders_at_the_recipe_budget():
+    """Per built-in, the learned method leading its committed board rows among the train.py methods of the
+    recipe budget, 3 seeds or more: highest success, then shortest mean settling."""
+    board = Path(__file__).resolve().parents[3] / "docs" / "results" / "scoreboard.json"
+    rows = [row for row in json.loads(board.read_text())["rows"]
+            if row["split"] == "train" and len(row["seeds"]) >= 3
+            and row["budget"].get("total_timesteps") == recipe_budget()]
+    leaders = {}
+    for scenario in BUILTIN_SCENARIOS:
+        ranked = sorted((row for row in rows if row["scenario"] == scenario),
+                        key=lambda row: (-row["metrics"]["success"]["mean"],
+                                         row["metrics"]["settling_time_or_limit"]["mean"]))
+        if ranked:
+            leaders[scenario] = ranked[0]["method"]
+    return leaders
+
+
+def test_each_recipe_is_the_board_leader_at_the_recipe_budget():
+    leaders = _board_leaders_at_the_recipe_budget()
+    assert leaders, "no board row at the recipe budget"
+    for scenario, leader in leaders.items():
+        if leader == FLAT_DEFAULT_METHOD:
+            assert scenario not in RECIPES, f"{scenario}: the flat defaults lead, yet it has a recipe"
+        else:
+            assert scenario in RECIPES and RECIPES[scenario].method == leader, f"{scenario}: the board's leader is {leader}"
+    assert set(RECIPES) <= set(leaders)
