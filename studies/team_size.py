@@ -47,6 +47,7 @@ DEFAULT_SEEDS = (0, 1, 2)
 DEFAULT_SIZES = tuple(range(TEAM_FAMILIES[FAMILY][0], TEAM_FAMILIES[FAMILY][1] + 1))
 DEFAULT_EPISODES = 20  # test draws per team size
 DEFAULT_TRAIN_SECONDS = 600.0  # s of wall time per training seed
+DEFAULT_TRAIN_EPISODE_SECONDS = 8.0  # s: planar_random's laws settle in about 3-4 s, beyond 3 s episodes
 DEFAULT_TIMESTEPS = 3_000_000  # agent steps per seed, the budget if the wall-time limit is not reached first
 SQUARE_EPISODES = 5  # reset seeds per planar_square test scenario
 TARGET_SUCCESS = 0.90  # zero-shot, at every N
@@ -232,8 +233,9 @@ def plot(results: dict[str, Any], path: Path) -> Path:
     for k, name in enumerate(names):
         rows = [results["sizes"][str(n)][name] for n in sizes]
         rate = np.array([100 * row["success"] for row in rows])
-        low = rate - np.array([100 * row["success_low"] for row in rows])
-        high = np.array([100 * row["success_high"] for row in rows]) - rate
+        # clipped at 0: a Wilson bound equal to the rate can differ from it by a rounding error
+        low = np.maximum(rate - np.array([100 * row["success_low"] for row in rows]), 0.0)
+        high = np.maximum(np.array([100 * row["success_high"] for row in rows]) - rate, 0.0)
         ax.errorbar(np.array(sizes) + 0.08 * (k - 1.5), rate, yerr=[low, high], marker="o", capsize=3, label=name)
     ax.axhline(100 * TARGET_SUCCESS, color="grey", linestyle="--", linewidth=1, label="target 90 %")
     ax.axvline(4, color="grey", linestyle=":", linewidth=1)
@@ -258,8 +260,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--total-timesteps", type=int, default=DEFAULT_TIMESTEPS, help="agent steps per seed")
     parser.add_argument("--episode-seconds", type=float, default=None,
                         help="evaluation episode length, s (default: each scenario's)")
-    parser.add_argument("--train-episode-seconds", type=float, default=None,
-                        help="training episode length, s (default: train.py's residual default)")
+    parser.add_argument("--train-episode-seconds", type=float, default=DEFAULT_TRAIN_EPISODE_SECONDS,
+                        help=f"training episode length, s (default {DEFAULT_TRAIN_EPISODE_SECONDS})")
     parser.add_argument("--figure", type=Path, default=None, help="the success-vs-N PNG (default OUT/team_size_success.png)")
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run: one seed, N = 3 and 8, 1 draw of 1 s, 2,048 training steps")
