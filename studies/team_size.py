@@ -6,7 +6,8 @@
 
 Rule: residual PPO on the ``gradient`` law with the permutation-invariant set network
 (``--policy-network set``, :mod:`ee_formation_env.baselines.learned.set_network`) is trained on
-``planar_random`` (4 arms) only, one run per training seed, each stopped after ``--max-train-seconds`` of wall
+``planar_random`` (4 arms) only, on ``--train-episode-seconds`` long episodes (8 s: longer than the laws take
+to settle its draws), one run per training seed, each stopped after ``--max-train-seconds`` of wall
 time. Each run is then evaluated unchanged at every team size N of ``--sizes`` on the fixed test draws of
 ``planar_team`` at N (:func:`ee_formation_env.team_families.team_test_draws`: reset seeds from
 :data:`~ee_formation_env.scenario_sets.TEST_SEEDS`, disjoint from every training reset), beside the three
