@@ -2,7 +2,34 @@
 
 from __future__ import annotations
 
-import copy
+import os
+import platform
+from importlib.metadata import version
+from pathlib import Path
+
+
+def _same_float_kernels_on_every_x86_machine() -> None:
+    """Pin the two float paths that are chosen per CPU when numpy loads: OpenBLAS's kernels (the matmuls of the
+    observations) and numpy's SIMD ceiling. The pinned digests are bit-level; without this an AVX-512 machine
+    computes other last bits than an AVX2 one (docs/reproduction.md, "The same bits on another machine")."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return
+    try:
+        flags = Path("/proc/cpuinfo").read_text().split()
+    except OSError:
+        return
+    if "avx2" not in flags or "fma" not in flags:
+        return  # a machine without Haswell's instructions cannot run its kernels
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+    major, minor = (int(part) for part in version("numpy").split(".")[:2])
+    avx512 = ("X86_V4 AVX512_ICL AVX512_SPR" if (major, minor) >= (2, 4) else
+              "AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR")
+    os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", avx512)
+
+
+_same_float_kernels_on_every_x86_machine()  # before numpy is imported, here or by any test module
+
+import copy  # noqa: E402
 from typing import Any, Callable
 
 import numpy as np
