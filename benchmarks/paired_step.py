@@ -1,6 +1,7 @@
 """Paired before/after timing of the parallel env's ``step`` (zero actions), two source trees run alternately.
 
     python -m benchmarks.paired_step --before OLD_TREE [--pairs 5] [--steps 4000]
+    python -m benchmarks.paired_step --before OLD_TREE --counter instructions [--steps 1000]
 
 ``OLD_TREE``: an export of the old code with the two symlinks of :mod:`benchmarks.paired_evaluation`, so that
 ``PYTHONPATH=OLD_TREE`` imports the old package. Each measurement is a fresh process per tree that builds the
@@ -8,6 +9,11 @@ env through the public API (``ee_formation_env.parallel_env(name, frame_skip=...
 trees), steps it 200 times to warm up, then times ``--steps`` steps from a fixed reset three times and keeps
 the fastest; the trees alternate, pair after pair, so that both see the same phase of the machine. The table
 gives env steps/s of each tree (median over pairs) and the ratio after / before of each pair.
+
+``--counter instructions`` counts instead of timing: each tree's child runs under valgrind's callgrind (with
+``PYTHONHASHSEED=0``) twice, with ``--steps`` and with twice as many, and the difference of the two instruction
+totals over the extra steps is the instructions per env step, setup and warm-up cancelled. The count is the
+same whatever else the machine runs (one pair is enough); it is work, not time: cache misses are not in it.
 """
 
 from __future__ import annotations
@@ -15,6 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import shutil
 import statistics
 import subprocess
 import sys
@@ -56,17 +64,44 @@ def steps_per_second(tree: Path, name: str, frame_skip: int, steps: int) -> floa
     return float(json.loads(result.stdout.strip().splitlines()[-1]))
 
 
+def instructions_per_step(tree: Path, name: str, frame_skip: int, steps: int) -> float:
+    """Instructions per env step of ``tree``'s env (module docstring, ``--counter instructions``)."""
+    env = dict(os.environ, PYTHONHASHSEED="0")
+    if tree != HERE:
+        env["PYTHONPATH"] = str(tree)
+    totals = []
+    for count in (steps, 2 * steps):
+        result = subprocess.run(["valgrind", "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable,
+                                 "-c", CHILD, name, str(frame_skip), str(count)], env=env, cwd=str(tree),
+                                check=True, capture_output=True, text=True)
+        totals.append(int(re.findall(r"Collected : (\d+)", result.stderr)[-1]))
+    return (totals[1] - totals[0]) / (3 * steps)  # the child times three repeats of ``steps``
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.paired_step", description=__doc__.split("\n\n")[0])
     parser.add_argument("--before", type=Path, required=True, help="the old source tree (module docstring)")
     parser.add_argument("--pairs", type=int, default=5, help="before/after pairs per case")
     parser.add_argument("--steps", type=int, default=4000, help="env steps per timed run")
+    parser.add_argument("--counter", choices=("time", "instructions"), default="time",
+                        help="wall-clock steps/s, or instructions per step under callgrind (module docstring)")
     args = parser.parse_args(argv)
     before_tree = args.before.resolve()
     if not (before_tree / "ee_formation_env" / "__init__.py").is_file():
         raise ValueError(f"--before: {before_tree} holds no ee_formation_env package")
     if args.pairs < 1 or args.steps < 1:
         raise ValueError("--pairs and --steps: expected integers >= 1")
+    if args.counter == "instructions":
+        if shutil.which("valgrind") is None:
+            raise ValueError("--counter instructions: needs valgrind on the PATH")
+        print("| case | before, instructions/step | after, instructions/step | before / after (speed ratio) |")
+        print("|---|---:|---:|---:|")
+        for name, frame_skip in CASES:
+            before = instructions_per_step(before_tree, name, frame_skip, args.steps)
+            after = instructions_per_step(HERE, name, frame_skip, args.steps)
+            print(f"| {name}, frame_skip {frame_skip} | {before:,.0f} | {after:,.0f} | {before / after:.3f} |",
+                  flush=True)
+        return
     print("| case | before, steps/s | after, steps/s | after / before, each pair | median |")
     print("|---|---:|---:|---|---:|")
     for name, frame_skip in CASES:

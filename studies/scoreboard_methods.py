@@ -89,6 +89,10 @@ METHODS: dict[str, Method] = {
         "--mode", "residual", "--reference", "gradient", "--residual-gate-power", "2")),
     # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
+    # The same on the base-yaw-invariant features: torques mean the same in any base yaw, so a yawed team is
+    # the training team's problem (arms turning about their base z axis only).
+    "torque-ppo-invariant": Method("torque-ppo-invariant", train_flags=(
+        "--mode", "torque", "--obs-features", "invariant", "--max-train-seconds", "1800"), needs_invariant_arms=True),
     "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(
         "--mode", "torque", "--max-train-seconds", "1800", "--contact-penalty", "1.0")),
     # The gravity-compensated torque convention (docs/spaces.md, "Action conventions"), at the same budget.

@@ -26,3 +26,28 @@ def test_paired_step_prints_a_row_per_case_for_a_tree_against_itself():
 def test_paired_step_refuses_a_before_tree_without_the_package(tmp_path):
     with pytest.raises(ValueError, match="--before"):
         main(["--before", str(tmp_path)])
+
+
+def test_the_instruction_counter_refuses_to_start_without_valgrind(monkeypatch):
+    import benchmarks.paired_step as paired_step
+
+    monkeypatch.setattr(paired_step.shutil, "which", lambda name: None)
+    with pytest.raises(ValueError, match="--counter instructions: needs valgrind"):
+        main(["--before", str(REPO), "--counter", "instructions"])
+
+
+def test_the_instruction_count_per_step_is_the_difference_of_two_runs_over_the_extra_steps(monkeypatch):
+    import benchmarks.paired_step as paired_step
+
+    calls = []
+
+    def fake_run(command, **kwargs):
+        steps = int(command[-1])
+        calls.append((command[:2], steps, kwargs["env"]["PYTHONHASHSEED"]))
+        # 5,000,000 instructions of setup, 3 repeats of `steps` steps at 1,000 instructions each
+        total = 5_000_000 + 3 * steps * 1_000
+        return subprocess.CompletedProcess(command, 0, "", f"==1== Collected : {total}\n")
+
+    monkeypatch.setattr(paired_step.subprocess, "run", fake_run)
+    assert paired_step.instructions_per_step(REPO, "planar_square", 1, 10) == 1_000.0
+    assert calls == [(["valgrind", "--tool=callgrind"], 10, "0"), (["valgrind", "--tool=callgrind"], 20, "0")]

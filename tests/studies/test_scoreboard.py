@@ -142,6 +142,17 @@ def test_a_test_scenario_named_as_a_builtin_is_its_own_row():
     assert "### planar_square_rotated (test: policies trained on planar_square" in table
 
 
+@pytest.mark.parametrize("name", ["residual-ppo-invariant", "torque-ppo-invariant"])
+def test_an_invariant_method_runs_on_arms_turning_about_their_base_z_only(name):
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    method = scoreboard_methods.METHODS[name]
+    assert method.unavailable("planar_square_rotated") is None
+    assert "base z axis" in method.unavailable("spatial_tetrahedron")  # the PERA arm's first joint is not
+    config = TrainConfig.from_args(list(method.train_flags))
+    assert (config.mode, config.obs_features) == (name.split("-")[0], "invariant")
+
+
 def test_benchmarl_methods_are_skipped_without_the_torchrl_extra(tmp_path, capsys):
     import importlib.util
 
