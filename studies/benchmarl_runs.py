@@ -4,6 +4,7 @@
     python -m studies.benchmarl_runs --algorithm mappo --mode torque --settings sb3 --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm ippo --mode torque --settings project --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm ippo --mode residual --minutes 10 --scenario planar_square
+    python -m studies.benchmarl_runs --algorithm mappo --mode torque --settings project --frames 1900000 --seed 0
     python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
     python -m studies.benchmarl_runs --plot RUN_DIR [RUN_DIR ...] --figure curves.png   (no training)
 
@@ -17,7 +18,7 @@ or ``project``: every config from the project's YAML files,
 :mod:`~ee_formation_env.baselines.learned.benchmarl_configs`, with the task's observation normalization and
 reward scale, advantage normalization and the mode preset's learning-rate decay), csv logging, no BenchMARL
 evaluation (its test env is a training env). Training stops at the first batch collected after ``--minutes``
-of wall time, before that batch's update (:class:`WallClockStop`); then the deterministic policy runs the held-out seeds 10,000 + k through
+of wall time, or ``--frames`` frames, before that batch's update (:class:`BudgetStop`); then the deterministic policy runs the held-out seeds 10,000 + k through
 :func:`~ee_formation_env.baselines.learned.benchmarl_task.evaluate_benchmarl_policy`, and the folder ``--out``
 gets ``evaluation.json`` (the summary, every episode, budget and wall time), the learning curve
 ``curve.csv`` (frames, mean training return per batch) and the exported actor (``policy/``).
@@ -96,22 +97,25 @@ except ImportError:  # pragma: no cover
     _Callback = object
 
 
-class WallClockStop(Exception):
-    """Raised by :class:`WallClockCallback` to end ``Experiment.run`` at a batch boundary."""
+class BudgetStop(Exception):
+    """Raised by :class:`BudgetCallback` to end ``Experiment.run`` at a batch boundary."""
 
 
-class WallClockCallback(_Callback):
+class BudgetCallback(_Callback):
     """A BenchMARL callback that records (frames, mean reward per agent step of the batch, wall s) per batch in
     ``curve`` (the env's reward: the batch's divided by the task's ``reward_scale``) and stops the run at the
-    first batch collected after ``seconds`` of wall time; with ``lr`` given, it sets every optimizer's learning
-    rate to ``lr * (1 - elapsed / seconds)`` before each batch's update. Module-level, because BenchMARL pickles
-    an experiment's callbacks."""
+    first batch collected after the budget: ``seconds`` of wall time, or, with ``frames`` given, that many frames
+    (then ``seconds`` is not used). With ``lr`` given, it sets every optimizer's learning rate to
+    ``lr * (1 - spent)`` before each batch's update, ``spent`` the budget's used fraction: of the frames (the
+    same schedule on any machine, so a seed's run is repeatable) or of the wall time (a schedule that follows
+    the machine's speed and load, so two runs of one seed differ from the first update on). Module-level,
+    because BenchMARL pickles an experiment's callbacks."""
 
     def __init__(self, seconds: float, curve: list[tuple[int, float, float]], lr: float | None = None,
-                 reward_scale: float = 1.0):
+                 reward_scale: float = 1.0, frames: int | None = None):
         super().__init__()
         self.seconds, self.curve, self.started, self.lr = seconds, curve, time.time(), lr
-        self.reward_scale = reward_scale
+        self.reward_scale, self.frames = reward_scale, frames
 
     def on_setup(self) -> None:
         self.started = time.time()
@@ -120,15 +124,21 @@ class WallClockCallback(_Callback):
         experiment = self.experiment
         rewards = [batch.get(("next", group, "reward")).float().mean().item() / self.reward_scale
                    for group in experiment.group_map]
-        self.curve.append((int(experiment.total_frames), sum(rewards) / len(rewards), time.time() - self.started))
         elapsed = time.time() - self.started
-        if elapsed >= self.seconds:
-            raise WallClockStop(f"wall-clock budget of {self.seconds:.0f} s reached")
+        self.curve.append((int(experiment.total_frames), sum(rewards) / len(rewards), elapsed))
+        if self.frames is not None:
+            spent = experiment.total_frames / self.frames
+            if spent >= 1.0:
+                raise BudgetStop(f"frame budget of {self.frames:,} frames reached")
+        else:
+            spent = elapsed / self.seconds
+            if spent >= 1.0:
+                raise BudgetStop(f"wall-clock budget of {self.seconds:.0f} s reached")
         if self.lr is not None:
             for optimizers in experiment.optimizers.values():
                 for optimizer in optimizers.values():
                     for group in optimizer.param_groups:
-                        group["lr"] = self.lr * (1.0 - elapsed / self.seconds)
+                        group["lr"] = self.lr * (1.0 - spent)
 
 
 def _configs(algorithm: str, mode: str, settings: RunSettings | str) -> tuple[Any, Any, Any, dict[str, Any], Any]:
@@ -163,11 +173,15 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str) -> tuple[An
             settings.lr if settings.lr_decay else None)
 
 
-def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out: Path, episodes: int = 10,
-        episode_seconds: float | None = None, settings: RunSettings | str = SETTINGS["benchmarl"]) -> dict[str, Any]:
-    """Train, evaluate and export one run into ``out``; the evaluation record. ``episode_seconds``: the
+def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: int, out: Path, episodes: int = 10,
+        episode_seconds: float | None = None, settings: RunSettings | str = SETTINGS["benchmarl"],
+        frames: int | None = None) -> dict[str, Any]:
+    """Train, evaluate and export one run into ``out``; the evaluation record. The budget: ``minutes`` of wall
+    time, or ``frames`` frames (then ``minutes`` is None: :class:`BudgetCallback`). ``episode_seconds``: the
     evaluation episodes' length (default: the scenario's; training uses the mode's training length);
     ``settings``: the learning settings (:data:`SETTINGS`, or :data:`PROJECT_SETTINGS`)."""
+    if (minutes is None) == (frames is None):
+        raise ValueError(f"budget: expected minutes or frames, not both or neither (got {minutes!r}, {frames!r})")
     import torch
     from benchmarl.experiment import Experiment
 
@@ -177,7 +191,7 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
 
     torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
     config, algorithm_config, model, task_config, decayed_lr = _configs(algorithm, mode, settings)
-    config.max_n_frames, config.max_n_iters = 10**10, None  # the wall clock stops it
+    config.max_n_frames, config.max_n_iters = 10**10, None  # the budget callback stops it
     config.loggers, config.evaluation, config.render = ["csv"], False, False
     config.checkpoint_at_end, config.create_json = False, False
     out.mkdir(parents=True, exist_ok=True)
@@ -187,12 +201,12 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
     curve: list[tuple[int, float, float]] = []
     experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=model,
                             critic_model_config=model, seed=seed, config=config,
-                            callbacks=[WallClockCallback(minutes * 60.0, curve, decayed_lr,
-                                                         task.transforms().reward_scale)])
+                            callbacks=[BudgetCallback(math.inf if minutes is None else minutes * 60.0, curve,
+                                                      decayed_lr, task.transforms().reward_scale, frames)])
     started = time.time()
     try:
         experiment.run()
-    except WallClockStop as stop:  # BenchMARL closes the run and prints "Experiment failed ...": this stop
+    except BudgetStop as stop:  # BenchMARL closes the run and prints "Experiment failed ...": this stop
         print(f"training stopped: {stop} (BenchMARL's 'Experiment failed' line above is this stop)", flush=True)
     train_seconds = time.time() - started
     n_agents = sum(len(agents) for agents in experiment.group_map.values())
@@ -204,6 +218,7 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float, seed: int, out
         writer.writerow(["frames", "agent_steps", "mean_reward_per_step", "wall_seconds"])
         writer.writerows((frames, frames * n_agents, reward, wall) for frames, reward, wall in curve)
     record = {"algorithm": algorithm, "scenario": scenario, "mode": mode, "seed": seed, "minutes": minutes,
+              "frame_budget": frames,
               "settings": settings if isinstance(settings, str) else asdict(settings),
               "task_config": task.config, "train_seconds": train_seconds, "frames": int(experiment.total_frames),
               "agent_steps": int(experiment.total_frames) * n_agents, "iterations": experiment.n_iters_performed,
@@ -274,7 +289,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ee_formation_env.baselines.learned.modes import mode_names
 
     parser.add_argument("--mode", default="torque", choices=mode_names(), help="training mode (default torque)")
-    parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock training budget")
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--minutes", type=float, default=None, help="wall-clock training budget (default 30)")
+    budget.add_argument("--frames", type=int, default=None,
+                        help="a frame budget instead (frames = env steps of all copies; agent steps = frames x "
+                             "agents): the learning-rate decay follows it, so a seed's run repeats on any machine")
     parser.add_argument("--seed", type=int, default=0, help="training seed")
     parser.add_argument("--settings", default="benchmarl", choices=sorted(SETTINGS_NAMES),
                         help="learning settings: benchmarl (its defaults), sb3 (train.py's torque preset's), "
@@ -296,14 +315,18 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     if args.scenario not in BUILTIN_SCENARIOS:
         parser.error(f"--scenario: unknown {args.scenario!r}; available: {sorted(BUILTIN_SCENARIOS)}")
-    if not args.minutes > 0:
+    if args.frames is None and args.minutes is None:
+        args.minutes = 30.0
+    if args.minutes is not None and not args.minutes > 0:
         parser.error("--minutes: expected a duration > 0")
+    if args.frames is not None and args.frames < 1:
+        parser.error("--frames: expected an integer >= 1")
     if args.episodes < 1:
         parser.error("--episodes: expected an integer >= 1")
     tag = "" if args.settings == "benchmarl" else f"-{args.settings}"
     out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
     record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
-                 settings=SETTINGS.get(args.settings, args.settings))
+                 settings=SETTINGS.get(args.settings, args.settings), frames=args.frames)
     from ee_formation_env.baselines.metrics import format_table
 
     print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))

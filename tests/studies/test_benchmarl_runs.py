@@ -1,4 +1,4 @@
-"""studies.benchmarl_runs: a wall-clock-bounded BenchMARL run, evaluated with the project's metrics, exported."""
+"""studies.benchmarl_runs: a BenchMARL run bounded by wall time or frames, evaluated with the project's metrics, exported."""
 
 from __future__ import annotations
 
@@ -90,6 +90,8 @@ def test_the_settings_reach_benchmarl_and_the_record(tmp_path, experiment_argume
     (["--scenario", "nowhere"], "--scenario: unknown"),
     (["--minutes", "0"], "--minutes: expected a duration > 0"),
     (["--episodes", "0"], "--episodes: expected an integer >= 1"),
+    (["--frames", "0"], "--frames: expected an integer >= 1"),
+    (["--frames", "100", "--minutes", "1"], "not allowed with argument"),
 ])
 def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -170,7 +172,7 @@ def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch)
     experiment = types.SimpleNamespace(group_map={"arms": ["a", "b"]}, total_frames=100,
                                        optimizers={"arms": {"loss_objective": optimizer}})
     curve = []
-    callback = benchmarl_runs.WallClockCallback(100.0, curve, lr=3e-4)
+    callback = benchmarl_runs.BudgetCallback(100.0, curve, lr=3e-4)
     callback.experiment = experiment
     now = [1000.0]
     monkeypatch.setattr(benchmarl_runs.time, "time", lambda: now[0])
@@ -179,9 +181,9 @@ def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch)
     callback.on_batch_collected(batch)
     assert optimizer.param_groups[0]["lr"] == pytest.approx(3e-4 * 0.75) and curve == [(100, 1.0, 25.0)]
     now[0] += 80.0
-    with pytest.raises(benchmarl_runs.WallClockStop):
+    with pytest.raises(benchmarl_runs.BudgetStop):
         callback.on_batch_collected(batch)
-    constant = benchmarl_runs.WallClockCallback(100.0, [])  # no lr: the optimizers are left alone
+    constant = benchmarl_runs.BudgetCallback(100.0, [])  # no lr: the optimizers are left alone
     constant.experiment = experiment
     constant.on_setup()
     optimizer.param_groups[0]["lr"] = 0.5
@@ -211,3 +213,48 @@ def test_the_project_settings_are_the_shipped_yaml_files(tmp_path, experiment_ar
         rows = list(csv.DictReader(handle))
     assert rows and all(0 <= float(row["mean_reward_per_step"]) <= 2 for row in rows)
     assert (out / "policy" / "actor.json").is_file()
+
+
+def test_a_frame_budget_stops_on_frames_and_decays_the_learning_rate_over_them(monkeypatch):
+    import types
+
+    import torch
+
+    parameter = torch.nn.Parameter(torch.zeros(1))
+    optimizer = torch.optim.Adam([parameter], lr=1.0)
+    batch = types.SimpleNamespace(get=lambda key: torch.ones(3))
+    experiment = types.SimpleNamespace(group_map={"arms": ["a"]}, total_frames=250,
+                                       optimizers={"arms": {"loss_objective": optimizer}})
+    callback = benchmarl_runs.BudgetCallback(1.0, [], lr=2e-4, frames=1_000)  # the 1 s is not used
+    callback.experiment = experiment
+    now = [1000.0]
+    monkeypatch.setattr(benchmarl_runs.time, "time", lambda: now[0])
+    callback.on_setup()
+    now[0] += 50.0  # far past the 1 s: frames decide
+    callback.on_batch_collected(batch)
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(2e-4 * 0.75)
+    experiment.total_frames = 1_000
+    with pytest.raises(benchmarl_runs.BudgetStop, match="frame budget of 1,000 frames"):
+        callback.on_batch_collected(batch)
+
+
+def test_a_run_takes_exactly_one_budget(tmp_path):
+    for minutes, frames in ((None, None), (1.0, 100)):
+        with pytest.raises(ValueError, match="budget: expected minutes or frames"):
+            benchmarl_runs.run("mappo", "planar_square", "torque", minutes, 0, tmp_path / "run", frames=frames)
+    assert not (tmp_path / "run").exists()
+
+
+@needs_benchmarl
+def test_a_frame_budget_run_of_one_seed_repeats_bit_for_bit(tmp_path):
+    records, curves = [], []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        assert benchmarl_runs.main(["--frames", "16384", "--episodes", "1", "--mode", "torque", "--settings",
+                                    "project", "--out", str(out)]) == 0
+        record = json.loads((out / "evaluation.json").read_text())
+        records.append((record["frames"], record["frame_budget"], record["evaluation"]["per_episode"]))
+        curves.append([(row["frames"], row["mean_reward_per_step"]) for row in csv.DictReader((out / "curve.csv").open())])
+    assert records[0] == records[1] and records[0][:2] == (16384, 16384)
+    assert curves[0] == curves[1] and len(curves[0]) == 2  # the second batch reached the budget
+    assert (tmp_path / "a" / "policy" / "actor.json").read_bytes() == (tmp_path / "b" / "policy" / "actor.json").read_bytes()
