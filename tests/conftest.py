@@ -11,7 +11,7 @@ from pathlib import Path
 def _same_float_kernels_on_every_x86_machine() -> None:
     """Pin the two float paths that are chosen per CPU when numpy loads: OpenBLAS's kernels (the matmuls of the
     observations) and numpy's SIMD ceiling. The pinned digests are bit-level; without this an AVX-512 machine
-    computes other last bits than an AVX2 one (docs/reproduction.md, "The same bits on another machine")."""
+    computes other last bits than an AVX2 one (docs/physics.md, "The same bits on another machine")."""
     if platform.machine() not in ("x86_64", "AMD64"):
         return
     try:
