@@ -28,7 +28,7 @@ from ee_formation_env.robots import ROBOTS  # noqa: E402
 from ee_formation_env.scenario import Scenario, load_scenario  # noqa: E402
 
 __all__ = ["FormationEnv", "Scenario", "load_scenario", "validate_scenario", "parallel_env", "vector_env", "env",
-           "raw_env", "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]
+           "raw_env", "team_parallel_env", "team_vector_env", "BUILTIN_SCENARIOS", "ROBOTS", "__version__"]
 __version__ = "0.1.0"
 
 
@@ -86,6 +86,33 @@ def vector_env(scenario: Any = "planar_square", num_envs: int = 1, max_cycles: i
     from ee_formation_env.vector import VectorFormationEnv
 
     return VectorFormationEnv(scenario, num_envs=num_envs, **_with_max_cycles(scenario, max_cycles, overrides))
+
+
+def team_parallel_env(family: str = "planar_team", team_sizes: Any = None, render_mode: str | None = None,
+                      max_cycles: int | None = None, **overrides: Any):
+    """The parallel env of a team-size family whose team size is drawn at every reset (``planar_team``: 3-8
+    arms, ``spatial_team``: 3-6): ``possible_agents`` the largest team's, ``agents`` this episode's
+    (:class:`ee_formation_env.team_env.TeamParallelEnv`). ``max_cycles`` and ``overrides`` as in
+    :func:`parallel_env`, applied to every team size."""
+    from ee_formation_env.team_env import TeamParallelEnv, check_team_sizes
+    from ee_formation_env.team_families import team_scenario
+
+    sizes = check_team_sizes(family, team_sizes)
+    return TeamParallelEnv(family, team_sizes=sizes, render_mode=render_mode,
+                           **_with_max_cycles(team_scenario(family, sizes[0]), max_cycles, overrides))
+
+
+def team_vector_env(family: str = "planar_team", num_envs: int = 1, team_sizes: Any = None,
+                    max_cycles: int | None = None, **overrides: Any):
+    """K copies of a team-size family, each drawing its team size at every reset, padded to the largest team
+    with an agent mask (:class:`ee_formation_env.team_env.TeamVectorEnv`); arguments as
+    :func:`team_parallel_env`'s."""
+    from ee_formation_env.team_env import TeamVectorEnv, check_team_sizes
+    from ee_formation_env.team_families import team_scenario
+
+    sizes = check_team_sizes(family, team_sizes)
+    return TeamVectorEnv(family, num_envs=num_envs, team_sizes=sizes,
+                         **_with_max_cycles(team_scenario(family, sizes[0]), max_cycles, overrides))
 
 
 def raw_env(scenario: Any = "planar_square", render_mode: str | None = None, max_cycles: int | None = None,

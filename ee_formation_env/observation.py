@@ -158,11 +158,17 @@ class ObservationBuilder:
     """
 
     def __init__(self, task: FormationTask, max_joint_velocity: float, bounds: tuple[float, float] | None = None,
-                 reference: Any = None):
+                 reference: Any = None, n_slots: int | None = None):
         """``bounds``: (|z| bound, end-effector coordinate bound), m, for spaces that must hold over many
-        tasks (a scenario distribution's draws); default: this task's own (module docstring)."""
+        tasks (a scenario distribution's draws); default: this task's own (module docstring). ``n_slots``: the
+        neighbour slots per agent (the scenario's ``neighbour_slots``), at least the graph's largest degree;
+        default that degree."""
         formation, graph = task.formation, task.graph
-        m, w, n_slots = task.dim, formation.error_width, graph.max_degree
+        if n_slots is not None and n_slots < graph.max_degree:
+            raise ValueError(f"neighbour_slots: expected at least the graph's largest degree {graph.max_degree}, "
+                             f"got {n_slots}")
+        m, w = task.dim, formation.error_width
+        n_slots = graph.max_degree if n_slots is None else int(n_slots)
         self.kind = formation.kind
         self.reference = reference
         reference_size = 0 if reference is None else reference.size

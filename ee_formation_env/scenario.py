@@ -116,6 +116,10 @@ class Scenario:
                                            "the URDF values", "N m s/rad")
     max_joint_velocity: float = _key(50.0, "|dq| above this is a physics fault that terminates the episode "
                                            "(PyBullet's own 100 rad/s clamp is lifted so it cannot hide it)", "rad/s")
+    neighbour_slots: int | None = _key(None, "neighbour slots in every agent's observation: null = the graph's "
+                                             "largest degree D; a number >= D pads every agent with empty slots "
+                                             "(mask 0), so that teams of other sizes or graphs share one "
+                                             "observation space (see :mod:`ee_formation_env.team_env`)")
     singularity_threshold: float = _key(1e-3, "smallest Jacobian singular value below which an initial "
                                               "configuration is rejected as singular", "m")
     reward: RewardConfig = _key(None, "reward weights and scales, see :class:`RewardConfig`",
@@ -222,7 +226,7 @@ SCENARIO_FIELDS = {spec.name: spec for spec in fields(Scenario)}
 # Fields whose change leaves tuned controller gains valid: everything but the physics (robots, bases, shape,
 # graph, rates, torque limits, gravity, damping, contacts).
 GAIN_NEUTRAL_FIELDS = frozenset({"name", "episode_seconds", "initial_q_noise", "terminate_on_contact",
-                                 "max_joint_velocity", "singularity_threshold", "reward", "model_mismatch",
+                                 "max_joint_velocity", "neighbour_slots", "singularity_threshold", "reward", "model_mismatch",
                                  "sensing", "manoeuvre", "controller_gains"})
 __doc__ += "\n" + scenario_keys_table() + "\n"
 
@@ -372,6 +376,12 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     damping = data.get("joint_damping", _default("joint_damping"))
     kwargs["joint_damping"] = damping if damping == "urdf" else _non_negative("joint_damping", damping)
     kwargs["max_joint_velocity"] = _positive("max_joint_velocity", data.get("max_joint_velocity", _default("max_joint_velocity")))
+    slots = data.get("neighbour_slots", _default("neighbour_slots"))
+    if slots is not None and (not isinstance(slots, (int, np.integer)) or isinstance(slots, (bool, np.bool_))
+                              or slots < 1):
+        raise ValueError(f"neighbour_slots: expected null or an integer >= 1 (neighbour slots per agent), got "
+                         f"{excerpt(slots)}")
+    kwargs["neighbour_slots"] = None if slots is None else int(slots)
     kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", _default("singularity_threshold")))
     kwargs["reward"] = parse_reward(data.get("reward", {}))
     kwargs["model_mismatch"] = parse_mismatch(data.get("model_mismatch"))

@@ -136,7 +136,7 @@ class VectorFormationEnv:
         self.num_envs = K = int(num_envs)
         self.metadata = {**type(self).metadata, "autoreset_mode": autoreset_mode}
         self.autoreset = autoreset_mode == AutoresetMode.SAME_STEP
-        self.scenario = load_scenario(scenario, **overrides)
+        self.scenario = scenario = load_scenario(scenario, **overrides)
         self.task = build_task(self.scenario)  # validates: raises before any physics starts
         self.render_mode = render_mode
         self.possible_agents = self.task.agents
@@ -152,13 +152,14 @@ class VectorFormationEnv:
             if self._sampled:  # one draw now: an infeasible distribution is refused here
                 self.task = first_draw(self.scenario, self._arm_sets[0])
                 self._bounds = distribution_bounds(self.scenario, self.task)
+            # The manoeuvre's reference (manoeuvre.py); without one the observations are the plain task's.
+            self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)
+            self._reference = self._motion if self.scenario.manoeuvre.active else None
+            self._observer = ObservationBuilder(self.task, scenario.max_joint_velocity, self._bounds, self._reference,
+                                                scenario.neighbour_slots)
         except BaseException:
             self.close()
             raise
-        # The manoeuvre's reference (manoeuvre.py); without one the observations are the plain task's.
-        self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)
-        self._reference = self._motion if self.scenario.manoeuvre.active else None
-        self._observer = ObservationBuilder(self.task, self.scenario.max_joint_velocity, self._bounds, self._reference)
         sensing = self.scenario.sensing
         self._sensor = Sensor(sensing, self.task, self._observer, K) if sensing.active else None
         self._sensed: tuple[np.ndarray, np.ndarray] | None = None  # the copies' measured slot z and errors
@@ -500,10 +501,10 @@ class VectorFormationEnv:
             self._sense(part.slot_z, rows)
 
     def _use_task(self, k: int, task: Any) -> None:
-        """Make a drawn task copy ``k``'s current one: its observer (same spaces: the distribution's bounds) and
-        edge tolerances."""
-        self.tasks[k] = task
-        self._observers[k] = ObservationBuilder(task, self.scenario.max_joint_velocity, self._bounds)
+        """Make a drawn task copy ``k``'s current one: its observer (same spaces and slots) and edge tolerances."""
+        self.tasks[k], scenario = task, self.scenario
+        self._observers[k] = ObservationBuilder(task, scenario.max_joint_velocity, self._bounds, None,
+                                                scenario.neighbour_slots)
         self._copy_tolerances[k] = task_edge_tolerances(task)
 
     def _observation_matrix(self, slot_z: np.ndarray, slot_errors: np.ndarray, q_observed: np.ndarray,

@@ -50,7 +50,9 @@ started episode.
 (residual actions, observation features, shaped rewards), which this package never imports: the wing hands
 it over. What the wrapper needs of it is listed in :data:`BATCHED_ENV_API`. Each agent's observation columns
 come from the env's own observation sizes (agents concatenated in order), not from the raw env's layout, so
-feature-augmented observations fit.
+feature-augmented observations fit. An env whose infos carry ``agent_mask`` (K, N) bool (the team env,
+:mod:`ee_formation_env.team_env`, whose copies differ in team size) adds ``(group, "mask")`` (K, n) bool: True
+for the agents of the episode the observations belong to; absent agents' observations and rewards are zero.
 """
 
 from __future__ import annotations
@@ -227,6 +229,7 @@ class BatchedTorchRLEnv(EnvBase):
         generators = list(vec.np_randoms)
         probe = vec.reset_arrays(seed=0)  # the info shapes; the copies' own generators are put back
         vec.np_randoms[:] = generators
+        self._masked = "agent_mask" in probe.infos  # copies of different team sizes (ee_formation_env.team_env)
         observations, actions, rewards = Composite(device=device), Composite(device=device), Composite(device=device)
         done = Composite({key: Categorical(2, shape=(1,), dtype=torch.bool, device=device) for key in _DONE_KEYS},
                          device=device)
@@ -243,6 +246,8 @@ class BatchedTorchRLEnv(EnvBase):
                                        shape=(n,), device=device)
             done[group] = Composite({key: Categorical(2, shape=(n, 1), dtype=torch.bool, device=device)
                                      for key in _DONE_KEYS}, shape=(n,), device=device)
+            if self._masked:
+                observations[group]["mask"] = Categorical(2, shape=(n,), dtype=torch.bool, device=device)
         if self.return_state:
             observations["state"] = _box_spec(vec.state_space, 1, device).squeeze(0)
         self.full_observation_spec_unbatched = observations
@@ -276,6 +281,8 @@ class BatchedTorchRLEnv(EnvBase):
                      "truncated": truncated.unsqueeze(1).expand(K, n, 1).clone()}
             if rewards:
                 entry["reward"] = _tensor(result.rewards[:, self._agent_rows[group], None], device)
+            if self._masked:  # the agents of the episode these observations belong to
+                entry["mask"] = torch.from_numpy(result.infos["agent_mask"][:, self._agent_rows[group]]).to(device)
             source[group] = TensorDict(entry, batch_size=(K, n), device=device)
         if self.return_state:
             source["state"] = _tensor(self.vector_env.state(), device)

@@ -300,3 +300,32 @@ def test_from_batched_wraps_a_built_batched_env_as_a_scenario_name_does():
     finally:
         for env in (named, *wrapped):
             env.close()
+
+
+def test_the_team_env_carries_a_mask_of_each_copys_team():
+    import warnings
+
+    import numpy as np
+
+    import ee_formation_env
+
+    with warnings.catch_warnings():  # the ring-and-chords graphs are rigid but not minimally so
+        warnings.simplefilter("ignore", UserWarning)
+        team = ee_formation_env.team_vector_env("planar_team", num_envs=3, max_cycles=4)
+        env = make_torchrl_env(batched_env=team, seed=0)
+        try:
+            assert env.group_map == {"planar_2link": [f"arm_{i}" for i in range(8)]}
+            check_env_specs(env)
+            rollout = env.rollout(10, break_when_any_done=False)  # through two autoresets per copy
+            mask = rollout["next", "planar_2link", "mask"].numpy()  # (3, 10, 8)
+            sizes = mask.sum(-1)
+            assert set(np.unique(sizes)) <= set(range(3, 9)) and len(np.unique(sizes)) > 1
+            assert (mask == (np.arange(8) < sizes[..., None])).all()  # the first N agents of each episode
+            rewards = rollout["next", "planar_2link", "reward"].numpy()[..., 0]
+            observations = rollout["next", "planar_2link", "observation"].numpy()
+            assert not rewards[~mask].any() and not observations[~mask].any()  # absent agents: zeros
+            done = rollout["next", "done"].numpy()[..., 0]
+            carried = rollout["planar_2link", "mask"].numpy()[:, 1:] == mask[:, :-1]  # to the next step's input
+            assert carried[~done[:, :-1]].all() and not carried[done[:, :-1]].all()  # a new team after an end
+        finally:
+            env.close()
