@@ -218,7 +218,7 @@ class FormationEnv(ParallelEnv):
             raise RuntimeError("step: call reset() first (the episode has ended or never started)")
         check = self.batch.actions_check
         normalized = check.agent_dict(actions, None)
-        result = self.batch.step_checked(normalized, check.clip(normalized))
+        result = self.batch.step_checked(normalized, check.clip(normalized), owned_infos=False)
         agents = self.possible_agents
         ended, truncated = result.terminations.item(), result.truncations.item()
         return (self.agent_observations(result.observations), dict(zip(agents, result.rewards.tolist()[0])),

@@ -93,7 +93,6 @@ __all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS", "PER_AGENT_INF
 
 AutoresetMode = gymnasium.vector.AutoresetMode
 RENDER_MODES = ("human", "rgb_array")
-
 # ONE_COPY_FAST_PATH: with one copy, the same functions on its own arrays, then given the K axis back (cheaper).
 
 class BatchedStep(NamedTuple):
@@ -191,7 +190,7 @@ class VectorFormationEnv:
         self._copy_tolerances = [task_edge_tolerances(self.task)] * K
         self.np_randoms = [seeding.np_random(None)[0] for _ in range(K)]
         n = self.task.n_agents
-        self._step_counts = np.zeros(K, dtype=np.int64)
+        self._step_counts, self._max_steps = np.zeros(K, dtype=np.int64), self.scenario.max_steps
         self._clipped_actions = np.zeros((K, n), dtype=np.int64)  # so far this episode
         self._clipped_step = np.zeros((K, n), dtype=np.int64)  # at the last step
         self._contacts = np.zeros((K, n), dtype=np.int64)
@@ -305,9 +304,9 @@ class VectorFormationEnv:
         (what :meth:`step_arrays` checks; for wrappers that transform actions before stepping)."""
         return self.actions_check.flat_array(actions, self.num_envs)
 
-    def step_checked(self, normalized: np.ndarray, clipped: np.ndarray) -> BatchedStep:
-        """Step every copy with checked, clipped actions (K, T) (:class:`~ee_formation_env.actions.ActionCheck`),
-        ``clipped`` the entries clipped per (copy, agent); ended copies restart with SAME_STEP autoreset."""
+    def step_checked(self, normalized: np.ndarray, clipped: np.ndarray, owned_infos: bool = True) -> BatchedStep:
+        """Step every copy with checked, clipped actions (K, T) (``clipped``: the entries clipped per (copy, agent);
+        ``owned_infos``: :meth:`_info_arrays`'s ``owned``); ended copies restart with SAME_STEP autoreset."""
         torques = normalized * self._torque_limits_flat  # (K, T), N m
         if self.scenario.gravity_compensation:  # each arm's own g(q) added, within its limits (gravity.py)
             torques = np.clip(torques + self.gravity_torques(), -self._torque_limits_flat, self._torque_limits_flat)
@@ -347,11 +346,11 @@ class VectorFormationEnv:
         else:
             rewards = reward_array(measured.edge_squares, self._copy_tolerances[0], self._observer,
                                    self.scenario.reward)
-        infos = self._info_arrays(measured)
+        infos = self._info_arrays(measured, owned_infos)
         ended = measured.fault != 0
         if self.scenario.terminate_on_contact:
             ended = ended | (self._contacts > 0).any(axis=1)
-        truncated = ~ended & (self._step_counts >= self.scenario.max_steps)
+        truncated = ~ended & (self._step_counts >= self._max_steps)
         self._last_reasons = measured.fault_reason
         done_mask = ended | truncated
         any_done = np.count_nonzero(done_mask) > 0  # ndarray.any() costs several times more on K = 1
@@ -423,8 +422,7 @@ class VectorFormationEnv:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode to parallel_env")
             return None
         return self._renderer.render_copy(self.render_mode, self._arm_sets[0].arms, self._last().ee_world[0],
-                                          self.tasks[0].formation, int(self._step_counts[0]),
-                                          self.scenario.control_dt)
+                                          self.tasks[0].formation, int(self._step_counts[0]), self.scenario.control_dt)
 
     def close(self) -> None:
         """Disconnect every copy's physics client; safe to call more than once."""
@@ -561,19 +559,21 @@ class VectorFormationEnv:
                                             q[r:r + 1], dq[r:r + 1], faults[r:r + 1], reasons[r:r + 1])
                                     for r, k in enumerate(rows)])
 
-    def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:
-        """The infos of every (copy, agent) as stacked arrays (the array API's form)."""
+    def _info_arrays(self, measured: Measurement, owned: bool = True) -> dict[str, np.ndarray]:
+        """The infos of every (copy, agent) as stacked arrays (the array API's form); ``owned``: copies of what the
+        env keeps (False: the caller only reads them at once, as the parallel env does, turning them into numbers)."""
+        keep = np.copy if owned else np.asarray
         return {
             "formation_error": formation_errors_from_squares(measured.edge_squares),
             "edge_errors": self._observer.padded_slot_errors(measured.slot_errors),
-            "edge_mask": self._edge_masks.copy(),  # fresh each call: infos of different calls share no object
+            "edge_mask": self._edge_masks.copy(),  # fresh each call (the masks themselves are read-only)
             "singularity_margin": measured.singularity_margins,
             "torque_saturation": self._clipped_step / self._joint_counts,
             "applied_torque": self._torques,
-            "clipped_actions": self._clipped_actions.copy(),  # the next step adds to it
+            "clipped_actions": keep(self._clipped_actions),  # the next step reads it
             "contacts": self._contacts,
-            "physics_fault": np.asarray(measured.fault).copy(),
-            "physics_fault_reason": np.asarray(measured.fault_reason, dtype=object).copy(),
+            "physics_fault": keep(measured.fault),
+            "physics_fault_reason": keep(np.asarray(measured.fault_reason, dtype=object)),
             "sim_time": self._times(),
         }
 

@@ -22,12 +22,15 @@ from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
 
 @dataclass(frozen=True)
 class BenchmarlRun:
-    """A studies.benchmarl_runs run: algorithm, training-task mode, wall-clock budget and learning settings."""
+    """A studies.benchmarl_runs run: algorithm, training-task mode, budget and learning settings. The budget is
+    ``minutes`` of wall time, or, where ``frames`` is set, that many frames (env steps of all copies; agent steps
+    = frames x agents), which repeats bit for bit on any machine and at any load."""
 
     algorithm: str
     mode: str
-    minutes: float
+    minutes: float | None
     settings: str = "benchmarl"  # a name of studies.benchmarl_runs.SETTINGS_NAMES
+    frames: int | None = None
 
 
 @dataclass(frozen=True)
@@ -297,13 +300,15 @@ def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_
 
     spec = method.benchmarl
     if not current or not (run_dir / "evaluation.json").is_file():
-        benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if board.extra_train_flags else spec.minutes,
+        quick = bool(board.extra_train_flags)  # --quick: a tiny wall-clock budget whatever the method's
+        benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if quick else spec.minutes,
                            seed, run_dir, len(board.eval_seeds(scenario)), episode_seconds=board.episode_seconds,
-                           settings=benchmarl_runs.SETTINGS.get(spec.settings, spec.settings))
+                           settings=benchmarl_runs.SETTINGS.get(spec.settings, spec.settings),
+                           frames=None if quick else spec.frames)
     record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
     budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
-              "minutes": float(record["minutes"]), "mode": spec.mode, "algorithm": spec.algorithm,
-              "settings": spec.settings}
+              "minutes": record["minutes"], "frame_budget": record.get("frame_budget"), "mode": spec.mode,
+              "algorithm": spec.algorithm, "settings": spec.settings}
     return record["evaluation"]["per_episode"], budget
 
 

@@ -136,7 +136,8 @@ class TaskTransforms:
 
     #: Each group's observations by a running mean and standard deviation per agent and feature, over every
     #: copy, with infinite memory (:class:`RunningObservationNorm`, TorchRL's ``VecNormV2``): SB3's
-    #: ``VecNormalize`` of observations, without its clipping. The statistics are exported with the actor.
+    #: ``VecNormalize`` of observations, without its clipping; and the global ``state`` where the env returns it
+    #: (the centralized critic's input), per feature. The observation statistics are exported with the actor.
     observation_normalization: bool = False
     #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0: returns of a size the critic fits
     #: well (the env's rewards are in [0, 2] per step).
@@ -159,8 +160,9 @@ class TaskTransforms:
     def transforms(self, env: EnvBase, groups: Mapping[str, Any]) -> list[Transform]:
         """The transforms for ``env`` and its agent groups ``groups`` (group -> agents)."""
         transforms: list[Transform] = []
-        if self.observation_normalization:
-            transforms.append(RunningObservationNorm([(group, "observation") for group in groups], env))
+        if self.observation_normalization:  # the centralized critic's input too: MAPPO's critic reads the state
+            state = ["state"] if "state" in env.observation_spec.keys() else []
+            transforms.append(RunningObservationNorm([(group, "observation") for group in groups] + state, env))
         if self.reward_scale != 1.0:
             transforms.append(RewardScaling(loc=0.0, scale=self.reward_scale,
                                             in_keys=[(group, "reward") for group in groups]))
