@@ -27,20 +27,16 @@ The overrides apply to training and evaluation alike; training then sets ``episo
 ``train_episode_seconds`` and, where the options give one, ``initial_q_noise`` to ``train_initial_q_noise``.
 Everything is checked when the task is made (``get_task``), before any env is built.
 
-**Evaluation: what was chosen.** BenchMARL builds its test env by the same ``get_env_fun`` call as the
-training env (only ``num_envs`` differs, and both are 10 by default), so a task cannot tell the two apart:
-both are training envs. BenchMARL's own evaluation (``evaluation_interval``) thus reports episodes under
-training conditions (training episode length and start noise, shaped rewards): a learning curve.
-:func:`evaluate_benchmarl_policy` is the project's evaluation: the scenario's own episodes (its
+**Evaluation.** BenchMARL builds its test env by the training env's ``get_env_fun`` call, so its own
+evaluation (``evaluation_interval``) reports training conditions (episode length, start noise, shaped
+rewards): a learning curve. :func:`evaluate_benchmarl_policy` is the project's: the scenario's own episodes (its
 ``episode_seconds`` and ``initial_q_noise``, with the task's overrides), the env's reward, the metrics of
 :mod:`ee_formation_env.baselines.metrics` on held-out seeds >= 10,000 (training resets use seeds below), the
 policy deterministic (the Gaussian's mean, through the tanh of BenchMARL's ``TanhNormal``).
 
-**Task YAML.** BenchMARL's ``Task.get_from_yaml()`` reads ``benchmarl/conf/task/<env>/<task>.yaml``
-inside BenchMARL's own package and type-checks it with a dataclass it looks up there too; neither fits a task
-defined outside BenchMARL. The defaults are :class:`TrainingTaskOptions`'s, and ``get_from_yaml(path)``
-reads a config dict from a YAML file: the project's own per mode are those of
-:mod:`~ee_formation_env.baselines.learned.benchmarl_configs`.
+**Task YAML.** BenchMARL's ``Task.get_from_yaml()`` reads YAML files inside its own package only; here
+``get_from_yaml(path)`` reads a config dict from any YAML file (the project's own per mode:
+:mod:`~ee_formation_env.baselines.learned.benchmarl_configs`); the defaults are :class:`TrainingTaskOptions`'s.
 
 **Export.** :func:`export_benchmarl_policy` writes a folder (atomically,
 :func:`~ee_formation_env.baselines.learned.checkpoint.atomic_directory`): ``actor.pt``, every group's layer
@@ -136,16 +132,20 @@ class TaskTransforms:
 
     #: Each group's observations by a running mean and standard deviation per agent and feature, over every
     #: copy, with infinite memory (:class:`RunningObservationNorm`, TorchRL's ``VecNormV2``): SB3's
-    #: ``VecNormalize`` of observations, without its clipping; and the global ``state`` where the env returns it
-    #: (the centralized critic's input), per feature. The observation statistics are exported with the actor.
+    #: ``VecNormalize`` of observations, without its clipping. The statistics are exported with the actor.
     observation_normalization: bool = False
-    #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0: returns of a size the critic fits
-    #: well (the env's rewards are in [0, 2] per step).
+    #: With ``observation_normalization``, the global ``state`` too where the env returns it (the input of
+    #: MAPPO's centralized critic), per feature, the same way (docs/results.md: measured, not adopted).
+    state_normalization: bool = False
+    #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0 (the env's rewards are in [0, 2] per step).
     reward_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.observation_normalization, bool):
-            raise TypeError(f"observation_normalization: expected True or False, got {self.observation_normalization!r}")
+        for name in ("observation_normalization", "state_normalization"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+        if self.state_normalization and not self.observation_normalization:
+            raise ValueError("state_normalization: needs observation_normalization (the one normalization transform)")
         scale = self.reward_scale
         if isinstance(scale, bool) or not isinstance(scale, (int, float)):
             raise TypeError(f"reward_scale: expected a number > 0, got {type(scale).__name__} {scale!r}")
@@ -160,8 +160,8 @@ class TaskTransforms:
     def transforms(self, env: EnvBase, groups: Mapping[str, Any]) -> list[Transform]:
         """The transforms for ``env`` and its agent groups ``groups`` (group -> agents)."""
         transforms: list[Transform] = []
-        if self.observation_normalization:  # the centralized critic's input too: MAPPO's critic reads the state
-            state = ["state"] if "state" in env.observation_spec.keys() else []
+        if self.observation_normalization:
+            state = ["state"] if self.state_normalization and "state" in env.observation_spec.keys() else []
             transforms.append(RunningObservationNorm([(group, "observation") for group in groups] + state, env))
         if self.reward_scale != 1.0:
             transforms.append(RewardScaling(loc=0.0, scale=self.reward_scale,

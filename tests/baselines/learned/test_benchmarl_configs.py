@@ -70,6 +70,8 @@ def test_a_non_boolean_advantage_normalization_is_refused():
 
 @pytest.mark.parametrize("config, field, error", [
     ({"observation_normalization": 1}, "observation_normalization", TypeError),
+    ({"state_normalization": 1}, "state_normalization", TypeError),
+    ({"state_normalization": True}, "state_normalization: needs observation_normalization", ValueError),
     ({"reward_scale": 0.0}, "reward_scale", ValueError),
     ({"reward_scale": float("inf")}, "reward_scale", ValueError),
     ({"reward_scale": "0.1"}, "reward_scale", TypeError),
@@ -100,6 +102,25 @@ def test_without_transforms_the_task_adds_none():
         assert task.get_env_transforms(env) == []
     finally:
         env.close()
+
+
+def test_state_normalization_normalizes_the_critics_state_too():
+    plain, normalized = _transformed_env({"observation_normalization": True}), _transformed_env(
+        {"observation_normalization": True, "state_normalization": True})
+    try:
+        assert "state" not in plain.transform[0].in_keys and "state" in normalized.transform[0].in_keys
+        check_env_specs(normalized)
+        raw = _transformed_env({})
+        states = {}
+        for name, env in (("raw", raw), ("normalized", normalized)):
+            td = env.rollout(20, break_when_any_done=False)
+            states[name] = td["next", "state"]
+        raw.close()
+        # raw states hold joint speeds and positions of several units; normalized ones are about centred
+        assert states["normalized"].mean(dim=(0, 1)).abs().max() < 3.0 < states["raw"].abs().max()
+    finally:
+        plain.close()
+        normalized.close()
 
 
 def test_the_reward_scale_multiplies_every_reward_and_the_observations_normalize():
@@ -190,7 +211,8 @@ def test_the_export_carries_the_observation_statistics_and_acts_as_the_experimen
     assert np.all(actor.observation_scale > 0) and np.any(actor.observation_loc != 0)
     folder = export_benchmarl_policy(experiment, tmp_path / "actor")
     description = json.loads((folder / "actor.json").read_text())
-    assert description["transforms"] == {"observation_normalization": True, "reward_scale": 0.005}
+    assert description["transforms"] == {"observation_normalization": True, "state_normalization": False,
+                                         "reward_scale": 0.005}
     loaded = load_benchmarl_policy(folder)
     np.testing.assert_array_equal(loaded.groups[group].observation_loc, actor.observation_loc.astype(np.float32))
     # The experiment's policy on the normalized observations = the numpy actor on the raw ones.
