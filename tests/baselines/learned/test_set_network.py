@@ -141,6 +141,26 @@ def test_the_same_weights_act_for_three_and_eight_arms(tiny_run, n_agents):
             assert action.shape == env.action_space(agent).shape and np.isfinite(action).all()
 
 
+def test_the_set_policy_acts_in_the_team_env_at_every_drawn_size(tiny_run):
+    import warnings
+
+    config = json.loads((tiny_run / "config.json").read_text())
+    with warnings.catch_warnings():  # the ring-and-chords graphs are rigid but not minimally so
+        warnings.simplefilter("ignore", UserWarning)
+        env = ee_formation_env.team_parallel_env("planar_team", episode_seconds=0.2)
+        sizes = set()
+        for seed in range(8):
+            observations, _ = env.reset(seed=seed)
+            policies = learned_policies(tiny_run, env.current, config)  # the episode's team, 4 slots each
+            assert sorted(policies) == sorted(env.agents)
+            while env.agents:
+                actions = {agent: policies[agent](observations[agent]) for agent in env.agents}
+                observations, *_ = env.step(actions)
+            sizes.add(env.team_size)
+        env.close()
+    assert len(sizes) >= 3
+
+
 def test_save_and_load_round_trip_reproduces_the_training_inputs_and_weights(tiny_run):
     import torch
 
