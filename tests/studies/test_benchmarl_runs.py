@@ -258,3 +258,27 @@ def test_a_frame_budget_run_of_one_seed_repeats_bit_for_bit(tmp_path):
     assert records[0] == records[1] and records[0][:2] == (16384, 16384)
     assert curves[0] == curves[1] and len(curves[0]) == 2  # the second batch reached the budget
     assert (tmp_path / "a" / "policy" / "actor.json").read_bytes() == (tmp_path / "b" / "policy" / "actor.json").read_bytes()
+
+
+@pytest.mark.parametrize("quick", [False, True])
+def test_a_board_method_with_a_frame_budget_trains_on_frames(tmp_path, monkeypatch, quick):
+    from studies import scoreboard_methods
+    from studies.scoreboard_methods import BenchmarlRun, Board, Method, QUICK_MINUTES, _benchmarl_cell
+
+    calls = []
+
+    def fake_run(algorithm, scenario, mode, minutes, seed, out, episodes, episode_seconds=None, settings=None,
+                 frames=None):
+        calls.append((minutes, frames))
+        out.mkdir(parents=True)
+        (out / "evaluation.json").write_text(json.dumps({
+            "agent_steps": 4 * (frames or 64), "train_seconds": 1.0, "minutes": minutes, "frame_budget": frames,
+            "evaluation": {"per_episode": []}}))
+
+    monkeypatch.setattr(benchmarl_runs, "run", fake_run)
+    method = Method("mappo-framed", benchmarl=BenchmarlRun("mappo", "torque", None, "project", frames=2048))
+    board = Board(out=tmp_path, scenarios=("planar_square",), methods=(), seeds=(0,), episodes=1,
+                  episode_seconds=None, extra_train_flags=scoreboard_methods.QUICK_FLAGS if quick else ())
+    _, budget = _benchmarl_cell(board, "planar_square", method, 0, tmp_path / "run")
+    assert calls == [(QUICK_MINUTES, None)] if quick else calls == [(None, 2048)]
+    assert budget["frame_budget"] == (None if quick else 2048) and budget["settings"] == "project"
