@@ -9,8 +9,8 @@ from pathlib import Path
 
 
 def _same_float_kernels_on_every_x86_machine() -> None:
-    """Pin the two float paths that are chosen per CPU when numpy loads: OpenBLAS's kernels (the matmuls of the
-    observations) and numpy's SIMD ceiling. The pinned digests are bit-level; without this an AVX-512 machine
+    """Pin the float paths that are chosen per CPU when numpy and torch load: OpenBLAS's kernels (the matmuls of
+    the observations), numpy's SIMD ceiling, torch's kernel dispatch and MKL's code path. The pinned digests are bit-level; without this an AVX-512 machine
     computes other last bits than an AVX2 one (docs/physics.md, "The same bits on another machine")."""
     if platform.machine() not in ("x86_64", "AMD64"):
         return
@@ -25,6 +25,10 @@ def _same_float_kernels_on_every_x86_machine() -> None:
     avx512 = ("X86_V4 AVX512_ICL AVX512_SPR" if (major, minor) >= (2, 4) else
               "AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR")
     os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", avx512)
+    # torch picks its kernels per CPU too (the training digests): its own dispatch ceiling, and for its matrix
+    # products MKL's code path that gives the same bits on every x86 vendor (MKL's "compatible" branch).
+    os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
 
 
 _same_float_kernels_on_every_x86_machine()  # before numpy is imported, here or by any test module
