@@ -200,3 +200,15 @@ def reset_rows(options: Any, copies: int, first_reset: bool) -> np.ndarray:
         raise RuntimeError("options['reset_mask']: the first reset must reset every copy (call reset() "
                            "without a mask first)")
     return np.flatnonzero(array)
+
+
+def check_steppable(connected: bool, needs_reset: bool, ended: np.ndarray) -> None:
+    """Refuse a batched step of a closed env, of one never reset, or of copies whose episode has ended (``ended``,
+    (copies,) bool, without autoreset): ``RuntimeError`` saying which and how to reset."""
+    if not connected:
+        raise RuntimeError("step: the environment is closed")
+    if needs_reset:
+        raise RuntimeError("step: call reset() first (the env has never been reset)")
+    if ended.any():
+        raise RuntimeError(f"step: call reset() first (the episode has ended in copies "
+                           f"{np.flatnonzero(ended).tolist()}: reset them, e.g. with options={{'reset_mask': mask}})")

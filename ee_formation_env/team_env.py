@@ -51,7 +51,7 @@ from pettingzoo import ParallelEnv
 from ee_formation_env.actions import ActionCheck, numeric_action_array
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.infos import PER_AGENT_INFO, one_copy_info_dicts
-from ee_formation_env.inputs import MAX_NUM_ENVS, check_num_envs, copy_seeds, excerpt, reset_rows
+from ee_formation_env.inputs import MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.team_families import TEAM_FAMILIES, check_team_size, team_scenario
 from ee_formation_env.vector import AutoresetMode, BatchedStep
@@ -220,7 +220,7 @@ class TeamVectorEnv:
     def step_arrays(self, actions: Any) -> BatchedStep:
         """One step of every copy from (K, Nmax * n) or (K, Nmax, n) actions (absent agents' entries ignored);
         checked (numeric, finite, shape) before any copy moves."""
-        self._check_running()
+        check_steppable(self.connected, self._needs_reset, self._ended)
         K, N, n = self.num_envs, self.max_agents, self.n_joints_per_arm
         flat = numeric_action_array(actions, [(K, N * n), (K, N, n), (K * N, n)], (K, N * n), rows_per_copy=N)
         steps = []
@@ -279,16 +279,6 @@ class TeamVectorEnv:
         self.team_size[k], self.episode_seeds[k] = size, episode_seed
         self._last[k] = env.batch.reset_arrays(seed=episode_seed)
         self._ended[k] = False
-
-    def _check_running(self) -> None:
-        if not self.connected:
-            raise RuntimeError("step: the environment is closed")
-        if self._needs_reset:
-            raise RuntimeError("step: call reset() first (the env has never been reset)")
-        if self._ended.any():
-            raise RuntimeError(f"step: call reset() first (the episode has ended in copies "
-                               f"{np.flatnonzero(self._ended).tolist()}: reset them, e.g. with "
-                               "options={'reset_mask': mask})")
 
     def _padded_observation(self, row: np.ndarray) -> np.ndarray:
         padded = np.zeros(self.max_agents * self.observation_size, dtype=np.float32)

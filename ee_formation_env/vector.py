@@ -78,7 +78,7 @@ from ee_formation_env.actions import ActionCheck
 from ee_formation_env.formation import formation_errors_from_squares
 from ee_formation_env.generators import distribution_bounds, first_draw, sample_task
 from ee_formation_env.infos import PER_AGENT_INFO, PER_COPY_INFO, copies_info_dicts
-from ee_formation_env.inputs import check_num_envs, copy_seeds, excerpt, reset_rows
+from ee_formation_env.inputs import check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
 from ee_formation_env.manoeuvre import ReferenceMotion
 from ee_formation_env.measurement import PHYSICS_FAULTS, Measurement, measure, physics_faults, reward_array
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
@@ -452,14 +452,7 @@ class VectorFormationEnv:
     # ------------------------------------------------------------------------------------------ internals
     def check_running(self) -> None:
         """Refuse a step of a closed env, of one never reset, or (without autoreset) of ended copies."""
-        if not self.connected:
-            raise RuntimeError("step: the environment is closed")
-        if self._needs_reset:
-            raise RuntimeError("step: call reset() first (the env has never been reset)")
-        if self._ended.any():
-            raise RuntimeError(f"step: call reset() first (the episode has ended in copies "
-                               f"{np.flatnonzero(self._ended).tolist()}: reset them, e.g. with "
-                               "options={'reset_mask': mask})")
+        check_steppable(self.connected, self._needs_reset, self._ended)
 
     def _times(self) -> np.ndarray:  # each copy's simulated time (K,), s, at its last reset/step
         return self._step_counts * self.scenario.control_dt
