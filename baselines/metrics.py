@@ -165,7 +165,7 @@ class _EpisodeHooks:
         ended, truncated = bool(result.terminations[0]), bool(result.truncations[0])
         step = Step(index, action_dict, env.agent_observations(result.observations),
                     dict(zip(agents, result.rewards[0].tolist())), dict.fromkeys(agents, ended),
-                    dict.fromkeys(agents, truncated), env.agent_infos(infos))
+                    dict.fromkeys(agents, truncated), env.agent_infos())
         return bool(self.on_transition(env, step))
 
     def _record(self, t: float, formation_error: float, torque: np.ndarray) -> None:

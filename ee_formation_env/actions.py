@@ -4,6 +4,7 @@ field (``actions['arm_0']: ...``, ``actions: ...``)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -42,7 +43,8 @@ class ActionCheck:
                 normalized = np.concatenate(parts, axis=-1, dtype=np.float64)
             except (TypeError, ValueError):
                 normalized = None
-        if normalized is None or not np.isfinite(normalized).all():
+        # A finite sum means finite entries (an overflow to inf only sends finite values to the detailed check).
+        if normalized is None or not math.isfinite(normalized.sum()):
             # The first bad agent's error (bad type, shape or values), in agent order.
             normalized = np.concatenate([self._checked(agent, part, lead) for agent, part in zip(self.agents, parts)],
                                         axis=-1)
@@ -63,7 +65,10 @@ class ActionCheck:
 
     def clip(self, normalized: np.ndarray) -> np.ndarray:
         """Clip checked (K, T) actions to [-1, 1] in place; the entries clipped per (copy, agent) (K, N)."""
-        clipped = np.add.reduceat(np.abs(normalized) > 1.0, self.joint_starts, axis=1, dtype=np.int64)
+        outside = np.abs(normalized) > 1.0
+        if not np.count_nonzero(outside):  # the common case, in two cheap calls
+            return np.zeros((len(normalized), len(self.agents)), dtype=np.int64)
+        clipped = np.add.reduceat(outside, self.joint_starts, axis=1, dtype=np.int64)
         np.minimum(np.maximum(normalized, -1.0, out=normalized), 1.0, out=normalized)  # np.clip, without its overhead
         return clipped
 

@@ -11,7 +11,7 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from ee_formation_env.formation import Formation, FormationGraph
+from ee_formation_env.formation import Formation, FormationGraph, formation_error_from_squares
 from ee_formation_env.infos import one_copy_info_dicts
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.measurement import PHYSICS_FAULTS
@@ -124,10 +124,11 @@ class FormationEnv(ParallelEnv):
     def agents(self) -> list[str]:
         """The live agents: every agent during an episode, none before the first reset, after the episode's
         end or after :meth:`close`."""
+        return list(self.possible_agents) if self._running() else []
+
+    def _running(self) -> bool:  # an episode is on: the agents are live
         batch = self.batch
-        if batch._needs_reset or batch._ended[0] or not batch._worlds[0].connected:
-            return []
-        return list(self.possible_agents)
+        return not (batch._needs_reset or batch._ended[0] or not batch._worlds[0].connected)
 
     @property
     def task(self) -> FormationTask:
@@ -208,21 +209,22 @@ class FormationEnv(ParallelEnv):
         ``initial_q_noise`` (rad), clipped to the joint limits; velocities are zero.
         """
         result = self.batch.reset_arrays(seed=seed, options=options)
-        return self.agent_observations(result.observations), self.agent_infos(result.infos)
+        return self.agent_observations(result.observations), self.agent_infos()
 
     def step(self, actions: Mapping[str, np.ndarray]):
         """Apply one action per live agent for ``frame_skip`` physics steps."""
-        if not self.agents:
-            if not self.batch.connected:
+        batch = self.batch
+        if not self._running():
+            if not batch.connected:
                 raise RuntimeError("step: the environment is closed")
             raise RuntimeError("step: call reset() first (the episode has ended or never started)")
-        check = self.batch.actions_check
+        check = batch.actions_check
         normalized = check.agent_dict(actions, None)
-        result = self.batch.step_checked(normalized, check.clip(normalized), owned_infos=False)
+        result = batch.step_checked(normalized, check.clip(normalized), info_arrays=False)
         agents = self.possible_agents
         ended, truncated = result.terminations.item(), result.truncations.item()
         return (self.agent_observations(result.observations), dict(zip(agents, result.rewards.tolist()[0])),
-                dict.fromkeys(agents, ended), dict.fromkeys(agents, truncated), self.agent_infos(result.infos))
+                dict.fromkeys(agents, ended), dict.fromkeys(agents, truncated), self.agent_infos())
 
     def check_action(self, agent: str, action: Any) -> None:
         """Check one agent's action as :meth:`step` does (a numeric array of its action space's shape, finite);
@@ -308,10 +310,17 @@ class FormationEnv(ParallelEnv):
         row = matrix[0]
         return {agent: row[part] for agent, part in zip(self.possible_agents, self._observation_slices)}
 
-    def agent_infos(self, infos: dict[str, np.ndarray]) -> dict[str, dict[str, Any]]:
-        """agent -> its info dict, from the batched env's stacked infos of the one copy
-        (:func:`ee_formation_env.infos.one_copy_info_dicts`)."""
-        return one_copy_info_dicts(infos, self.possible_agents, self._joint_slices)
+    def agent_infos(self) -> dict[str, dict[str, Any]]:
+        """agent -> its info dict at the last reset/step: the one copy's row of the batched env's infos, less
+        ``physics_fault_reason``, taken from the step's values (stacking, then splitting, costs more per step)."""
+        batch = self.batch
+        m = batch._measurement
+        return one_copy_info_dicts(
+            self.possible_agents, self._joint_slices, formation_error_from_squares(m.edge_squares[0]),
+            int(batch._step_counts[0]) * self.scenario.control_dt, int(m.fault[0]),
+            batch._observer.padded_slot_errors(m.slot_errors[0]), batch._edge_masks[0].copy(),
+            m.singularity_margins[0].tolist(), (batch._clipped_step[0] / batch._joint_counts).tolist(),
+            batch._torques[0], batch._clipped_actions[0].tolist(), batch._contacts[0].tolist())
 
 
 FormationEnv.__doc__ = FormationEnv.__doc__.replace(

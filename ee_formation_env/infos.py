@@ -1,6 +1,6 @@
-"""The env's infos in their three forms: stacked arrays of K copies (the array API's, made by the batched env),
-agent -> dict of (K, ...) arrays (the batched dict API's) and agent -> dict of one copy's values (the parallel
-env's). The keys and their meaning: ``docs/spaces.md``."""
+"""The env's infos in their three forms: stacked arrays of K copies (the array API's), agent -> dict of (K, ...)
+arrays (the batched dict API's) and agent -> dict of one copy's values (the parallel env's); the last two are made
+here. The keys and their meaning: ``docs/spaces.md``."""
 
 from __future__ import annotations
 
@@ -31,28 +31,16 @@ def copies_info_dicts(infos: dict[str, np.ndarray], agents: Sequence[str], joint
     return result
 
 
-def one_copy_info_dicts(infos: dict[str, np.ndarray], agents: Sequence[str], joint_slices: Sequence[slice]
-                        ) -> dict[str, dict[str, Any]]:
-    """agent -> its info dict, from the stacked infos of one copy (K = 1): numbers as Python numbers, arrays
-    as views of arrays made for this step only, one disjoint slice per agent."""
-    # One numpy call per entry (``item``, ``tolist`` of the whole (1, N) array): this runs every step.
-    formation_error, sim_time = infos["formation_error"].item(), infos["sim_time"].item()
-    fault = infos["physics_fault"].item()
-    (margins,), (saturation,) = infos["singularity_margin"].tolist(), infos["torque_saturation"].tolist()
-    (clipped_so_far,), (contacts,) = infos["clipped_actions"].tolist(), infos["contacts"].tolist()
-    (errors,), (masks,), (torques,) = infos["edge_errors"], infos["edge_mask"], infos["applied_torque"]
-    result = {}
-    for i, (agent, joints) in enumerate(zip(agents, joint_slices)):
-        result[agent] = {
-            "formation_error": formation_error,
-            "edge_errors": errors[i],
-            "edge_mask": masks[i],
-            "singularity_margin": margins[i],
-            "torque_saturation": saturation[i],
-            "applied_torque": torques[joints],
-            "clipped_actions": clipped_so_far[i],
-            "contacts": contacts[i],
-            "physics_fault": fault,
-            "sim_time": sim_time,
-        }
-    return result
+def one_copy_info_dicts(agents: Sequence[str], joint_slices: Sequence[slice], formation_error: float,
+                        sim_time: float, physics_fault: int, edge_errors: np.ndarray, edge_masks: np.ndarray,
+                        margins: list[float], saturations: list[float], torques: np.ndarray,
+                        clipped_so_far: list[int], contacts: list[int]) -> dict[str, dict[str, Any]]:
+    """agent -> its info dict of one copy (the parallel env's form), from that copy's values: the per-copy ones
+    as Python numbers; per agent, row i of ``edge_errors`` and ``edge_masks`` (views of arrays made for this
+    step only), entry i of the lists, and ``torques[joint_slices[i]]`` (T,), N m."""
+    return {agent: {"formation_error": formation_error, "edge_errors": errors, "edge_mask": mask,
+                    "singularity_margin": margin, "torque_saturation": saturation, "applied_torque": torques[joints],
+                    "clipped_actions": clipped, "contacts": touching, "physics_fault": physics_fault,
+                    "sim_time": sim_time}
+            for agent, joints, errors, mask, margin, saturation, clipped, touching
+            in zip(agents, joint_slices, edge_errors, edge_masks, margins, saturations, clipped_so_far, contacts)}

@@ -50,7 +50,7 @@ from pettingzoo import ParallelEnv
 
 from ee_formation_env.actions import ActionCheck, numeric_action_array
 from ee_formation_env.env import FormationEnv
-from ee_formation_env.infos import PER_AGENT_INFO, one_copy_info_dicts
+from ee_formation_env.infos import PER_AGENT_INFO
 from ee_formation_env.inputs import MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.team_families import TEAM_FAMILIES, check_team_size, team_scenario
@@ -362,7 +362,7 @@ class TeamParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         """Draw a team size and run that size's episode (module docstring); observations and infos of its agents."""
         result = self.team.reset_arrays(seed=seed, options=options)
-        return self._observations(result), self._infos(result)
+        return self._observations(result), self._infos()
 
     def step(self, actions: dict[str, np.ndarray]):
         """One action per live agent (the dict's keys exactly the live agents); their dicts back."""
@@ -378,7 +378,7 @@ class TeamParallelEnv(ParallelEnv):
         agents = self.possible_agents[:size]
         ended, truncated = bool(result.terminations[0]), bool(result.truncations[0])
         return (self._observations(result), dict(zip(agents, result.rewards[0, :size].tolist())),
-                dict.fromkeys(agents, ended), dict.fromkeys(agents, truncated), self._infos(result))
+                dict.fromkeys(agents, ended), dict.fromkeys(agents, truncated), self._infos())
 
     def state(self) -> np.ndarray:
         """The global state, padded to the largest team (:meth:`TeamVectorEnv.state`)."""
@@ -396,9 +396,9 @@ class TeamParallelEnv(ParallelEnv):
         return {agent: row[part] for agent, part in zip(self.possible_agents[:self.team_size],
                                                         self.team.observation_slices)}
 
-    def _infos(self, result: BatchedStep) -> dict[str, dict[str, Any]]:
+    def _infos(self) -> dict[str, dict[str, Any]]:
         size = self.team_size
-        infos = one_copy_info_dicts(result.infos, self.possible_agents[:size], self.team.joint_slices[:size])
+        infos = self.current.agent_infos()  # its agents are the first N of possible_agents
         for info in infos.values():
             info["team_size"] = size
         return infos

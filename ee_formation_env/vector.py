@@ -304,9 +304,10 @@ class VectorFormationEnv:
         (what :meth:`step_arrays` checks; for wrappers that transform actions before stepping)."""
         return self.actions_check.flat_array(actions, self.num_envs)
 
-    def step_checked(self, normalized: np.ndarray, clipped: np.ndarray, owned_infos: bool = True) -> BatchedStep:
-        """Step every copy with checked, clipped actions (K, T) (``clipped``: the entries clipped per (copy, agent);
-        ``owned_infos``: :meth:`_info_arrays`'s ``owned``); ended copies restart with SAME_STEP autoreset."""
+    def step_checked(self, normalized: np.ndarray, clipped: np.ndarray, info_arrays: bool = True) -> BatchedStep:
+        """Step every copy with checked, clipped actions (K, T) (``clipped``: the entries clipped per (copy, agent));
+        ended copies restart with SAME_STEP autoreset. ``info_arrays=False``: the infos are left out (``{}``; the
+        parallel env reads its own, :meth:`ee_formation_env.env.FormationEnv.agent_infos`)."""
         torques = normalized * self._torque_limits_flat  # (K, T), N m
         if self.scenario.gravity_compensation:  # each arm's own g(q) added, within its limits (gravity.py)
             torques = np.clip(torques + self.gravity_torques(), -self._torque_limits_flat, self._torque_limits_flat)
@@ -346,7 +347,7 @@ class VectorFormationEnv:
         else:
             rewards = reward_array(measured.edge_squares, self._copy_tolerances[0], self._observer,
                                    self.scenario.reward)
-        infos = self._info_arrays(measured, owned_infos)
+        infos = self._info_arrays(measured) if info_arrays else {}
         ended = measured.fault != 0
         if self.scenario.terminate_on_contact:
             ended = ended | (self._contacts > 0).any(axis=1)
@@ -552,10 +553,8 @@ class VectorFormationEnv:
                                             q[r:r + 1], dq[r:r + 1], faults[r:r + 1], reasons[r:r + 1])
                                     for r, k in enumerate(rows)])
 
-    def _info_arrays(self, measured: Measurement, owned: bool = True) -> dict[str, np.ndarray]:
-        """The infos of every (copy, agent) as stacked arrays (the array API's form); ``owned``: copies of what the
-        env keeps (False: the caller only reads them at once, as the parallel env does, turning them into numbers)."""
-        keep = np.copy if owned else np.asarray
+    def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:
+        """The infos of every (copy, agent) as stacked arrays (the array API's form), none shared with the env."""
         return {
             "formation_error": formation_errors_from_squares(measured.edge_squares),
             "edge_errors": self._observer.padded_slot_errors(measured.slot_errors),
@@ -563,10 +562,10 @@ class VectorFormationEnv:
             "singularity_margin": measured.singularity_margins,
             "torque_saturation": self._clipped_step / self._joint_counts,
             "applied_torque": self._torques,
-            "clipped_actions": keep(self._clipped_actions),  # the next step reads it
+            "clipped_actions": self._clipped_actions.copy(),  # the next step reads it
             "contacts": self._contacts,
-            "physics_fault": keep(measured.fault),
-            "physics_fault_reason": keep(np.asarray(measured.fault_reason, dtype=object)),
+            "physics_fault": measured.fault.copy(),
+            "physics_fault_reason": np.array(measured.fault_reason, dtype=object),
             "sim_time": self._times(),
         }
 

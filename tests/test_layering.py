@@ -51,6 +51,16 @@ def imported_project_modules(path: Path, top_level_only: bool = False) -> set[st
     return {name for name in imports(path, top_level_only) if name.split(".")[0] in prefixes}
 
 
+MAX_MODULE_LINES = 600  # a module past this is split by concept (docs/extending.md, "Where code goes")
+
+
+def test_no_module_outside_the_tests_is_over_600_lines():
+    long = {str(path.relative_to(REPO)): count
+            for path in [*sources("ee_formation_env", "baselines", "studies", "benchmarks"), REPO / "train.py"]
+            if (count := len(path.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
 def test_the_env_core_and_its_integrations_never_import_the_baselines_or_what_stands_above():
     for path in sources("ee_formation_env"):
         above = {name for name in imported_project_modules(path)
