@@ -141,9 +141,21 @@ class BudgetCallback(_Callback):
                         group["lr"] = self.lr * (1.0 - spent)
 
 
-def _configs(algorithm: str, mode: str, settings: RunSettings | str) -> tuple[Any, Any, Any, dict[str, Any], Any]:
-    """(experiment config, algorithm config, model config, task config, learning rate to decay or None) of a
-    run: the project's YAML files for :data:`PROJECT_SETTINGS`, else BenchMARL's defaults with ``settings``."""
+#: The actor models a run can use: BenchMARL's MLP on the flat observation, or the project's masked Deepsets on
+#: the task's set observations (``observation_sets``, without the observation normalization, whose statistics
+#: are per agent), which acts for any team size; the critic is the MLP either way.
+MODELS = ("mlp", "deepsets")
+
+
+def _configs(algorithm: str, mode: str, settings: RunSettings | str, model: str = "mlp"
+             ) -> tuple[Any, Any, Any, dict[str, Any], Any]:
+    """(experiment config, algorithm config, actor model config, task config, learning rate to decay or None) of
+    a run: the project's YAML files for :data:`PROJECT_SETTINGS`, else BenchMARL's defaults with ``settings``;
+    ``model`` (:data:`MODELS`) ``deepsets`` needs the project's settings."""
+    if model not in MODELS:
+        raise ValueError(f"model: expected one of {list(MODELS)}, got {model!r}")
+    if model != "mlp" and settings != PROJECT_SETTINGS:
+        raise ValueError(f"model: {model!r} is the project's model; it runs with settings {PROJECT_SETTINGS!r}")
     from benchmarl.algorithms import IppoConfig, MappoConfig, MasacConfig
     from benchmarl.experiment import ExperimentConfig
     from benchmarl.models.mlp import MlpConfig
@@ -154,8 +166,11 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str) -> tuple[An
     if settings == PROJECT_SETTINGS:
         config = benchmarl_configs.experiment_config(algorithm)
         decays = training_mode(mode).preset.ppo.learning_rate_decay and algorithm in ON_POLICY
-        return (config, benchmarl_configs.algorithm_config(algorithm), benchmarl_configs.model_config(),
-                benchmarl_configs.task_config(mode), config.lr if decays else None)
+        task = benchmarl_configs.task_config(mode)
+        if model == "deepsets":
+            task.update(observation_normalization=False, observation_sets=True)
+        return (config, benchmarl_configs.algorithm_config(algorithm), benchmarl_configs.model_config(model), task,
+                config.lr if decays else None)
     if not isinstance(settings, RunSettings):
         raise ValueError(f"settings: expected a RunSettings or {PROJECT_SETTINGS!r}, got {settings!r}")
     config = ExperimentConfig.get_from_yaml()
@@ -175,11 +190,12 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str) -> tuple[An
 
 def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: int, out: Path, episodes: int = 10,
         episode_seconds: float | None = None, settings: RunSettings | str = SETTINGS["benchmarl"],
-        frames: int | None = None) -> dict[str, Any]:
+        frames: int | None = None, model: str = "mlp") -> dict[str, Any]:
     """Train, evaluate and export one run into ``out``; the evaluation record. The budget: ``minutes`` of wall
     time, or ``frames`` frames (then ``minutes`` is None: :class:`BudgetCallback`). ``episode_seconds``: the
     evaluation episodes' length (default: the scenario's; training uses the mode's training length);
-    ``settings``: the learning settings (:data:`SETTINGS`, or :data:`PROJECT_SETTINGS`)."""
+    ``settings``: the learning settings (:data:`SETTINGS`, or :data:`PROJECT_SETTINGS`); ``model``: the actor's
+    (:data:`MODELS`)."""
     if (minutes is None) == (frames is None):
         raise ValueError(f"budget: expected minutes or frames, not both or neither (got {minutes!r}, {frames!r})")
     import torch
@@ -190,7 +206,10 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
     from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
     torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
-    config, algorithm_config, model, task_config, decayed_lr = _configs(algorithm, mode, settings)
+    config, algorithm_config, actor_model, task_config, decayed_lr = _configs(algorithm, mode, settings, model)
+    from ee_formation_env.baselines.learned import benchmarl_configs
+
+    critic_model = benchmarl_configs.model_config("mlp") if model != "mlp" else actor_model
     config.max_n_frames, config.max_n_iters = 10**10, None  # the budget callback stops it
     config.loggers, config.evaluation, config.render = ["csv"], False, False
     config.checkpoint_at_end, config.create_json = False, False
@@ -199,8 +218,8 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
     task = EEFormationTrainingTask[scenario.upper()].get_task(
         {**task_config, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
     curve: list[tuple[int, float, float]] = []
-    experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=model,
-                            critic_model_config=model, seed=seed, config=config,
+    experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=actor_model,
+                            critic_model_config=critic_model, seed=seed, config=config,
                             callbacks=[BudgetCallback(math.inf if minutes is None else minutes * 60.0, curve,
                                                       decayed_lr, task.transforms().reward_scale, frames)])
     started = time.time()
@@ -217,7 +236,8 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
         writer = csv.writer(handle)
         writer.writerow(["frames", "agent_steps", "mean_reward_per_step", "wall_seconds"])
         writer.writerows((frames, frames * n_agents, reward, wall) for frames, reward, wall in curve)
-    record = {"algorithm": algorithm, "scenario": scenario, "mode": mode, "seed": seed, "minutes": minutes,
+    record = {"algorithm": algorithm, "scenario": scenario, "mode": mode, "model": model, "seed": seed,
+              "minutes": minutes,
               "frame_budget": frames,
               "settings": settings if isinstance(settings, str) else asdict(settings),
               "task_config": task.config, "train_seconds": train_seconds, "frames": int(experiment.total_frames),
@@ -299,6 +319,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="learning settings: benchmarl (its defaults), sb3 (train.py's torque preset's), "
                              "sb3-decay (those with its linear learning-rate decay) or project (the project's "
                              "BenchMARL YAML files: normalized observations and advantages, scaled rewards)")
+    parser.add_argument("--model", default="mlp", choices=MODELS,
+                        help="the actor: mlp, or deepsets (the project's set model on the neighbour slots, for any team "
+                             "size; with --settings project)")
     parser.add_argument("--episodes", type=int, default=10, help=f"held-out evaluation episodes (seeds {HELD_OUT_SEED_OFFSET}+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
@@ -323,10 +346,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--frames: expected an integer >= 1")
     if args.episodes < 1:
         parser.error("--episodes: expected an integer >= 1")
-    tag = "" if args.settings == "benchmarl" else f"-{args.settings}"
+    if args.model != "mlp" and args.settings != PROJECT_SETTINGS:
+        parser.error(f"--model: {args.model} runs with --settings {PROJECT_SETTINGS}")
+    tag = ("" if args.settings == "benchmarl" else f"-{args.settings}") + ("" if args.model == "mlp" else f"-{args.model}")
     out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
     record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
-                 settings=SETTINGS.get(args.settings, args.settings), frames=args.frames)
+                 settings=SETTINGS.get(args.settings, args.settings), frames=args.frames, model=args.model)
     from ee_formation_env.baselines.metrics import format_table
 
     print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))

@@ -27,6 +27,13 @@ trained on the training scenario only, evaluated there unchanged (zero-shot) on 
 A scenario distribution (``scenario_sets.DISTRIBUTIONS``) is evaluated on its test set (its draws at the 50
 ``TEST_SEEDS``: its row is ``split: "test"``) and on its train set (the draws at ``TRAIN_SEEDS``, ``split:
 "train"``), the reference controllers and every trained policy alike.
+
+Team size: a distribution with a team family (``planar_random``: ``planar_team``, 3 to 8 arms;
+:mod:`ee_formation_env.team_families`) also gets ``split: "team"`` rows, one per team size: the laws, and every
+method whose policy serves any team (:attr:`~studies.scoreboard_methods.Method.serves_any_team`, the set
+network), trained at the distribution's own size and evaluated unchanged on the family's first
+``TEAM_EPISODES`` test draws at each size; a table of success and settling per size and a figure of success
+vs size (``team_size_success.png``; with ``--docs``, ``docs/figures/scoreboard_team_size.png``).
 """
 
 from __future__ import annotations
@@ -44,17 +51,19 @@ from studies.scoreboard_cells import read_cell, stale_reason
 # The methods and cells, read through this module by the study's users.
 from studies.scoreboard_methods import (DEFAULT_EPISODES, DEFAULT_SEEDS, METHODS, QUICK_FLAGS, QUICK_MINUTES,  # noqa: F401
                                         TRAIN_SET, BenchmarlRun, Board, Method, fill, run_cell, run_test_cell,
-                                        train_argv, trained_policies)
+                                        team_places, train_argv, trained_policies)
 # METRICS and episode_values are read through this module by the study's users.
-from studies.scoreboard_rows import METRICS, _place, episode_values, format_board, rows, write_outputs  # noqa: F401
+from studies.scoreboard_rows import (METRICS, _place, episode_values, format_board, rows,  # noqa: F401
+                                     team_size_figure, write_outputs)
 
 
 
 
 def _board_places() -> list[tuple[str, str]]:
     """Every (training scenario, evaluated scenario) of the board, in board order: scenarios as the built-ins
-    are listed, each followed by its test scenarios."""
-    return [(train, name) for train in BUILTIN_SCENARIOS for name in (train, *held_out_scenarios(train))]
+    are listed, each followed by its test scenarios and its team family's sizes (the team-size split)."""
+    return [(train, name) for train in BUILTIN_SCENARIOS
+            for name in (train, *held_out_scenarios(train), *team_places(train))]
 
 
 def _board_order(places: Sequence[tuple[str, str]]) -> Callable[[dict[str, Any]], tuple[int, int, int]]:
@@ -122,6 +131,7 @@ def _smaller(row: dict[str, Any], committed: dict[str, Any]) -> bool:
 
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "scoreboard.md"
 DOCS_JSON = DOCS_PAGE.parent / "results" / "scoreboard.json"
+DOCS_FIGURE = DOCS_PAGE.parent / "figures" / "scoreboard_team_size.png"  # the team-size split's success vs N
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -188,12 +198,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return stopped.exit_code
     board_rows = rows(cached_records(board))  # every cell ever completed here, not only this invocation's
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
+    figures = [team_size_figure(board_rows, out / "team_size_success.png")]
     if args.docs:  # merged into the committed board: its other rows' cells may be on another machine
         committed = json.loads(DOCS_JSON.read_text(encoding="utf-8"))["rows"] if DOCS_JSON.is_file() else []
-        write_outputs(merged_rows(committed, board_rows, args.replace_smaller), DOCS_JSON, generated_page=DOCS_PAGE)
+        merged = merged_rows(committed, board_rows, args.replace_smaller)
+        write_outputs(merged, DOCS_JSON, generated_page=DOCS_PAGE)
+        figures.append(team_size_figure(merged, DOCS_FIGURE))
     print(format_board(board_rows))
-    print(f"wrote {out / 'scoreboard.json'} and {out / 'scoreboard.md'}" +
-          (f", {DOCS_JSON} and {DOCS_PAGE}" if args.docs else ""))
+    written = ([out / "scoreboard.json", out / "scoreboard.md"] + ([DOCS_JSON, DOCS_PAGE] if args.docs else [])
+               + [figure for figure in figures if figure is not None])
+    print(f"wrote {', '.join(map(str, written))}")
     if not_done:
         print(f"scoreboard: {len(not_done)} cell group(s) not done: {'; '.join(not_done)}", file=sys.stderr)
     return 1 if not_done else 0

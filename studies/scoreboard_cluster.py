@@ -48,8 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from ee_formation_env.scenario_sets import DISTRIBUTIONS, held_out_scenarios
-from studies.scoreboard_methods import (METHODS, TRAIN_SET, Board, Method, run_cell, run_test_cell, train_argv,
+from studies.scoreboard_methods import (METHODS, Board, Method, evaluation_cells, run_cell, train_argv,
                                         training_cells)
 from studies.scoreboard_cells import _describe, cached_record, code_version, write_cell
 
@@ -72,7 +71,8 @@ class CodeVersionMismatch(RuntimeError):
 
 @dataclass(frozen=True)
 class Cell:
-    """One cell of a group: ``test`` None for the training cell, ``TRAIN_SET``, or a test scenario's name."""
+    """One cell of a group: ``test`` None for the training cell, else its evaluation cell's key
+    (:class:`studies.scoreboard_methods.EvaluationCell`)."""
 
     test: str | None
     path: str  # relative to the board's folder, POSIX
@@ -130,16 +130,14 @@ def cell_groups(board: Board, progress: Callable[[str], None] = print) -> list[C
     reported as ``fill`` reports it."""
     groups = []
     for scenario, method, seed, label in training_cells(board, progress):
-        tests = list(held_out_scenarios(scenario)) if board.test_sets else []
 
         def cell(test: str | None, text: str) -> Cell:
             path = board.cell_path(scenario, method, seed, test).relative_to(board.out)
             return Cell(test, path.as_posix(), text)
 
         training = cell(None, label)
-        cells = [training, *(cell(test, f"{label} -> test {test}") for test in tests)]
-        if scenario in DISTRIBUTIONS:
-            cells.append(cell(TRAIN_SET, f"{label} -> train set"))
+        cells = [training, *(cell(evaluation.key, f"{label} -> {evaluation.label}")
+                             for evaluation in evaluation_cells(board, scenario, method))]
         protocol = board.protocol(method)
         cached = {c: cached_record(board.out / c.path, c.label, protocol, progress, board.accept_stale)
                   for c in cells}
@@ -180,16 +178,10 @@ def compute_group(board: Board, group: CellGroup) -> list[tuple[str, dict[str, A
     if trained is None or (method.learned and not _trained_here(board, group, method, trained)):
         trained = run_cell(board, group.scenario, method, group.seed)
         results.append((group.training.path, trained))
-    tests = held_out_scenarios(group.scenario)
+    evaluations = {evaluation.key: evaluation for evaluation in evaluation_cells(board, group.scenario, method)}
     for cell in group.missing:
-        if cell.test is None:
-            continue
-        if cell.test == TRAIN_SET:  # a distribution's train set: the draws at TRAIN_SEEDS
-            record = run_test_cell(board, group.scenario, method, group.seed, group.scenario, group.scenario,
-                                   trained, board.train_seeds(), split="train")
-        else:
-            record = run_test_cell(board, group.scenario, method, group.seed, cell.test, tests[cell.test], trained)
-        results.append((cell.path, record))
+        if cell.test is not None:
+            results.append((cell.path, evaluations[cell.test].run(board, group.scenario, method, group.seed, trained)))
     return results
 
 

@@ -17,6 +17,7 @@ from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import run_episodes
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
+from ee_formation_env.team_families import TEAM_FAMILIES, TEAM_FAMILY_SOURCES, team_scenario
 from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
 
 
@@ -31,6 +32,7 @@ class BenchmarlRun:
     minutes: float | None
     settings: str = "benchmarl"  # a name of studies.benchmarl_runs.SETTINGS_NAMES
     frames: int | None = None
+    model: str = "mlp"  # the actor, of studies.benchmarl_runs.MODELS ("deepsets": for any team size)
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,14 @@ class Method:
     @property
     def learned(self) -> bool:
         return self.reference is None
+
+    @property
+    def serves_any_team(self) -> bool:
+        """Whether its policy acts on teams of any size: a law, or the set network's (``--policy-network set``);
+        the board's team-size split evaluates these."""
+        flags = self.train_flags
+        return (not self.learned or any(a == "--policy-network" and b == "set" for a, b in zip(flags, flags[1:]))
+                or (self.benchmarl is not None and self.benchmarl.model == "deepsets"))
 
     def unavailable(self, scenario: str) -> str | None:
         """Why the method cannot run on ``scenario`` here (None if it can): features the arms cannot have, or a
@@ -90,6 +100,12 @@ METHODS: dict[str, Method] = {
     # The same with the gate squared: the correction fades faster than the law's pull near the goal.
     "residual-ppo-gradient-gate2": Method("residual-ppo-gradient-gate2", train_flags=(
         "--mode", "residual", "--reference", "gradient", "--residual-gate-power", "2")),
+    # The correction on gradient through the permutation-invariant set network (set_network.py): one policy for
+    # any team size. 8 s training episodes (random draws take the laws 3-4 s to settle) and the agent-step
+    # budget of the team-size study (docs/training.md, "Team-size transfer").
+    "residual-ppo-set": Method("residual-ppo-set", train_flags=(
+        "--mode", "residual", "--reference", "gradient", "--policy-network", "set", "--train-episode-seconds", "8",
+        "--total-timesteps", "1390000")),
     # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
     "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
     # The same on the base-yaw-invariant features: torques mean the same in any base yaw, so a yawed team is
@@ -112,6 +128,9 @@ METHODS: dict[str, Method] = {
     "mappo-residual": Method("mappo-residual", benchmarl=BenchmarlRun("mappo", "residual", 10.0)),
     "ippo-residual": Method("ippo-residual", benchmarl=BenchmarlRun("ippo", "residual", 10.0)),
     "masac-residual": Method("masac-residual", benchmarl=BenchmarlRun("masac", "residual", 10.0)),
+    # MAPPO's correction through the project's masked Deepsets actor on the set observations: any team size.
+    "mappo-residual-set": Method("mappo-residual-set", benchmarl=BenchmarlRun("mappo", "residual", 10.0, "project",
+                                                                              model="deepsets")),
     # From scratch with the project's BenchMARL configs (normalized observations and advantages, scaled rewards).
     **{f"{algorithm}-{mode}-project": Method(f"{algorithm}-{mode}-project",
                                              benchmarl=BenchmarlRun(algorithm, mode, 30.0, "project"))
@@ -120,6 +139,7 @@ METHODS: dict[str, Method] = {
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
 DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
+TEAM_EPISODES = 20  # test draws per team size of the team-size split (the team-size study's)
 QUICK_FLAGS = ("--total-timesteps", "64", "--n-envs", "1", "--n-steps", "16", "--n-workers", "0")
 
 # ------------------------------------------------------------------------------------------ cells
@@ -155,7 +175,7 @@ class Board:
                 except ImportError:
                     protocol["benchmarl_settings"] = "the project's YAML files (unread: needs the torchrl extra)"
                 else:
-                    protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode)
+                    protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode, run.model)
         if method.learned:
             protocol["extra_train_flags"] = list(self.extra_train_flags)
         return protocol
@@ -177,6 +197,11 @@ class Board:
         if scenario in DISTRIBUTIONS:
             return list(TEST_SEEDS[:self.episodes] if self.extra_train_flags else TEST_SEEDS)
         return [EVAL_SEED_OFFSET + k for k in range(self.episodes)]
+
+    def team_seeds(self) -> list[int]:
+        """A team family's test draws at each size: the first :data:`TEAM_EPISODES` ``TEST_SEEDS`` (fewer under
+        ``--quick``)."""
+        return list(TEST_SEEDS[:self.episodes] if self.extra_train_flags else TEST_SEEDS[:TEAM_EPISODES])
 
     def train_seeds(self) -> list[int]:
         """A distribution's train-set draws (``scenario_sets.TRAIN_SEEDS``; fewer under ``--quick``)."""
@@ -304,20 +329,63 @@ def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_
         benchmarl_runs.run(spec.algorithm, scenario, spec.mode, QUICK_MINUTES if quick else spec.minutes,
                            seed, run_dir, len(board.eval_seeds(scenario)), episode_seconds=board.episode_seconds,
                            settings=benchmarl_runs.SETTINGS.get(spec.settings, spec.settings),
-                           frames=None if quick else spec.frames)
+                           frames=None if quick else spec.frames, model=spec.model)
     record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
     budget = {"agent_steps": int(record["agent_steps"]), "train_seconds": float(record["train_seconds"]),
               "minutes": record["minutes"], "frame_budget": record.get("frame_budget"), "mode": spec.mode,
-              "algorithm": spec.algorithm, "settings": spec.settings}
+              "algorithm": spec.algorithm, "settings": spec.settings, "model": spec.model}
     return record["evaluation"]["per_episode"], budget
 
 
+@dataclass(frozen=True)
+class EvaluationCell:
+    """A cell that evaluates a training cell's policy (or a law) elsewhere, unchanged: a held-out test scenario
+    (split ``test``), a distribution's train set (``train``) or one team size of the distribution's team family
+    (``team``). ``key``: its folder under the training cell's ``test/``; ``name``: the evaluated scenario's."""
+
+    key: str
+    label: str
+    split: str
+    name: str
+    scenario: Any  # a built-in name or scenario data
+    seeds: tuple[int, ...] | None  # None: the board's held-out seeds
+
+    def run(self, board: Board, scenario: str, method: Method, seed: int | None, trained: dict[str, Any]
+            ) -> dict[str, Any]:
+        return run_test_cell(board, scenario, method, seed, self.name, self.scenario, trained, self.seeds,
+                             split=self.split)
+
+
+def team_places(scenario: str) -> list[str]:
+    """The team-size split's scenarios of a training ``scenario``: its team family at every size
+    (``planar_team_3`` ... ``planar_team_8`` for ``planar_random``), none for a scenario without a family."""
+    families = [family for family, source in TEAM_FAMILY_SOURCES.items() if source == scenario]
+    return [f"{family}_{n}" for family in families for n in range(TEAM_FAMILIES[family][0], TEAM_FAMILIES[family][1] + 1)]
+
+
+def evaluation_cells(board: Board, scenario: str, method: Method) -> list[EvaluationCell]:
+    """Every cell that evaluates a (``scenario``, ``method``) training cell's policy elsewhere, in board order:
+    the test scenarios, a distribution's train set, and, for a method that serves any team
+    (:attr:`Method.serves_any_team`), each team size of the scenario's family (with the test sets)."""
+    cells = []
+    if board.test_sets:
+        cells += [EvaluationCell(test, f"test {test}", "test", test, data, None)
+                  for test, data in held_out_scenarios(scenario).items()]
+    if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
+        cells.append(EvaluationCell(TRAIN_SET, "train set", "train", scenario, scenario, tuple(board.train_seeds())))
+    if board.test_sets and method.serves_any_team:
+        for name in team_places(scenario):
+            family, n = name.rsplit("_", 1)
+            cells.append(EvaluationCell(name, f"team {name}", "team", name, team_scenario(family, int(n)),
+                                        tuple(board.team_seeds())))
+    return cells
+
+
 def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Run every cell of ``board`` that is not cached (written atomically when complete), the test-set cells
-    after their training cell; every cell record."""
+    """Run every cell of ``board`` that is not cached (written atomically when complete), the evaluation cells
+    (:func:`evaluation_cells`) after their training cell; every cell record."""
     records = []
     for scenario, method, seed, label in training_cells(board, progress):
-        tests = held_out_scenarios(scenario) if board.test_sets else {}
 
         def cached(path: Path, label: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
             return cached_cell(path, label, board.protocol(method), compute, progress, board.accept_stale)
@@ -325,15 +393,9 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
         trained = cached(board.cell_path(scenario, method, seed), label,
                          lambda: run_cell(board, scenario, method, seed))
         records.append(trained)
-        for test, test_scenario in tests.items():
-            records.append(cached(
-                board.cell_path(scenario, method, seed, test), f"{label} -> test {test}",
-                lambda: run_test_cell(board, scenario, method, seed, test, test_scenario, trained)))
-        if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
-            records.append(cached(
-                board.cell_path(scenario, method, seed, TRAIN_SET), f"{label} -> train set",
-                lambda: run_test_cell(board, scenario, method, seed, scenario, scenario, trained,
-                                      board.train_seeds(), split="train")))
+        for cell in evaluation_cells(board, scenario, method):
+            records.append(cached(board.cell_path(scenario, method, seed, cell.key), f"{label} -> {cell.label}",
+                                  lambda: cell.run(board, scenario, method, seed, trained)))
     return records
 
 

@@ -13,6 +13,8 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from ee_formation_env.baselines.metrics import fault_kinds
 from ee_formation_env.scenario_sets import DISTRIBUTIONS
 from studies.bootstrap import aggregate
@@ -102,6 +104,10 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
         if scenario in DISTRIBUTIONS:
             seeds = first["eval_seeds"]
             title = f"{scenario}, {split} set (its draws at the {len(seeds)} reset seeds {seeds[0]}-{seeds[-1]})"
+        elif split == "team":
+            seeds = first["eval_seeds"]
+            title = (f"{scenario} (team size {team_size(scenario)}: policies trained on {place[0]}, evaluated here "
+                     f"unchanged on its draws at the {len(seeds)} reset seeds {seeds[0]}-{seeds[-1]})")
         else:
             title = scenario if place[0] == scenario else (
                 f"{scenario} (test: policies trained on {place[0]}, evaluated here unchanged)")
@@ -132,7 +138,84 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
             for failure in row["failures"]:
                 lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
         lines.append("")
-    return "\n".join(lines).rstrip() + "\n"
+    return "\n".join(lines + team_size_table(board_rows)).rstrip() + "\n"
+
+
+def team_size(scenario: str) -> int:
+    """The team size N of a team-size split's scenario (``planar_team_5``: 5)."""
+    return int(scenario.rsplit("_", 1)[1])
+
+
+def _team_curves(board_rows: Sequence[dict[str, Any]]) -> dict[tuple[str, str], dict[int, dict[str, Any]]]:
+    """(trained on, method) -> {N: row} of the team-size split's rows that have metrics."""
+    curves: dict[tuple[str, str], dict[int, dict[str, Any]]] = {}
+    for row in board_rows:
+        if row["split"] == "team" and row["metrics"]:
+            curves.setdefault((row["trained_on"], row["method"]), {})[team_size(row["scenario"])] = row
+    return curves
+
+
+def team_size_table(board_rows: Sequence[dict[str, Any]]) -> list[str]:
+    """Markdown lines: per training scenario, success [95 %] and settling (s, mean) of each method at every team
+    size of the split (none without team rows)."""
+    curves = _team_curves(board_rows)
+    lines: list[str] = []
+    for trained in dict.fromkeys(trained for trained, _ in curves):
+        sizes = sorted({n for (t, _), by_size in curves.items() if t == trained for n in by_size})
+        lines += ["", f"### Team size: trained on {trained}, success [95 %] / settling or episode length (s) at each N", "",
+                  "| method | " + " | ".join(f"N = {n}" for n in sizes) + " |", "|---|" + "---:|" * len(sizes)]
+        for (t, method), by_size in curves.items():
+            if t != trained:
+                continue
+            cells = []
+            for n in sizes:
+                if n not in by_size:
+                    cells.append("-")
+                    continue
+                success, settle = by_size[n]["metrics"]["success"], by_size[n]["metrics"]["settling_time_or_limit"]
+                cells.append(f"{success['mean']:.0%} [{success['ci_low']:.0%}, {success['ci_high']:.0%}] / "
+                             f"{settle['mean']:.2f}")
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def team_size_figure(board_rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
+    """Success vs team size with 95 % intervals, one line per method and training scenario of the team-size
+    split; None (nothing written) without team rows."""
+    curves = _team_curves(board_rows)
+    if not curves:
+        return None
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        import warnings
+
+        warnings.warn(f"scoreboard: {path} not drawn: the team-size figure needs matplotlib (the figures extra)")
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from studies._common import save_figure
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for k, ((trained, method), by_size) in enumerate(curves.items()):
+        sizes = sorted(by_size)
+        success = [by_size[n]["metrics"]["success"] for n in sizes]
+        rate = np.array([100 * s["mean"] for s in success])
+        low = np.maximum(rate - [100 * s["ci_low"] for s in success], 0.0)
+        high = np.maximum(np.array([100 * s["ci_high"] for s in success]) - rate, 0.0)
+        label = method if len({t for t, _ in curves}) == 1 else f"{method} ({trained})"
+        ax.errorbar(np.array(sizes) + 0.06 * (k - (len(curves) - 1) / 2), rate, yerr=[low, high], marker="o",
+                    capsize=3, label=label)
+    ax.set_xlabel("team size N (arms)")
+    ax.set_ylabel("success (%)")
+    ax.set_ylim(0, 105)
+    ax.set_xticks(sorted({n for by_size in curves.values() for n in by_size}))
+    ax.legend(loc="lower left", fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return save_figure(fig, path)
 
 
 def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdown_path: Path | None = None,

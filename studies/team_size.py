@@ -41,6 +41,7 @@ from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET, TEST_SEEDS, hel
 from ee_formation_env.team_families import TEAM_FAMILIES, team_scenario  # noqa: E402
 
 from studies.bootstrap import stratified_bootstrap, wilson_interval  # noqa: E402
+from studies.scoreboard_methods import METHODS  # noqa: E402
 
 TRAIN_SCENARIO = "planar_random"  # 4 planar_2link arms
 FAMILY = "planar_team"
@@ -54,8 +55,8 @@ SQUARE_EPISODES = 5  # reset seeds per planar_square test scenario
 TARGET_SUCCESS = 0.90  # zero-shot, at every N
 TARGET_SETTLING_RATIO = 1.5  # x the best law's, at every N
 TARGET_TRAIN_SET = 0.95  # on planar_random's test set
-TRAIN_FLAGS = ("--scenario", TRAIN_SCENARIO, "--recipe", "none", "--mode", "residual", "--reference", "gradient",
-               "--policy-network", "set")
+# The scoreboard's set method (residual on gradient, set network); this study's own flags, after these, win.
+TRAIN_FLAGS = ("--scenario", TRAIN_SCENARIO, "--recipe", "none", *METHODS["residual-ppo-set"].train_flags)
 LEARNED = "learned (set)"
 
 

@@ -23,13 +23,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Type
+from typing import Any, Dict, Optional, Type
 
 import torch
 import yaml
 from benchmarl.algorithms import Ippo, IppoConfig, Mappo, MappoConfig, MasacConfig
 from benchmarl.algorithms.common import AlgorithmConfig
 from benchmarl.experiment import ExperimentConfig
+from benchmarl.models.common import ModelConfig
+from benchmarl.models.deepsets import Deepsets, DeepsetsConfig
 from benchmarl.models.mlp import MlpConfig
 
 from ee_formation_env.baselines.learned.modes import mode_names
@@ -125,6 +127,51 @@ class FormationIppoConfig(IppoConfig):
         return FormationIppo
 
 
+class _MaskedSlotSet(torch.nn.Module):
+    """One Deepsets net over neighbour slots whose aggregation takes the real slots only: a slot is real when its
+    first entry, the mask, is > 0.5 (:mod:`ee_formation_env.observation`); an agent with fewer neighbours than the
+    group's largest degree has padding slots, whose number changes with the team's size and graph."""
+
+    def __init__(self, local_nn: torch.nn.Module, global_nn: torch.nn.Module, aggr: str):
+        super().__init__()
+        if aggr not in ("mean", "sum", "max"):
+            raise ValueError(f"aggr: the masked slot aggregation is mean, sum or max, got {aggr!r}")
+        self.local_nn, self.global_nn, self.aggr = local_nn, global_nn, aggr
+
+    def forward(self, slots: torch.Tensor, own: Optional[torch.Tensor]) -> torch.Tensor:
+        real = slots[..., :1] > 0.5  # (..., S, 1)
+        encoded = self.local_nn(slots)
+        if self.aggr == "max":
+            pooled = torch.where(real, encoded, -torch.inf).max(dim=-2).values
+            pooled = torch.where(real.any(dim=-2), pooled, torch.zeros_like(pooled))
+        else:
+            pooled = torch.where(real, encoded, torch.zeros_like(encoded)).sum(dim=-2)
+            if self.aggr == "mean":
+                pooled = pooled / real.sum(dim=-2).clamp(min=1)
+        return self.global_nn(pooled if own is None else torch.cat([pooled, own], dim=-1))
+
+
+class SlotDeepsets(Deepsets):
+    """BenchMARL's ``Deepsets`` on the task's ``observation_sets`` with the slot aggregation over the real
+    neighbour slots only (:class:`_MaskedSlotSet`), so that padding slots take no part; what agents see is
+    otherwise BenchMARL's model (``model/layers/deepsets.yaml``)."""
+
+    def __init__(self, **kwargs: Any):
+        super().__init__(**kwargs)
+        if hasattr(self, "local_deepsets"):
+            self.local_deepsets = torch.nn.ModuleList(
+                [_MaskedSlotSet(net.local_nn, net.global_nn, self.aggr) for net in self.local_deepsets])
+
+
+@dataclass
+class SlotDeepsetsConfig(DeepsetsConfig):
+    """:class:`~benchmarl.models.DeepsetsConfig` of :class:`SlotDeepsets`."""
+
+    @staticmethod
+    def associated_class() -> Type[Deepsets]:
+        return SlotDeepsets
+
+
 #: Algorithm name -> the config class its YAML file loads into.
 ALGORITHM_CONFIGS: Dict[str, Type[AlgorithmConfig]] = {"mappo": FormationMappoConfig,
                                                        "ippo": FormationIppoConfig,
@@ -149,17 +196,25 @@ def experiment_config(algorithm: str) -> ExperimentConfig:
     return ExperimentConfig.get_from_yaml(str(CONFIG_DIR / "experiment" / f"{layout}.yaml"))
 
 
-def model_config() -> MlpConfig:
-    """The actor's and critic's MLP from ``model/layers/mlp.yaml``."""
-    return MlpConfig.get_from_yaml(str(CONFIG_DIR / "model" / "layers" / "mlp.yaml"))
+#: Model name -> the config class its YAML file ``model/layers/<name>.yaml`` loads into: the MLP (actor and
+#: critic), and the set model over the neighbour slots (the actor, with the task option ``observation_sets``).
+MODEL_CONFIGS: Dict[str, Type[ModelConfig]] = {"mlp": MlpConfig, "deepsets": SlotDeepsetsConfig}
 
 
-def config_files(algorithm: str, mode: str) -> dict[str, str]:
-    """The project's YAML files a run of ``algorithm`` in ``mode`` reads, path (relative to :data:`CONFIG_DIR`)
-    -> text: what defines it (the scoreboard records them in its cells)."""
+def model_config(name: str = "mlp") -> ModelConfig:
+    """A model's config from ``model/layers/<name>.yaml`` (:data:`MODEL_CONFIGS`)."""
+    name = _name(name, "model", MODEL_CONFIGS)
+    return MODEL_CONFIGS[name].get_from_yaml(str(CONFIG_DIR / "model" / "layers" / f"{name}.yaml"))
+
+
+def config_files(algorithm: str, mode: str, model: str = "mlp") -> dict[str, str]:
+    """The project's YAML files a run of ``algorithm`` in ``mode`` with the actor ``model`` (the critic: the MLP)
+    reads, path (relative to :data:`CONFIG_DIR`) -> text: what defines it (the scoreboard records them in its
+    cells)."""
     layout = "on_policy" if _name(algorithm, "algorithm", ALGORITHM_CONFIGS) in ON_POLICY_ALGORITHMS else "off_policy"
+    models = dict.fromkeys([_name(model, "model", MODEL_CONFIGS), "mlp"])
     paths = [CONFIG_DIR / "algorithm" / f"{algorithm}.yaml", CONFIG_DIR / "experiment" / f"{layout}.yaml",
-             CONFIG_DIR / "model" / "layers" / "mlp.yaml", task_config_path(mode)]
+             *(CONFIG_DIR / "model" / "layers" / f"{name}.yaml" for name in models), task_config_path(mode)]
     return {path.relative_to(CONFIG_DIR).as_posix(): path.read_text(encoding="utf-8") for path in paths}
 
 

@@ -44,7 +44,10 @@ weights and biases as plain tensors (``torch.load(weights_only=True)``), and ``a
 agents, layer sizes, activation, whether its agents share parameters, the action distribution and bounds and
 the observation normalization (per agent ``loc`` and ``scale`` of the task's
 :class:`RunningObservationNorm`, as training left them; null without it), plus the task's options, transforms, scenario and overrides. :func:`load_benchmarl_policy` reads it back into :class:`BenchmarlActors` (numpy),
-which :func:`evaluate_benchmarl_policy` also accepts.
+which :func:`evaluate_benchmarl_policy` also accepts. An actor that is the project's set model on the task's
+``observation_sets`` (:class:`~ee_formation_env.baselines.learned.benchmarl_configs.SlotDeepsets`) is exported
+with its slot layout (``set_network``) and acts for any team of its robot
+(:class:`~ee_formation_env.baselines.learned.benchmarl_actor.GroupActor`).
 """
 
 from __future__ import annotations
@@ -59,14 +62,19 @@ import numpy as np
 import torch
 import yaml
 from benchmarl.environments.common import TaskClass
+from benchmarl.models.deepsets import Deepsets
 from benchmarl.models.mlp import Mlp
-from torchrl.envs import EnvBase, RewardScaling, Transform
-from torchrl.envs.transforms.vecnorm import VecNormV2
+from torchrl.envs import EnvBase, Transform
 from torchrl.modules.distributions import IndependentNormal, TanhNormal
 
+from ee_formation_env.baselines.learned.benchmarl_actor import ACTIVATIONS, GroupActor  # noqa: F401
+from ee_formation_env.baselines.learned.benchmarl_configs import SlotDeepsets
+from ee_formation_env.baselines.learned.benchmarl_transforms import (RunningObservationNorm, TaskTransforms,  # noqa: F401
+                                                                     task_transforms)
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.options import TrainingOptions
-from ee_formation_env.baselines.learned.policy import LearnedPolicy, ObservationNormalizer, composed_policy_factory
+from ee_formation_env.baselines.learned.policy import LearnedPolicy, composed_policy_factory
+from ee_formation_env.baselines.learned.set_network import SlotLayout, set_description, slot_layout_of
 from ee_formation_env.baselines.learned.team import refuse_mixed_team
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, BatchedTrainingEnv
 from ee_formation_env.baselines.metrics import DEFAULT_POSITION_TOLERANCE, run_episodes, summarize
@@ -93,82 +101,6 @@ def training_env(options: TrainingOptions, scenario: Any, overrides: Mapping[str
     return env
 
 
-class RunningObservationNorm(VecNormV2):
-    """TorchRL's ``VecNormV2`` (stateful, infinite memory: ``decay=1``, statistics over the copies) with two
-    changes. Its statistics are made at once from ``env``'s specs and **shared by its clones**: BenchMARL clones
-    a task's transforms into its test env and into every training env it makes, and the task reads the
-    statistics training updated from the one it made (:meth:`statistics`). And its variance
-    ``E[x²] - E[x]²``, which rounds below 0 in float32 for a feature that never changes (a slot's tolerance, a
-    mask entry) and which torchrl 0.11 then turns into NaN through the square root, is held at 0 or above
-    before ``eps`` clamps the scale as ``VecNormV2`` does."""
-
-    def __init__(self, in_keys: List[Any], env: EnvBase):
-        super().__init__(in_keys=in_keys, decay=1.0, reduce_batch_dims=True)
-        sample = env.fake_tensordict().get("next").select(*in_keys, strict=True)
-        sample = sample.mean(dim=tuple(range(sample.ndim))).float()  # one statistic per agent and feature
-        self._loc, self._var = torch.zeros_like(sample), torch.zeros_like(sample)
-        self._count = torch.zeros_like(sample, dtype=torch.float32).mean().to(torch.int64)
-        self.initialized.fill_(True)
-
-    def clone(self) -> "RunningObservationNorm":
-        other = super().clone()
-        other._loc, other._var, other._count = self._loc, self._var, self._count  # shared, not copied
-        return other
-
-    def _norm(self, data: Any, loc: Any, var: Any, count: Any) -> Any:
-        return super()._norm(data, loc, var.apply(lambda second, mean: torch.maximum(second, mean.pow(2)), loc), count)
-
-    def statistics(self, key: Any) -> tuple[np.ndarray, np.ndarray]:
-        """(loc, scale) of ``key`` as :meth:`_norm` applies them, ``(x - loc) / scale``, float64."""
-        loc, second = self._loc[key].detach().cpu(), self._var[key].detach().cpu()
-        scale = (torch.maximum(second, loc.pow(2)) - loc.pow(2)).sqrt().clamp_min(self.eps)
-        return loc.numpy().astype(np.float64), scale.numpy().astype(np.float64)
-
-
-@dataclass(frozen=True)
-class TaskTransforms:
-    """The TorchRL transforms a task adds to its envs (BenchMARL's ``get_env_transforms``), in this order; both
-    off by default, so that a task without them steps exactly the training env. Checked on construction."""
-
-    #: Each group's observations by a running mean and standard deviation per agent and feature, over every
-    #: copy, with infinite memory (:class:`RunningObservationNorm`, TorchRL's ``VecNormV2``): SB3's
-    #: ``VecNormalize`` of observations, without its clipping. The statistics are exported with the actor.
-    observation_normalization: bool = False
-    #: With ``observation_normalization``, the global ``state`` too where the env returns it (the input of
-    #: MAPPO's centralized critic), per feature, the same way (docs/results.md: measured, not adopted).
-    state_normalization: bool = False
-    #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0 (the env's rewards are in [0, 2] per step).
-    reward_scale: float = 1.0
-
-    def __post_init__(self) -> None:
-        for name in ("observation_normalization", "state_normalization"):
-            if not isinstance(getattr(self, name), bool):
-                raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
-        if self.state_normalization and not self.observation_normalization:
-            raise ValueError("state_normalization: needs observation_normalization (the one normalization transform)")
-        scale = self.reward_scale
-        if isinstance(scale, bool) or not isinstance(scale, (int, float)):
-            raise TypeError(f"reward_scale: expected a number > 0, got {type(scale).__name__} {scale!r}")
-        if not (np.isfinite(scale) and scale > 0):
-            raise ValueError(f"reward_scale: expected a finite number > 0, got {scale!r}")
-        object.__setattr__(self, "reward_scale", float(scale))
-
-    @classmethod
-    def fields(cls) -> tuple[str, ...]:
-        return tuple(field.name for field in dataclasses.fields(cls))
-
-    def transforms(self, env: EnvBase, groups: Mapping[str, Any]) -> list[Transform]:
-        """The transforms for ``env`` and its agent groups ``groups`` (group -> agents)."""
-        transforms: list[Transform] = []
-        if self.observation_normalization:
-            state = ["state"] if self.state_normalization and "state" in env.observation_spec.keys() else []
-            transforms.append(RunningObservationNorm([(group, "observation") for group in groups] + state, env))
-        if self.reward_scale != 1.0:
-            transforms.append(RewardScaling(loc=0.0, scale=self.reward_scale,
-                                            in_keys=[(group, "reward") for group in groups]))
-        return transforms
-
-
 def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[TrainingOptions, Any, dict[str, Any]]:
     """A task config as (options, scenario, scenario overrides): the option fields, ``scenario`` (default
     ``default_scenario``) and every other key but the :class:`TaskTransforms` fields as an override. Raises naming
@@ -183,11 +115,6 @@ def split_config(config: Mapping[str, Any], default_scenario: Any) -> tuple[Trai
     skipped = names | set(TaskTransforms.fields()) | {"scenario"}
     overrides = {key: value for key, value in config.items() if key not in skipped}
     return options, config.get("scenario", default_scenario), overrides
-
-
-def task_transforms(config: Mapping[str, Any]) -> TaskTransforms:
-    """The :class:`TaskTransforms` of a task config (its fields; the others are not read here)."""
-    return TaskTransforms(**{key: config[key] for key in TaskTransforms.fields() if key in config})
 
 
 # ------------------------------------------------------------------------------------------ the BenchMARL task
@@ -206,9 +133,10 @@ class TrainingTaskClass(EEFormationTaskClass):
     def check(self) -> None:
         """Raise naming the field for a bad option or scenario override (the scenario loads, no physics)."""
         options, scenario, overrides = self.parts()
-        self.transforms()
         load_scenario(scenario, **overrides)
         load_scenario(scenario, **{**overrides, **options.training_overrides()})
+        if self.transforms().observation_sets:  # features and a team the slots fit (builds one env, no training)
+            self.slot_layout()
 
     def transforms(self) -> TaskTransforms:
         """The config's :class:`TaskTransforms` (raises naming the field of a bad value)."""
@@ -217,10 +145,18 @@ class TrainingTaskClass(EEFormationTaskClass):
     def get_env_transforms(self, env: EnvBase) -> List[Transform]:
         """The config's transforms (:class:`TaskTransforms`); the task keeps the observation normalization,
         whose statistics its clones in BenchMARL's envs share (:meth:`observation_statistics`)."""
-        transforms = self.transforms().transforms(env, self.group_map(env))
+        chosen = self.transforms()
+        layout = self.slot_layout() if chosen.observation_sets else None
+        transforms = chosen.transforms(env, self.group_map(env), layout)
         norms = [t for t in transforms if isinstance(t, RunningObservationNorm)]
         self._observation_norm = norms[0] if norms else None
         return transforms
+
+    def slot_layout(self) -> SlotLayout:
+        """The slot layout of the task's observations (``observation_sets``; ``ValueError`` naming the field for
+        features that break the slots or a mixed team)."""
+        options, scenario, overrides = self.parts()
+        return slot_layout_of(set_description(load_scenario(scenario, **overrides), options.resolved().obs_features))
 
     def observation_statistics(self, group: str) -> tuple[np.ndarray, np.ndarray]:
         """(loc, scale) (n_agents, obs_dim) of the group's observation normalization, as training left them."""
@@ -286,114 +222,10 @@ EEFormationTrainingTask.__doc__ = ("The built-in scenarios as BenchMARL tasks on
 
 
 # ------------------------------------------------------------------------------------------ the actors
-#: Activations the numpy actor computes, by name (BenchMARL's MLP default is Tanh), and their torch layers.
-ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {"Tanh": np.tanh, "ReLU": lambda x: np.maximum(x, 0.0)}
+#: The torch activation layers the export reads, by the numpy actor's names.
 TORCH_ACTIVATIONS = {torch.nn.Tanh: "Tanh", torch.nn.ReLU: "ReLU"}
-#: The action distributions the export reads: TorchRL's TanhNormal and IndependentNormal.
+#: The action distributions the export reads: TorchRL's TanhNormal and IndependentNormal, by the actor's names.
 DISTRIBUTIONS = {TanhNormal: "tanh_normal", IndependentNormal: "normal"}
-
-
-@dataclass
-class GroupActor:
-    """One group's deterministic actor in numpy (float64): an MLP from the observation (obs_dim,) to the
-    Gaussian's parameters (2 n,), of which the first n are its mean ``loc``; the action is
-    ``(high + low) / 2 + (high - low) / 2 * tanh(loc)`` (``"tanh_normal"``, TorchRL's ``TanhNormal``) or ``loc``
-    (``"normal"``).
-
-    ``weights[l]`` (A, in, out) and ``biases[l]`` (A, out) of the l-th linear layer, with ``activation`` between
-    layers; A = 1 when the group's agents share parameters, else one row per agent of ``agents``.
-    ``observation_loc`` and ``observation_scale`` (n_agents, obs_dim): the task's observation normalization,
-    ``(observation - loc) / scale`` per agent before the MLP, or None without it."""
-
-    agents: List[str]
-    weights: List[np.ndarray]
-    biases: List[np.ndarray]
-    activation: str
-    distribution: str
-    low: np.ndarray  # (n,) the action bounds of the distribution
-    high: np.ndarray
-    observation_loc: Optional[np.ndarray] = None
-    observation_scale: Optional[np.ndarray] = None
-
-    def __post_init__(self) -> None:
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation: expected one of {list(ACTIVATIONS)}, got {self.activation!r}")
-        if self.distribution not in DISTRIBUTIONS.values():
-            raise ValueError(f"distribution: expected one of {list(DISTRIBUTIONS.values())}, got {self.distribution!r}")
-        rows = {len(w) for w in self.weights} | {len(b) for b in self.biases}
-        if rows not in ({1}, {len(self.agents)}):
-            raise ValueError(f"weights: expected 1 (shared) or {len(self.agents)} rows per layer, got {sorted(rows)}")
-        if (self.observation_loc is None) != (self.observation_scale is None):
-            raise ValueError("observation_normalization: expected both loc and scale, or neither")
-        if self.observation_loc is not None:
-            shape = (len(self.agents), self.layer_sizes[0])
-            for name in ("observation_loc", "observation_scale"):
-                value = np.asarray(getattr(self, name), dtype=np.float64)
-                if value.shape != shape or not np.all(np.isfinite(value)):
-                    raise ValueError(f"observation_normalization: {name[12:]} must be finite of shape {shape} (agents "
-                                     f"x observation size), got {value.shape}")
-                setattr(self, name, value)
-            if np.any(self.observation_scale <= 0):
-                raise ValueError("observation_normalization: scale must be > 0")
-
-    def normalizer(self, agent: str) -> ObservationNormalizer:
-        """What the agent's observation goes through before the MLP (the identity without normalization)."""
-        if self.observation_loc is None:
-            return ObservationNormalizer.identity(self.layer_sizes[0])
-        row = self.agents.index(agent)
-        return ObservationNormalizer(self.observation_loc[row], self.observation_scale[row] ** 2, clip=np.inf,
-                                     epsilon=0.0)
-
-    @property
-    def shared(self) -> bool:
-        return len(self.weights[0]) == 1
-
-    @property
-    def layer_sizes(self) -> list[int]:
-        """Input, hidden and output widths: (obs_dim, ..., 2 n)."""
-        return [int(self.weights[0].shape[1]), *(int(w.shape[2]) for w in self.weights)]
-
-    def _action(self, outputs: np.ndarray) -> np.ndarray:
-        loc = outputs[..., :outputs.shape[-1] // 2]
-        if self.distribution == "normal":
-            return loc
-        return (self.high + self.low) / 2 + (self.high - self.low) / 2 * np.tanh(loc)
-
-    def act(self, observations: np.ndarray) -> np.ndarray:
-        """The deterministic actions (..., n_agents, n) of the group's agents for raw observations (..., n_agents,
-        obs_dim), agents in the order of ``agents`` (normalized first, where the task normalizes)."""
-        hidden = np.asarray(observations, dtype=np.float64)
-        if self.observation_loc is not None:
-            hidden = (hidden - self.observation_loc) / self.observation_scale
-        hidden = hidden[..., None, :]  # (..., A, 1, in) against (A, in, out)
-        activation = ACTIVATIONS[self.activation]
-        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            hidden = hidden @ weight + bias[:, None, :]
-            if layer < len(self.weights) - 1:
-                hidden = activation(hidden)
-        return self._action(hidden[..., 0, :])
-
-    def predict(self, agent: str) -> Callable[[np.ndarray], np.ndarray]:
-        """``normalized observation (obs_dim,) or stack (k, obs_dim) -> action`` of one agent (its
-        :meth:`normalizer` applied before, by the :class:`LearnedPolicy` around it). A stack gives each row's
-        action bit for bit (``predict.stacks``, :class:`~ee_formation_env.baselines.learned.policy.LearnedPolicy`)."""
-        row = 0 if self.shared else self.agents.index(agent)
-        steps = [(weight[row], bias[row]) for weight, bias in zip(self.weights, self.biases)]
-        activation = ACTIVATIONS[self.activation]
-
-        def predict(observation: np.ndarray) -> np.ndarray:
-            hidden = np.asarray(observation, dtype=np.float64)
-            stack = hidden.ndim == 2
-            if stack:  # (k, 1, d) @ (d, h): row by row the products of one observation, exactly
-                hidden = hidden[:, None, :]
-            for layer, (weight, bias) in enumerate(steps):
-                hidden = hidden @ weight + bias
-                if layer < len(steps) - 1:
-                    hidden = activation(hidden)
-            return self._action(hidden[:, 0, :] if stack else hidden)
-
-        predict.stacks = True
-        return predict
 
 
 @dataclass
@@ -423,9 +255,18 @@ class BenchmarlActors:
 
     def policy_factory(self) -> Callable[[Any], dict[str, Any]]:
         """``copy_env -> per-agent policies`` acting as the task's training env did, for
-        :func:`~ee_formation_env.baselines.metrics.run_episodes` (fresh reference controllers per call)."""
+        :func:`~ee_formation_env.baselines.metrics.run_episodes` (fresh reference controllers per call). A set
+        actor (:attr:`GroupActor.slots`) acts for every agent of any team it serves (:meth:`GroupActor.serves`)."""
         learned = self.learned_policies()
-        return lambda copy_env: composed_policy_factory(learned, copy_env, self.options)(copy_env)
+        (first, *_) = self.groups.values()
+
+        def build(copy_env: Any) -> dict[str, Any]:
+            for actor in self.groups.values():
+                actor.serves(copy_env)
+            agents = learned if first.slots is None else dict.fromkeys(copy_env.possible_agents, learned[first.agents[0]])
+            return composed_policy_factory(agents, copy_env, self.options)(copy_env)
+
+        return build
 
     def description(self) -> dict[str, Any]:
         """``actor.json``: what rebuilds the actors around ``actor.pt``'s tensors (module docstring)."""
@@ -437,7 +278,8 @@ class BenchmarlActors:
                                    "distribution": actor.distribution, "action_low": actor.low.tolist(),
                                    "action_high": actor.high.tolist(),
                                    "observation_normalization": None if actor.observation_loc is None else
-                                   {"loc": actor.observation_loc.tolist(), "scale": actor.observation_scale.tolist()}}
+                                   {"loc": actor.observation_loc.tolist(), "scale": actor.observation_scale.tolist()},
+                                   "set_network": actor.slots}
                            for group, actor in self.groups.items()}}
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -467,7 +309,8 @@ def _plain_scenario(scenario: Any) -> Any:
 def actors_from_experiment(experiment: Any) -> BenchmarlActors:
     """The deterministic actors of a BenchMARL ``experiment`` on a training task, read from its group policies:
     per group, BenchMARL's ``ProbabilisticActor`` around its MLP (``Linear`` layers, a ``Tanh`` or ``ReLU``
-    activation, no normalization layers, decentralized) and ``NormalParamExtractor``, with a ``TanhNormal`` or
+    activation, no normalization layers, decentralized), or around a decentralized ``Deepsets`` with shared
+    parameters on the task's set observations, and ``NormalParamExtractor``, with a ``TanhNormal`` or
     ``IndependentNormal`` distribution: what MAPPO, IPPO, MASAC and ISAC build (tested with MAPPO). Anything else
     raises ``ValueError``."""
     task = experiment.task
@@ -483,22 +326,35 @@ def actors_from_experiment(experiment: Any) -> BenchmarlActors:
         try:
             network, head = actor.module[0], actor.module[1]
             model = network.module[0]
-            mlp = model.mlp
             distribution = head.distribution_class
         except (AttributeError, IndexError, TypeError) as error:
-            raise ValueError(f"{where}: expected BenchMARL's ProbabilisticActor around an MLP ({error})") from None
-        if not isinstance(model, Mlp) or mlp.centralized or list(model.in_keys) != [(group, "observation")]:
-            raise ValueError(f"{where}: expected a decentralized BenchMARL Mlp on ({group!r}, 'observation')")
+            raise ValueError(f"{where}: expected BenchMARL's ProbabilisticActor around a model ({error})") from None
         if distribution not in DISTRIBUTIONS:
             raise ValueError(f"{where}: expected a TanhNormal or IndependentNormal actor, got {distribution.__name__}")
         weights, biases, activations = [], [], set()
-        params = mlp.params
-        for index, layer in enumerate(mlp._empty_net):
+        slots = None
+        if isinstance(model, Deepsets):  # on the task's observation_sets: phi's layers, then rho's
+            sets = (group, "observation", "neighbour_slots"), (group, "observation", "own_state")
+            if model.centralised or not model.share_params or list(model.in_keys) != list(sets):
+                raise ValueError(f"{where}: expected a decentralized Deepsets with shared parameters on {list(sets)}")
+            net = model.local_deepsets[0]
+            layout = task.slot_layout()
+            slots = {"slot_size": layout.slot_size, "own_size": layout.own_size, "aggregation": net.aggr,
+                     "local_layers": sum(isinstance(layer, torch.nn.Linear) for layer in net.local_nn),
+                     "masked": isinstance(model, SlotDeepsets)}  # BenchMARL's own pools padding slots too
+            sequence = [*net.local_nn, *net.global_nn]
+            read = lambda index, layer: (layer.weight[None], layer.bias[None])  # noqa: E731 (one shared set)
+        elif isinstance(model, Mlp) and not model.mlp.centralized and list(model.in_keys) == [(group, "observation")]:
+            params, share = model.mlp.params, model.mlp.share_params
+            sequence = list(model.mlp._empty_net)
+            read = lambda index, layer: tuple(  # noqa: E731 (shared: a leading axis of 1)
+                params[str(index), name][None] if share else params[str(index), name] for name in ("weight", "bias"))
+        else:
+            raise ValueError(f"{where}: expected a decentralized BenchMARL Mlp on ({group!r}, 'observation') or "
+                             "a Deepsets on its observation_sets")
+        for index, layer in enumerate(sequence):
             if isinstance(layer, torch.nn.Linear):
-                weight = params[str(index), "weight"].detach().cpu().numpy().astype(np.float64)
-                bias = params[str(index), "bias"].detach().cpu().numpy().astype(np.float64)
-                if mlp.share_params:  # one set for the group: a leading axis of 1
-                    weight, bias = weight[None], bias[None]
+                weight, bias = (value.detach().cpu().numpy().astype(np.float64) for value in read(index, layer))
                 weights.append(weight.transpose(0, 2, 1))  # (A, out, in) -> (A, in, out)
                 biases.append(bias)
             elif type(layer) in TORCH_ACTIVATIONS:
@@ -519,7 +375,7 @@ def actors_from_experiment(experiment: Any) -> BenchmarlActors:
         loc, scale = normalization.get(group, (None, None))
         groups[group] = GroupActor(list(experiment.group_map[group]), weights, biases,
                                    activations.pop() if activations else "Tanh", DISTRIBUTIONS[distribution], low, high,
-                                   loc, scale)
+                                   loc, scale, slots=slots)
     return BenchmarlActors(groups, options.resolved(), scenario, overrides, task=task.name,
                            transforms=task.transforms())
 
@@ -551,7 +407,8 @@ def load_benchmarl_policy(path: str | os.PathLike) -> BenchmarlActors:
             actor = GroupActor(list(entry["agents"]), weights, biases, entry["activation"], entry["distribution"],
                                np.asarray(entry["action_low"], dtype=np.float64),
                                np.asarray(entry["action_high"], dtype=np.float64),
-                               *((None, None) if normalization is None else (normalization["loc"], normalization["scale"])))
+                               *((None, None) if normalization is None else (normalization["loc"], normalization["scale"])),
+                               slots=entry.get("set_network"))
             if actor.layer_sizes != list(entry["layer_sizes"]) or actor.shared != entry["shared_parameters"]:
                 raise ValueError(f"group {group!r}: {ACTOR_TENSORS} does not fit {ACTOR_DESCRIPTION}")
             groups[group] = actor

@@ -92,6 +92,8 @@ def test_the_settings_reach_benchmarl_and_the_record(tmp_path, experiment_argume
     (["--episodes", "0"], "--episodes: expected an integer >= 1"),
     (["--frames", "0"], "--frames: expected an integer >= 1"),
     (["--frames", "100", "--minutes", "1"], "not allowed with argument"),
+    (["--model", "deepsets"], "--model: deepsets runs with --settings project"),
+    (["--model", "gnn"], "--model: invalid choice"),
 ])
 def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -129,6 +131,27 @@ def test_a_project_settings_method_runs_on_the_board_and_its_cells_record_the_ya
     assert list(files) == ["algorithm/mappo.yaml", "experiment/on_policy.yaml", "model/layers/mlp.yaml",
                            "task/ee_formation_training/velocity.yaml"]
     assert json.dumps(files) in json.dumps(cell)
+
+
+@needs_benchmarl
+def test_the_set_method_is_evaluated_at_every_team_size_and_records_its_model_files(tmp_path):
+    from ee_formation_env.baselines.learned.benchmarl_configs import config_files
+    from studies import scoreboard
+
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_random", "--methods", "mappo-residual-set",
+            "--seeds", "0", "--episodes", "1"]
+    assert scoreboard.main(argv) == 0
+    rows = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+    assert [row["scenario"] for row in rows if row["split"] == "team"] == [f"planar_team_{n}" for n in range(3, 9)]
+    actor = json.loads((tmp_path / "runs" / "planar_random" / "mappo-residual-set" / "seed-0" / "policy" /
+                        "actor.json").read_text())
+    (entry,) = actor["groups"].values()
+    assert entry["set_network"]["masked"] and actor["transforms"]["observation_sets"]
+    cell = json.loads((tmp_path / "cells" / "planar_random" / "mappo-residual-set" / "seed-0.json").read_text())
+    files = config_files("mappo", "residual", "deepsets")
+    assert list(files) == ["algorithm/mappo.yaml", "experiment/on_policy.yaml", "model/layers/deepsets.yaml",
+                           "model/layers/mlp.yaml", "task/ee_formation_training/residual.yaml"]
+    assert json.dumps(files) in json.dumps(cell) and cell["budget"]["model"] == "deepsets"
 
 
 def _finished_run(folder, settings=None):

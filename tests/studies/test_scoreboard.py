@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from ee_formation_env.scenario_sets import held_out_scenarios
+from ee_formation_env.scenario_sets import TEST_SEEDS, held_out_scenarios
 from studies import scoreboard, scoreboard_methods
 
 
@@ -302,3 +302,29 @@ def test_a_signal_during_a_cells_training_ends_the_board_in_one_line_with_the_si
     error = capsys.readouterr().err
     assert "SIGTERM stopped a cell's training at 1234 agent steps" in error and "same command resumes" in error
     assert "Traceback" not in error
+
+
+def test_a_set_method_and_the_laws_get_a_row_per_team_size_with_a_table_and_a_figure(tmp_path, capsys):
+    """The team-size split: on planar_random (family planar_team, N = 3..8) the laws and the set network's
+    policy are evaluated unchanged at every size; a method that serves one team size only gets no team rows."""
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_random", "--methods", "gradient",
+            "residual-ppo", "residual-ppo-set", "--seeds", "0", "--episodes", "1"]
+    assert scoreboard.main(argv) == 0
+    out = capsys.readouterr().out
+    sizes = range(3, 9)
+    assert all(f"-> team planar_team_{n}" in out for n in sizes)
+    board = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+    team = {(row["scenario"], row["method"]): row for row in board if row["split"] == "team"}
+    assert set(team) == {(f"planar_team_{n}", method) for n in sizes for method in ("gradient", "residual-ppo-set")}
+    for n in sizes:
+        learned = team[(f"planar_team_{n}", "residual-ppo-set")]
+        assert learned["trained_on"] == "planar_random" and learned["seeds"] == [0]
+        assert learned["eval_seeds"] == team[(f"planar_team_{n}", "gradient")]["eval_seeds"] == [TEST_SEEDS[0]]
+    assert [row["scenario"] for row in board if row["split"] == "team" and row["method"] == "gradient"] == [
+        f"planar_team_{n}" for n in sizes]  # in size order, after the distribution's own rows
+    table = (tmp_path / "scoreboard.md").read_text()
+    assert "### Team size: trained on planar_random" in table
+    assert "| residual-ppo-set | " in table.split("### Team size")[1] and "| N = 8 |" in table
+    assert (tmp_path / "team_size_success.png").stat().st_size > 0
+    assert scoreboard_methods.METHODS["residual-ppo-set"].serves_any_team
+    assert not scoreboard_methods.METHODS["residual-ppo"].serves_any_team

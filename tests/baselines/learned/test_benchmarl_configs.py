@@ -39,6 +39,11 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
         assert experiment.lr == 3e-4 and experiment.evaluation is False
     assert algorithm_config("mappo").normalize_advantage is True and algorithm_config("ippo").lmbda == 0.95
     assert model_config().num_cells == [128, 128]
+    deepsets = model_config("deepsets")  # the set actor: the project's masked slot aggregation
+    assert type(deepsets) is benchmarl_configs.SlotDeepsetsConfig and deepsets.aggr == "mean"
+    assert deepsets.associated_class() is benchmarl_configs.SlotDeepsets
+    with pytest.raises(ValueError, match="model"):
+        model_config("gnn")
     for mode in mode_names():
         config = task_config(mode)
         assert config["mode"] == mode
@@ -47,7 +52,8 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
         assert task.transforms() == TaskTransforms(observation_normalization=True, reward_scale=0.005)
     files = sorted(path.relative_to(CONFIG_DIR).as_posix() for path in CONFIG_DIR.rglob("*.yaml"))
     assert files == ["algorithm/ippo.yaml", "algorithm/mappo.yaml", "algorithm/masac.yaml",
-                     "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/mlp.yaml",
+                     "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/deepsets.yaml",
+                     "model/layers/mlp.yaml",
                      "task/ee_formation_training/residual.yaml", "task/ee_formation_training/torque.yaml",
                      "task/ee_formation_training/velocity.yaml"]
     for path in CONFIG_DIR.rglob("*.yaml"):
@@ -212,7 +218,7 @@ def test_the_export_carries_the_observation_statistics_and_acts_as_the_experimen
     folder = export_benchmarl_policy(experiment, tmp_path / "actor")
     description = json.loads((folder / "actor.json").read_text())
     assert description["transforms"] == {"observation_normalization": True, "state_normalization": False,
-                                         "reward_scale": 0.005}
+                                         "reward_scale": 0.005, "observation_sets": False}
     loaded = load_benchmarl_policy(folder)
     np.testing.assert_array_equal(loaded.groups[group].observation_loc, actor.observation_loc.astype(np.float32))
     # The experiment's policy on the normalized observations = the numpy actor on the raw ones.
