@@ -51,8 +51,8 @@ class Method:
 
     @property
     def serves_any_team(self) -> bool:
-        """Whether its policy acts on teams of any size: a law, or the set network's (``--policy-network set``);
-        the board's team-size split evaluates these."""
+        """Whether its policy acts on teams of any size: a law, SB3's set network (``--policy-network set``) or
+        BenchMARL's set actor (``model="deepsets"``); the board's team-size split evaluates these."""
         flags = self.train_flags
         return (not self.learned or any(a == "--policy-network" and b == "set" for a, b in zip(flags, flags[1:]))
                 or (self.benchmarl is not None and self.benchmarl.model == "deepsets"))
