@@ -209,7 +209,8 @@ def team_size_figure(board_rows: Sequence[dict[str, Any]], path: Path) -> Path |
         label = method if len({t for t, _ in curves}) == 1 else f"{method} ({trained})"
         ax.errorbar(np.array(sizes) + 0.06 * (k - (len(curves) - 1) / 2), rate, yerr=[low, high], marker="o",
                     capsize=3, label=label)
-    ax.set_xlabel("team size N (arms)")
+    trained = sorted({t for t, _ in curves})
+    ax.set_xlabel(f"team size N (arms); learned policies trained on {', '.join(trained)} only")
     ax.set_ylabel("success (%)")
     ax.set_ylim(0, 105)
     ax.set_xticks(sorted({n for by_size in curves.values() for n in by_size}))
