@@ -291,7 +291,7 @@ def test_a_board_method_with_a_frame_budget_trains_on_frames(tmp_path, monkeypat
     calls = []
 
     def fake_run(algorithm, scenario, mode, minutes, seed, out, episodes, episode_seconds=None, settings=None,
-                 frames=None):
+                 frames=None, model="mlp"):
         calls.append((minutes, frames))
         out.mkdir(parents=True)
         (out / "evaluation.json").write_text(json.dumps({
