@@ -14,12 +14,12 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 
 from ee_formation_env.baselines.learned.policy import ObservationNormalizer
-from ee_formation_env.baselines.learned.set_network import slot_layout
+from ee_formation_env.baselines.learned.set_network import POOLINGS, masked_pool, slot_layout
 
 #: Activations the numpy actor computes, by name (BenchMARL's MLP default is Tanh).
 ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {"Tanh": np.tanh, "ReLU": lambda x: np.maximum(x, 0.0)}
 #: How a set actor pools its slots (BenchMARL's Deepsets ``aggr`` values the actor computes).
-SET_AGGREGATIONS = ("mean", "sum", "max")
+SET_AGGREGATIONS = POOLINGS
 #: The action distributions: TorchRL's ``TanhNormal`` and ``IndependentNormal``.
 DISTRIBUTION_NAMES = ("tanh_normal", "normal")
 
@@ -169,12 +169,7 @@ class GroupActor:
             # (k, D, 1): padding slots take no part, where the model masked them (SlotDeepsets) as here
             real = slots[..., :1] > 0.5 if masked else np.ones((*slots.shape[:2], 1), dtype=bool)
             encoded = layers(slots[..., None, :], steps[:split])[..., 0, :]  # (k, D, h), row by row exactly
-            count = np.maximum(real.sum(axis=1), 1)
-            pooled = {"mean": lambda: np.where(real, encoded, 0.0).sum(axis=1) / count,
-                      "sum": lambda: np.where(real, encoded, 0.0).sum(axis=1),
-                      "max": lambda: np.where(real.any(axis=1), np.where(real, encoded, -np.inf).max(axis=1), 0.0),
-                      }[aggregation]()
-            features = np.concatenate([pooled, rows[:, block:]], axis=1)[:, None, :]
+            features = np.concatenate([masked_pool(encoded, real, aggregation), rows[:, block:]], axis=1)[:, None, :]
             actions = self._action(layers(features, steps[split:])[:, 0, :])
             return actions[0] if single else actions
 

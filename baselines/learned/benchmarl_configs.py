@@ -35,6 +35,7 @@ from benchmarl.models.deepsets import Deepsets, DeepsetsConfig
 from benchmarl.models.mlp import MlpConfig
 
 from ee_formation_env.baselines.learned.modes import mode_names
+from ee_formation_env.baselines.learned.set_network import POOLINGS, masked_pool
 
 #: The folder of the YAML files (installed with the package).
 CONFIG_DIR = Path(__file__).with_name("benchmarl_conf")
@@ -134,20 +135,12 @@ class _MaskedSlotSet(torch.nn.Module):
 
     def __init__(self, local_nn: torch.nn.Module, global_nn: torch.nn.Module, aggr: str):
         super().__init__()
-        if aggr not in ("mean", "sum", "max"):
-            raise ValueError(f"aggr: the masked slot aggregation is mean, sum or max, got {aggr!r}")
+        if aggr not in POOLINGS:
+            raise ValueError(f"aggr: the masked slot aggregation is one of {list(POOLINGS)}, got {aggr!r}")
         self.local_nn, self.global_nn, self.aggr = local_nn, global_nn, aggr
 
     def forward(self, slots: torch.Tensor, own: Optional[torch.Tensor]) -> torch.Tensor:
-        real = slots[..., :1] > 0.5  # (..., S, 1)
-        encoded = self.local_nn(slots)
-        if self.aggr == "max":
-            pooled = torch.where(real, encoded, -torch.inf).max(dim=-2).values
-            pooled = torch.where(real.any(dim=-2), pooled, torch.zeros_like(pooled))
-        else:
-            pooled = torch.where(real, encoded, torch.zeros_like(encoded)).sum(dim=-2)
-            if self.aggr == "mean":
-                pooled = pooled / real.sum(dim=-2).clamp(min=1)
+        pooled = masked_pool(self.local_nn(slots), slots[..., :1] > 0.5, self.aggr)  # (..., S, h) -> (..., h)
         return self.global_nn(pooled if own is None else torch.cat([pooled, own], dim=-1))
 
 

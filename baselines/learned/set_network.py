@@ -203,6 +203,28 @@ def _pooled_class() -> type:
 
 
 # ------------------------------------------------------------------------------------------ the network
+#: How a set network pools its encoded slots: their mean, sum or element-wise max, over the real slots only.
+POOLINGS = ("mean", "sum", "max")
+
+
+def masked_pool(encoded: Any, real: Any, pooling: str) -> Any:
+    """Encoded slots (..., D, h) pooled over the real ones (``real`` (..., D, 1) bool: mask > 0.5) by ``pooling``
+    (:data:`POOLINGS`; a max over no real slot is 0): numpy arrays or torch tensors alike, the one rule of the
+    SB3 set network, BenchMARL's set actor and their numpy forms."""
+    if isinstance(encoded, np.ndarray):
+        if pooling == "max":
+            return np.where(real.any(axis=-2), np.where(real, encoded, -np.inf).max(axis=-2), 0.0)
+        pooled = np.where(real, encoded, 0.0).sum(axis=-2)
+        return pooled / np.maximum(real.sum(axis=-2), 1) if pooling == "mean" else pooled
+    import torch
+
+    if pooling == "max":
+        peak = torch.where(real, encoded, torch.full_like(encoded, -torch.inf)).max(dim=-2).values
+        return torch.where(real.any(dim=-2), peak, torch.zeros_like(peak))
+    pooled = torch.where(real, encoded, torch.zeros_like(encoded)).sum(dim=-2)
+    return pooled / real.sum(dim=-2).clamp(min=1) if pooling == "mean" else pooled
+
+
 def sb3_policy_kwargs(plain: Mapping[str, Any]) -> dict[str, Any]:
     """SB3 ``policy_kwargs`` from the plain ones a run saves (``net_arch``, ``log_std_init`` and, for the set
     network, ``set_network``: the slot layout and the team signature)."""
@@ -236,11 +258,8 @@ def set_extractor_class() -> type:
             slots, own = self.layout.split(observations)
             real = (slots[..., 0] > 0.5).unsqueeze(-1)  # (B, D, 1)
             encoded = self.phi(slots[..., 1:])  # (B, D, hidden)
-            count = real.sum(dim=1).clamp(min=1)
-            mean = torch.where(real, encoded, torch.zeros_like(encoded)).sum(dim=1) / count
-            peak = torch.where(real, encoded, torch.full_like(encoded, -torch.inf)).max(dim=1).values
-            peak = torch.where(real.any(dim=1), peak, torch.zeros_like(peak))
-            return torch.cat([mean, peak, self.own(own)], dim=1)
+            return torch.cat([masked_pool(encoded, real, "mean"), masked_pool(encoded, real, "max"), self.own(own)],
+                             dim=1)
 
     return SlotSetExtractor
 
@@ -262,10 +281,8 @@ def numpy_set_actor(policy: Any, layout: SlotLayout) -> Callable[[np.ndarray], n
         slots, own_state = layout.split(rows)
         real = slots[..., :1] > 0.5  # (k, D, 1)
         encoded = apply_numpy_layers(phi, slots[..., None, 1:])[..., 0, :]  # (k, D, 1, s) @ (s, h): row by row exactly
-        mean = np.where(real, encoded, 0.0).sum(axis=1) / np.maximum(real.sum(axis=1), 1)
-        peak = np.where(real, encoded, -np.inf).max(axis=1)
-        peak = np.where(real.any(axis=1), peak, 0.0)
-        features = np.concatenate([mean, peak, apply_numpy_layers(own, own_state[:, None, :])[:, 0, :]], axis=1)
+        features = np.concatenate([masked_pool(encoded, real, "mean"), masked_pool(encoded, real, "max"),
+                                   apply_numpy_layers(own, own_state[:, None, :])[:, 0, :]], axis=1)
         actions = apply_numpy_layers(head, features[:, None, :])[:, 0, :]
         return actions[0] if single else actions
 
