@@ -24,6 +24,17 @@ SET_AGGREGATIONS = POOLINGS
 DISTRIBUTION_NAMES = ("tanh_normal", "normal")
 
 
+def _dense(hidden: np.ndarray, steps: List[tuple[np.ndarray, np.ndarray]],
+           activation: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``hidden`` through linear layers ``(weight (in, out), bias (out,))`` with ``activation`` between them (none
+    after the last: BenchMARL's MLPs)."""
+    for layer, (weight, bias) in enumerate(steps):
+        hidden = hidden @ weight + bias
+        if layer < len(steps) - 1:
+            hidden = activation(hidden)
+    return hidden
+
+
 @dataclass
 class GroupActor:
     """One group's deterministic actor in numpy (float64): an MLP from the observation (obs_dim,) to the
@@ -134,10 +145,7 @@ class GroupActor:
             stack = hidden.ndim == 2
             if stack:  # (k, 1, d) @ (d, h): row by row the products of one observation, exactly
                 hidden = hidden[:, None, :]
-            for layer, (weight, bias) in enumerate(steps):
-                hidden = hidden @ weight + bias
-                if layer < len(steps) - 1:
-                    hidden = activation(hidden)
+            hidden = _dense(hidden, steps, activation)
             return self._action(hidden[:, 0, :] if stack else hidden)
 
         predict.stacks = True
@@ -148,13 +156,6 @@ class GroupActor:
         """:meth:`predict` of the set form (:attr:`slots`): observations of any slot count."""
         slot_size, own_size, split = (int(self.slots[key]) for key in ("slot_size", "own_size", "local_layers"))
         aggregation, masked = self.slots["aggregation"], bool(self.slots["masked"])
-
-        def layers(hidden: np.ndarray, part: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-            for layer, (weight, bias) in enumerate(part):
-                hidden = hidden @ weight + bias
-                if layer < len(part) - 1:
-                    hidden = activation(hidden)
-            return hidden
 
         def predict(observation: np.ndarray) -> np.ndarray:
             rows = np.asarray(observation, dtype=np.float64)
@@ -168,9 +169,9 @@ class GroupActor:
             slots = rows[:, :block].reshape(len(rows), n_slots, slot_size)
             # (k, D, 1): padding slots take no part, where the model masked them (SlotDeepsets) as here
             real = slots[..., :1] > 0.5 if masked else np.ones((*slots.shape[:2], 1), dtype=bool)
-            encoded = layers(slots[..., None, :], steps[:split])[..., 0, :]  # (k, D, h), row by row exactly
+            encoded = _dense(slots[..., None, :], steps[:split], activation)[..., 0, :]  # (k, D, h), row by row exactly
             features = np.concatenate([masked_pool(encoded, real, aggregation), rows[:, block:]], axis=1)[:, None, :]
-            actions = self._action(layers(features, steps[split:])[:, 0, :])
+            actions = self._action(_dense(features, steps[split:], activation)[:, 0, :])
             return actions[0] if single else actions
 
         predict.stacks = True
