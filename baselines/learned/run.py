@@ -27,7 +27,8 @@ from ee_formation_env.baselines.learned.run_folder import check_out, created_run
 from ee_formation_env.baselines.learned.run_lock import run_lock
 from ee_formation_env.baselines.learned.saved_run import (load_saved_config, model_from_checkpoint,
                                                           newest_intact_checkpoint, write_saved_config)
-from ee_formation_env.baselines.learned.segments import TIMING, read_timing
+from ee_formation_env.baselines.learned.segments import (TIMING, close_killed_segments, read_timing,
+                                                         write_learning_curve, write_timing)
 from ee_formation_env.baselines.learned.set_network import set_description
 from ee_formation_env.baselines.learned.team import TEAM_PADDING_KEY, TeamPadding
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, batched_env_factory
@@ -138,7 +139,14 @@ def resume(config: TrainConfig) -> Path:
             print(f"{run_dir}: training is complete ({steps} of {settings.total_timesteps} agent steps); running the "
                   "comparison", flush=True)
             model_from_checkpoint(run_dir, newest)
+            # A kill after the last checkpoint but before the segment's end left it running and the learning
+            # curve unwritten: end the segment as killed at the checkpoint, and draw the curve, as training would.
             timing = read_timing(run_dir)
+            if timing["segments"] and timing["segments"][-1].get("running"):
+                timing["segments"][-1]["agent_steps"] = steps  # the model's, saved after the segment's last write
+            close_killed_segments(timing)
+            write_timing(run_dir, timing)
+            write_learning_curve(run_dir, timing["segments"])
             timing.setdefault("agent_steps", steps)
             return _compare_and_write(settings, saved, run_dir, timing, started)
         print(f"resuming {run_dir} from {newest.name} at {steps} of {settings.total_timesteps} agent steps")

@@ -158,3 +158,25 @@ def test_resume_refuses_what_it_cannot_continue(trained_run, tmp_path, capsys):
     assert "complete" in capsys.readouterr().err
     assert train_command(["--resume", str(tmp_path / "nothing")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_a_kill_after_the_final_checkpoint_leaves_a_run_that_resume_finishes(trained_run, tmp_path, capsys):
+    """Killed between the final model and the segment's end: the segment still ``running``, no learning curve,
+    no comparison. ``--resume`` ends the segment as killed, draws the curve and compares, training nothing."""
+    from ee_formation_env.baselines.learned.segments import KILLED
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(trained_run, run_dir)
+    for name in ("learning_curve.csv", "comparison.json", "comparison.md", "comparison.png"):
+        (run_dir / name).unlink(missing_ok=True)
+    timing = json.loads((run_dir / "timing.json").read_text())
+    steps = timing["segments"][-1]["agent_steps"]
+    timing["segments"][-1].update(running=True, agent_steps=0)  # its last write before the final model
+    (run_dir / "timing.json").write_text(json.dumps(timing))
+    capsys.readouterr()
+    assert train_command(["--resume", str(run_dir), *EVAL_FAST]) == 0
+    assert "training is complete" in capsys.readouterr().out
+    (segment,) = json.loads((run_dir / "timing.json").read_text())["segments"]
+    assert not segment["running"] and segment["interrupted"] == KILLED and segment["agent_steps"] == steps
+    assert (run_dir / "learning_curve.csv").read_text() == (trained_run / "learning_curve.csv").read_text()
+    assert (run_dir / "comparison.json").is_file()
