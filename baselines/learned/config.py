@@ -87,6 +87,8 @@ class TrainConfig:
     gravity_compensation: bool = _option_flag("gravity_compensation", action=argparse.BooleanOptionalAction)
     joint_speed: float = _option_flag("joint_speed", type=float)
     velocity_gain: float = _option_flag("velocity_gain", type=float)
+    joint_reach: float = _option_flag("joint_reach", type=float)
+    position_gain: float = _option_flag("position_gain", type=float)
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
                                 "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
                                 "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
@@ -286,7 +288,8 @@ class TrainConfig:
     #: Saved settings that a run's ``config.json`` may lack: added after the first saved runs, their defaults
     #: are what those runs trained with. Every other saved setting must be in the file.
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
-                          "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network")
+                          "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
+                          "joint_reach", "position_gain")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
 

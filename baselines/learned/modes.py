@@ -6,8 +6,9 @@ rows (:class:`ActionRows`). The training env (every backend) and the evaluated p
 rule, so a mode is written once. :func:`register_mode` adds a mode; :func:`training_mode` looks one up by the
 name the options carry (``TrainingOptions.mode``), and nothing else compares mode names. The built-in modes
 are ``residual`` (:mod:`~ee_formation_env.baselines.learned.residual`), ``torque``
-(:mod:`~ee_formation_env.baselines.learned.torque`) and ``velocity``
-(:mod:`~ee_formation_env.baselines.learned.velocity`); adding one is shown in docs/extending.md.
+(:mod:`~ee_formation_env.baselines.learned.torque`), ``velocity``
+(:mod:`~ee_formation_env.baselines.learned.velocity`) and ``position``
+(:mod:`~ee_formation_env.baselines.learned.position`); adding one is shown in docs/extending.md.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ if TYPE_CHECKING:
 #: this order, in :func:`mode_names` (the default mode first).
 BUILTIN_MODES = {"residual": "ee_formation_env.baselines.learned.residual",
                  "torque": "ee_formation_env.baselines.learned.torque",
-                 "velocity": "ee_formation_env.baselines.learned.velocity"}
+                 "velocity": "ee_formation_env.baselines.learned.velocity",
+                 "position": "ee_formation_env.baselines.learned.position"}
 
 
 @dataclass(frozen=True)

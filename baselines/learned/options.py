@@ -41,8 +41,9 @@ class TrainingOptions:
     (``TypeError`` for a wrong type) naming the field. Frozen and plain, so it pickles into worker processes."""
 
     mode: str = _option("residual", "", "what the learned action is: residual (a correction added to the "
-                        "reference controller's torques), torque (the normalized joint torques) or velocity (the "
-                        "joint speeds, turned into torques by a damped loop with gravity compensation); any "
+                        "reference controller's torques), torque (the normalized joint torques), velocity (the "
+                        "joint speeds, turned into torques by a damped loop with gravity compensation) or position "
+                        "(joint target angles, held by a PD loop with gravity compensation); any "
                         "registered mode (modes.py)")
     reference: str = _option("adaptive_jacobian", "", "residual mode: the reference controller (a model-based one: "
                              + ", ".join(MODEL_BASED_POLICIES) + ")")
@@ -71,6 +72,10 @@ class TrainingOptions:
     joint_speed: float = _option(1.0, "rad/s", "velocity mode: the joint speed one unit of learned action commands")
     velocity_gain: float = _option(10.0, "1/s", "velocity mode: the velocity loop's gain, the inverse time constant "
                                    "of reaching the commanded speed; at most 1 / control period for a stable loop")
+    joint_reach: float = _option(1.0, "rad", "position mode: the joint angle about the initial configuration that "
+                                 "one unit of learned action targets")
+    position_gain: float = _option(10.0, "1/s", "position mode: the PD loop's natural frequency (critically "
+                                   "damped); at most 0.5 / control period for a stable loop")
     train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
                                                      "scenario's episode_seconds)")
     policy_network: str = _option("mlp", "", "the shared policy network: mlp (SB3's MLP on the whole observation, "
@@ -105,6 +110,8 @@ class TrainingOptions:
         object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
         self._number("joint_speed", lambda x: 0 < x <= 100, "a speed in (0, 100] rad/s")
         self._number("velocity_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
+        self._number("joint_reach", lambda x: 0 < x <= math.pi, "an angle in (0, pi] rad")
+        self._number("position_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
         self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
         self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
         self.training_mode.check(self)

@@ -55,7 +55,7 @@ def half_torque():
 def test_the_builtin_modes_come_first_and_unknown_ones_name_the_field():
     assert mode_names()[:2] == ("residual", "torque")
     assert training_mode("residual").name == "residual"
-    with pytest.raises(ValueError, match=r"mode: expected one of \['residual', 'torque', 'velocity'\], got 'torques'"):
+    with pytest.raises(ValueError, match=r"mode: expected one of \['residual', 'torque', 'velocity', 'position'\], got 'torques'"):
         training_mode("torques")
     with pytest.raises(ValueError, match="mode: expected one of"):
         TrainingOptions(mode="torques")
