@@ -120,6 +120,9 @@ METHODS: dict[str, Method] = {
     # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
     # compensation, from scratch, at the same budget.
     "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),
+    # The joint-position convention (docs/training.md, "Modes"): joint target angles about the initial
+    # configuration, held by a PD loop with gravity compensation, from scratch, at the same budget.
+    "position-ppo": Method("position-ppo", train_flags=("--mode", "position", "--max-train-seconds", "1800")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),

@@ -60,15 +60,42 @@ class StateIndependentScale(torch.nn.Module):
         return loc, self.scale_mapping(self.scale_parameter).expand_as(loc)
 
 
+#: SB3's orthogonal initialization (``ortho_init``): the gain of the hidden layers, of the actor's output layer
+#: (its initial mean action is near 0, whatever the observation) and of the critic's output layer.
+HIDDEN_GAIN, ACTOR_OUTPUT_GAIN, CRITIC_OUTPUT_GAIN = 2.0 ** 0.5, 0.01, 1.0
+
+
+def orthogonal_init(model: torch.nn.Module, output_gain: float) -> None:
+    """Initialize ``model``'s layers as SB3's PPO does: every weight matrix orthogonal (one per agent where the
+    parameters are stacked per agent), gain :data:`HIDDEN_GAIN`, its last one ``output_gain``; biases 0. The
+    layers are the model's parameters named ``weight`` in registration order (BenchMARL's MLP and Deepsets
+    register their output layer last)."""
+    weights = [(name, p) for name, p in model.named_parameters() if name.endswith("weight") and p.dim() >= 2]
+    if not weights:
+        raise ValueError(f"orthogonal_init: {type(model).__name__} has no weight matrix")
+    with torch.no_grad():
+        for index, (_, weight) in enumerate(weights):
+            gain = output_gain if index == len(weights) - 1 else HIDDEN_GAIN
+            for matrix in (weight.unsqueeze(0) if weight.dim() == 2 else weight.flatten(0, -3)):
+                torch.nn.init.orthogonal_(matrix, gain=gain)
+        for name, bias in model.named_parameters():
+            if name.endswith("bias"):
+                bias.zero_()
+
+
 class _FormationPPO:
     """Mixin of an on-policy BenchMARL algorithm: its PPO loss normalizes each minibatch's advantages when
-    ``normalize_advantage`` (BenchMARL builds the loss with it off), and its Gaussian's scale is
-    :class:`StateIndependentScale` when ``state_independent_scale`` (BenchMARL's is an output of the actor)."""
+    ``normalize_advantage`` (BenchMARL builds the loss with it off), its Gaussian's scale is
+    :class:`StateIndependentScale` when ``state_independent_scale`` (BenchMARL's is an output of the actor), and
+    its actor and critic start from SB3's orthogonal initialization when ``orthogonal_init``
+    (:func:`orthogonal_init`; BenchMARL keeps PyTorch's default, whose initial mean action depends on the state)."""
 
-    def __init__(self, normalize_advantage: bool, state_independent_scale: bool, **kwargs: Any):
+    def __init__(self, normalize_advantage: bool, state_independent_scale: bool, orthogonal_init: bool,
+                 **kwargs: Any):
         super().__init__(**kwargs)
         self.normalize_advantage = normalize_advantage
         self.state_independent_scale = state_independent_scale
+        self.orthogonal_init = orthogonal_init
 
     def _get_policy_for_loss(self, group: str, model_config: Any, continuous: bool) -> Any:
         policy = super()._get_policy_for_loss(group, model_config, continuous)
@@ -76,7 +103,15 @@ class _FormationPPO:
             extractor = policy.module[0].module[1]  # ProbabilisticActor(TensorDictSequential(actor, extractor))
             n_actions = self.action_spec[group, "action"].shape[-1]
             extractor.module = StateIndependentScale(n_actions, self.scale_mapping, device=self.device)
+        if self.orthogonal_init:
+            orthogonal_init(policy.module[0].module[0], ACTOR_OUTPUT_GAIN)
         return policy
+
+    def get_critic(self, group: str) -> Any:
+        critic = super().get_critic(group)
+        if self.orthogonal_init:  # a shared critic's expansion over the agents has no parameters
+            orthogonal_init(critic, CRITIC_OUTPUT_GAIN)
+        return critic
 
     def _get_loss(self, group: str, policy_for_loss: Any, continuous: bool) -> Any:
         loss, done = super()._get_loss(group, policy_for_loss, continuous)
@@ -93,17 +128,19 @@ class FormationIppo(_FormationPPO, Ippo):
 
 
 def _check_flags(config: Any) -> None:
-    for name in ("normalize_advantage", "state_independent_scale"):
+    for name in ("normalize_advantage", "state_independent_scale", "orthogonal_init"):
         if not isinstance(getattr(config, name), bool):
             raise TypeError(f"{name}: expected True or False, got {getattr(config, name)!r}")
 
 
 @dataclass
 class FormationMappoConfig(MappoConfig):
-    """:class:`~benchmarl.algorithms.MappoConfig` plus ``normalize_advantage`` and ``state_independent_scale``."""
+    """:class:`~benchmarl.algorithms.MappoConfig` plus ``normalize_advantage``, ``state_independent_scale`` and
+    ``orthogonal_init``."""
 
     normalize_advantage: bool = True
     state_independent_scale: bool = True
+    orthogonal_init: bool = False
 
     def __post_init__(self) -> None:
         _check_flags(self)
@@ -115,10 +152,12 @@ class FormationMappoConfig(MappoConfig):
 
 @dataclass
 class FormationIppoConfig(IppoConfig):
-    """:class:`~benchmarl.algorithms.IppoConfig` plus ``normalize_advantage`` and ``state_independent_scale``."""
+    """:class:`~benchmarl.algorithms.IppoConfig` plus ``normalize_advantage``, ``state_independent_scale`` and
+    ``orthogonal_init``."""
 
     normalize_advantage: bool = True
     state_independent_scale: bool = True
+    orthogonal_init: bool = False
 
     def __post_init__(self) -> None:
         _check_flags(self)

@@ -200,6 +200,55 @@ def test_the_shipped_mappo_has_one_learned_scale_per_joint_in_every_state(normal
     torch.testing.assert_close(out[group, "scale"][0], out[group, "scale"][1])
 
 
+@pytest.mark.parametrize("algorithm", ["mappo", "ippo"])
+def test_orthogonal_init_starts_the_ppo_from_sb3_s_initialization(algorithm, tmp_path):
+    """``orthogonal_init: True`` (off in the shipped YAML), before any update: every weight matrix of actor and critic is orthogonal at its gain (sqrt 2 hidden, 0.01
+    the actor's output, 1 the critic's), biases 0, so the initial mean action is ~0 for any observation; with
+    the option off, BenchMARL's default initialization (a mean action of the size of the observation's)."""
+    from benchmarl.experiment import Experiment
+    from tensordict import TensorDict
+
+    from conftest import tiny_benchmarl_config
+
+    def experiment(orthogonal: bool) -> Experiment:
+        model = model_config()
+        model.num_cells = [16, 16]
+        chosen = algorithm_config(algorithm)
+        chosen.orthogonal_init = orthogonal
+        task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({**task_config("torque"), **FAST})
+        folder = tmp_path / f"orthogonal-{orthogonal}"
+        folder.mkdir()
+        return Experiment(task=task, algorithm_config=chosen, model_config=model, critic_model_config=model, seed=0,
+                          config=tiny_benchmarl_config(folder))
+
+    def mean_actions(made: Experiment) -> torch.Tensor:
+        (group, agents), = made.group_map.items()
+        observation = made.observation_spec[group, "observation"]
+        batch = TensorDict({group: TensorDict({"observation": 3 * torch.randn(64, *observation.shape)},
+                                              [64, len(agents)])}, [64])
+        return made.algorithm.get_policy_for_loss(group).module[0](batch)[group, "loc"]
+
+    made = experiment(True)
+    (group, _), = made.group_map.items()
+    for module, output_gain in ((made.algorithm.get_policy_for_loss(group).module[0].module[0], 0.01),
+                                (made.algorithm.get_critic(group), 1.0)):
+        weights = [p for name, p in module.named_parameters() if name.endswith("weight") and p.dim() >= 2]
+        assert len(weights) == 3
+        for index, weight in enumerate(weights):
+            gain = output_gain if index == 2 else 2 ** 0.5
+            matrix = weight.detach().reshape(-1, *weight.shape[-2:])[0]
+            gram = matrix @ matrix.T if matrix.shape[0] <= matrix.shape[1] else matrix.T @ matrix
+            torch.testing.assert_close(gram, gain ** 2 * torch.eye(gram.shape[0]), atol=1e-5, rtol=1e-5)
+        assert all(not p.any() for name, p in module.named_parameters() if name.endswith("bias"))
+    assert mean_actions(made).abs().max() < 0.1
+    assert mean_actions(experiment(False)).abs().max() > 0.3
+
+
+def test_the_orthogonal_init_option_is_refused_when_not_a_bool():
+    with pytest.raises(TypeError, match="orthogonal_init"):
+        benchmarl_configs.FormationMappoConfig(**{**algorithm_config("mappo").__dict__, "orthogonal_init": "yes"})
+
+
 def test_the_scale_option_is_refused_when_not_a_bool():
     with pytest.raises(TypeError, match="state_independent_scale"):
         benchmarl_configs.FormationIppoConfig(**{**algorithm_config("ippo").__dict__, "state_independent_scale": 1})
