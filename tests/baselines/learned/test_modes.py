@@ -13,6 +13,7 @@ import ee_formation_env
 from ee_formation_env.baselines.learned.modes import (ActionRows, TrainingMode, mode_names, register_mode,
                                                       training_mode, unregister_mode)
 from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.policy import composed_policy_factory
 from ee_formation_env.baselines.learned.torque import TorqueMode
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
 
@@ -110,3 +111,31 @@ def test_the_fault_guard_is_the_modes_own_and_the_flag_wins():
     assert guard("--mode", "residual") == 0.5
     assert guard("--mode", "torque") == guard("--mode", "velocity") == 0.9
     assert guard("--mode", "torque", "--max-fault-fraction", "0.3") == 0.3
+
+
+@pytest.mark.parametrize("mode", ["torque", "velocity", "position"])
+def test_the_evaluated_policy_applies_the_training_envs_rule_row_for_row(mode, closer):
+    """A saved policy composes its learned actions with the mode's rule as the training env does (the stateless
+    built-in modes; the residual rule's reference controllers: test_residual.py)."""
+    options = TrainingOptions(mode=mode, obs_features="none", hold_penalty=0.0)
+    env = closer(BatchedTrainingEnv("planar_square", {"episode_seconds": 5.0}, options, num_envs=1))
+    result = env.reset_arrays(seed=2)
+    agents = env.possible_agents
+    observations = result.observations.reshape(len(agents), -1)
+    learned = np.random.default_rng(1).uniform(-1, 1, (len(agents), 2))
+
+    class Fixed:
+        def __init__(self, action):
+            self.action = action
+
+        def reset(self):
+            pass
+
+        def __call__(self, observation):
+            return self.action
+
+    policies = composed_policy_factory({a: Fixed(learned[i]) for i, a in enumerate(agents)}, env.env,
+                                       env.options)(env.env.copy_view(0))
+    expected, _ = env.action_rows(observations, learned)
+    for i, agent in enumerate(agents):
+        np.testing.assert_array_equal(policies[agent](observations[i]), expected[i])

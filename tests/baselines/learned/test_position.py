@@ -1,7 +1,7 @@
 """Position mode: an action holds its target posture against gravity (a constant action, a constant posture),
 the target is the initial configuration plus joint_reach per unit, the torque is the PD rule on the agent's own
-observation, the gain is checked against the control period, and the evaluated policy applies the training
-env's rule."""
+observation, a target stays inside the joint limits and the gain is checked against the control period (the
+evaluated policy applying the training env's rule: test_modes.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import pytest
 from ee_formation_env.baselines.learned.action_scale import initial_mass_matrices
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.options import TrainingOptions
-from ee_formation_env.baselines.learned.policy import composed_policy_factory
 from ee_formation_env.baselines.learned.position import PositionRows
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
 
@@ -98,30 +97,6 @@ def test_a_target_past_a_joint_limit_is_held_at_the_limit():
     rows = PositionRows([Layout()], [np.eye(1)], [np.array([0.2])], [np.array([[0.0], [0.3]])], 1.0, 1.0)
     applied, _ = rows(np.array([[0.1, 0.0], [0.1, 0.0]]), np.array([[-1.0], [1.0]]))
     np.testing.assert_allclose(applied[:, 0], [-0.1, 0.2])  # targets 0.0 and 0.3, the limits
-
-
-def test_the_evaluated_policy_applies_the_training_envs_rule_row_for_row(closer):
-    env = _position_env(closer, "planar_square", copies=1)
-    result = env.reset_arrays(seed=2)
-    agents = env.possible_agents
-    observations = result.observations.reshape(len(agents), -1)
-    learned = np.random.default_rng(1).uniform(-1, 1, (len(agents), 2))
-
-    class Fixed:
-        def __init__(self, action):
-            self.action = action
-
-        def reset(self):
-            pass
-
-        def __call__(self, observation):
-            return self.action
-
-    policies = composed_policy_factory({a: Fixed(learned[i]) for i, a in enumerate(agents)}, env.env,
-                                       env.options)(env.env.copy_view(0))
-    expected, _ = env.action_rows(observations, learned)
-    for i, agent in enumerate(agents):
-        np.testing.assert_array_equal(policies[agent](observations[i]), expected[i])
 
 
 def test_rows_of_one_setting_stack_and_others_are_refused():

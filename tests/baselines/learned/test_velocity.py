@@ -1,6 +1,6 @@
 """Velocity mode: a zero action holds every joint at rest against gravity, a command drives the joint's speed
-toward it, the loop's gain is checked against the control period, and the evaluated policy applies the
-training env's rule."""
+toward it and the loop's gain is checked against the control period (the evaluated policy applying the
+training env's rule: test_modes.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import pytest
 from ee_formation_env.baselines.learned.action_scale import initial_mass_matrices
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.options import TrainingOptions
-from ee_formation_env.baselines.learned.policy import composed_policy_factory
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
 from ee_formation_env.baselines.learned.velocity import VelocityRows
 
@@ -71,30 +70,6 @@ def test_the_torque_is_the_velocity_loop_on_the_agents_own_observation(closer):
         expected = masses[agent] @ (8.0 * (2.0 * np.clip(learned[i], -1, 1) - dq)) / limits[i]
         np.testing.assert_allclose(applied[i], expected, rtol=1e-12)
     assert factors is None  # rewards are the env's
-
-
-def test_the_evaluated_policy_applies_the_training_envs_rule_row_for_row(closer):
-    env = _velocity_env(closer, "planar_square", copies=1)
-    result = env.reset_arrays(seed=2)
-    agents = env.possible_agents
-    observations = result.observations.reshape(len(agents), -1)
-    learned = np.random.default_rng(1).uniform(-1, 1, (len(agents), 2))
-
-    class Fixed:
-        def __init__(self, action):
-            self.action = action
-
-        def reset(self):
-            pass
-
-        def __call__(self, observation):
-            return self.action
-
-    policies = composed_policy_factory({a: Fixed(learned[i]) for i, a in enumerate(agents)}, env.env,
-                                       env.options)(env.env.copy_view(0))
-    expected, _ = env.action_rows(observations, learned)
-    for i, agent in enumerate(agents):
-        np.testing.assert_array_equal(policies[agent](observations[i]), expected[i])
 
 
 def test_rows_of_one_joint_speed_stack_and_others_are_refused():
