@@ -137,7 +137,7 @@ METHODS: dict[str, Method] = {
     # From scratch with the project's BenchMARL configs (normalized observations and advantages, scaled rewards).
     **{f"{algorithm}-{mode}-project": Method(f"{algorithm}-{mode}-project",
                                              benchmarl=BenchmarlRun(algorithm, mode, 30.0, "project"))
-       for mode in ("torque", "velocity") for algorithm in ("mappo", "ippo", "masac")},
+       for mode in ("torque", "velocity", "position") for algorithm in ("mappo", "ippo", "masac")},
 }
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method

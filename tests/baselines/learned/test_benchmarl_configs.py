@@ -54,8 +54,8 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
     assert files == ["algorithm/ippo.yaml", "algorithm/mappo.yaml", "algorithm/masac.yaml",
                      "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/deepsets.yaml",
                      "model/layers/mlp.yaml",
-                     "task/ee_formation_training/residual.yaml", "task/ee_formation_training/torque.yaml",
-                     "task/ee_formation_training/velocity.yaml"]
+                     "task/ee_formation_training/position.yaml", "task/ee_formation_training/residual.yaml",
+                     "task/ee_formation_training/torque.yaml", "task/ee_formation_training/velocity.yaml"]
     for path in CONFIG_DIR.rglob("*.yaml"):
         assert isinstance(yaml.safe_load(path.read_text()), dict), path
 
