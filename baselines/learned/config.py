@@ -89,6 +89,7 @@ class TrainConfig:
     velocity_gain: float = _option_flag("velocity_gain", type=float)
     joint_reach: float = _option_flag("joint_reach", type=float)
     position_gain: float = _option_flag("position_gain", type=float)
+    target_smoothing: float = _option_flag("target_smoothing", type=float)
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
                                 "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
                                 "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
@@ -289,7 +290,7 @@ class TrainConfig:
     #: are what those runs trained with. Every other saved setting must be in the file.
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
                           "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
-                          "joint_reach", "position_gain")
+                          "joint_reach", "position_gain", "target_smoothing")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
 

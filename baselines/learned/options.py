@@ -76,6 +76,9 @@ class TrainingOptions:
                                  "one unit of learned action targets")
     position_gain: float = _option(10.0, "1/s", "position mode: the PD loop's natural frequency (critically "
                                    "damped); at most 0.5 / control period for a stable loop")
+    target_smoothing: float = _option(0.0, "s", "position mode: the time constant of a first-order low-pass filter "
+                                      "on the joint targets (0: none); it stops a policy that switches its targets "
+                                      "from step to step from chattering")
     train_episode_seconds: Optional[float] = _option(None, "s", "training episode length (evaluation: the "
                                                      "scenario's episode_seconds)")
     policy_network: str = _option("mlp", "", "the shared policy network: mlp (SB3's MLP on the whole observation, "
@@ -112,6 +115,7 @@ class TrainingOptions:
         self._number("velocity_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
         self._number("joint_reach", lambda x: 0 < x <= math.pi, "an angle in (0, pi] rad")
         self._number("position_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
+        self._number("target_smoothing", lambda x: 0 <= x <= 10, "a time constant in [0, 10] s")
         self._number("train_episode_seconds", lambda x: x > 0, "a duration > 0 s or None", optional=True)
         self._number("train_initial_q_noise", lambda x: x >= 0, "a half-width >= 0 rad or None", optional=True)
         self.training_mode.check(self)

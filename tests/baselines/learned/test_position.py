@@ -13,6 +13,7 @@ import pytest
 from ee_formation_env.baselines.learned.action_scale import initial_mass_matrices
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.policy import composed_policy_factory
 from ee_formation_env.baselines.learned.position import PositionRows
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv
 
@@ -118,7 +119,7 @@ def test_a_gain_the_sampled_loop_cannot_hold_is_refused_naming_position_gain_bef
 @pytest.mark.parametrize("field, value, error", [
     ("joint_reach", 0.0, ValueError), ("joint_reach", 4.0, ValueError), ("joint_reach", "1", TypeError),
     ("position_gain", -1.0, ValueError), ("position_gain", float("inf"), ValueError),
-    ("position_gain", True, TypeError)])
+    ("position_gain", True, TypeError), ("target_smoothing", -0.1, ValueError), ("target_smoothing", None, TypeError)])
 def test_bad_position_options_name_the_field(field, value, error):
     with pytest.raises(error, match=field):
         TrainingOptions(mode="position", **{field: value})
@@ -126,7 +127,72 @@ def test_bad_position_options_name_the_field(field, value, error):
 
 def test_train_py_flags_carry_the_position_options():
     config = TrainConfig.from_args(["--mode", "position", "--joint-reach", "0.5", "--position-gain", "8",
-                                    "--no-progress"])
+                                    "--target-smoothing", "0.05", "--no-progress"])
     options = config.training_options()
-    assert (options.mode, options.joint_reach, options.position_gain) == ("position", 0.5, 8.0)
+    assert (options.mode, options.joint_reach, options.position_gain, options.target_smoothing) == (
+        "position", 0.5, 8.0, 0.05)
     assert config.training_overrides()["gravity_compensation"] is True
+
+
+def test_target_smoothing_low_passes_the_targets_and_restarts_at_a_reset(closer):
+    """Each row's target is the first one after a reset, then moves toward each new one by 1 - exp(-dt / tau) a
+    step; the PD rule acts on it; a reset row starts again from its next target."""
+    tau = 0.05
+    env = _position_env(closer, "spatial_tetrahedron", copies=1, target_smoothing=tau)
+    result = env.reset_arrays(seed=5)
+    agents, n = env.possible_agents, env.env.uniform_joints
+    observations = result.observations.reshape(len(agents), -1)
+    rng = np.random.default_rng(3)
+    first, second, third = (rng.uniform(-1, 1, (len(agents), n)) for _ in range(3))
+    unfiltered = closer(BatchedTrainingEnv("spatial_tetrahedron", {"episode_seconds": 5.0}, TrainingOptions(
+        mode="position", obs_features="none", hold_penalty=0.0), num_envs=1))
+    unfiltered.reset_arrays(seed=5)
+
+    def pd(learned_targets):  # the unfiltered rule acting on the targets the filter should give
+        return unfiltered.action_rows(observations, (learned_targets - homes) / 1.0)[0]
+
+    homes = np.concatenate(env.task.initial_q).reshape(len(agents), n)
+    targets = [homes + np.clip(a, -1, 1) for a in (first, second, third)]
+    lower = np.concatenate([m.lower for m in env.task.models]).reshape(len(agents), n)
+    upper = np.concatenate([m.upper for m in env.task.models]).reshape(len(agents), n)
+    targets = [np.clip(t, lower, upper) for t in targets]
+    decay = math.exp(-env.scenario.control_dt / tau)
+    np.testing.assert_allclose(env.action_rows(observations, first)[0], pd(targets[0]), rtol=1e-12)
+    filtered = decay * targets[0] + (1 - decay) * targets[1]
+    np.testing.assert_allclose(env.action_rows(observations, second)[0], pd(filtered), rtol=1e-12)
+    env.action_rows.reset([1])  # agent 1 restarts: its next target is taken as it is
+    expected = pd(decay * filtered + (1 - decay) * targets[2])
+    expected[1] = pd(targets[2])[1]
+    np.testing.assert_allclose(env.action_rows(observations, third)[0], expected, rtol=1e-12)
+
+
+def test_a_smoothed_policy_acts_as_the_training_env_over_an_episode_alone_and_stacked(closer):
+    """The evaluated policy keeps each agent's filter: per agent and as a stack, step after step and across a
+    reset, it applies what the training env applies."""
+    env = _position_env(closer, "planar_square", copies=1, target_smoothing=0.1)
+    agents = env.possible_agents
+
+    class Learned:  # stateless, as a learned part is: an action from the observation alone
+        def reset(self):
+            pass
+
+        def __call__(self, observation):
+            return np.sin(7.0 * np.asarray(observation)[:2])
+
+    build = composed_policy_factory({a: Learned() for a in agents}, env.env, env.options)
+    alone, stacked_policies = build(env.env.copy_view(0)), build(env.env.copy_view(0))
+    from ee_formation_env.baselines.learned.policy import ComposedPolicy
+
+    stacked = ComposedPolicy.stacked([stacked_policies[a] for a in agents])
+    observations = env.reset_arrays(seed=2).observations.reshape(len(agents), -1)
+    for episode in range(2):
+        env.action_rows.reset()
+        for policy in (*alone.values(), *stacked_policies.values()):
+            policy.reset()
+        for _ in range(4):
+            learned = np.sin(7.0 * observations[:, :2])
+            expected, _ = env.action_rows(observations, learned)
+            per_agent = np.array([alone[a](observations[i]) for i, a in enumerate(agents)])
+            np.testing.assert_array_equal(per_agent, expected)
+            np.testing.assert_array_equal(stacked(observations), expected)
+            observations = observations + 0.01  # the observations move on; the filters keep their state
