@@ -123,6 +123,9 @@ METHODS: dict[str, Method] = {
     # The joint-position convention (docs/training.md, "Modes"): joint target angles about the initial
     # configuration, held by a PD loop with gravity compensation, from scratch, at the same budget.
     "position-ppo": Method("position-ppo", train_flags=("--mode", "position", "--max-train-seconds", "1800")),
+    # The same with the targets low-passed (a 0.05 s time constant), against the chatter of position-ppo.
+    "position-ppo-smooth": Method("position-ppo-smooth", train_flags=(
+        "--mode", "position", "--target-smoothing", "0.05", "--max-train-seconds", "1800")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
