@@ -79,7 +79,7 @@ def test_spaces_are_the_single_training_envs(closer):
 
 
 @pytest.mark.parametrize("settings, message", [
-    (dict(mode="imitation"), r"mode: expected one of \['residual', 'torque', 'velocity'\]"),
+    (dict(mode="imitation"), r"mode: expected one of \['residual', 'torque', 'velocity', 'position'\]"),
     (dict(obs_features="squared"), "obs_features: expected one of"),
     (dict(mode="residual", residual_scale=2.0), r"residual_scale: expected a value in \(0, 1\]"),
     (dict(mode="residual", reference="zero"), "reference: expected a model-based controller"),
