@@ -94,6 +94,28 @@ class ActionRows:
         return type(self)
 
 
+class RowJointStates:
+    """Each row's own joint positions and velocities, read from its observation: the rows grouped by layout so
+    that a stack of one layout (every homogeneous team) is split in one call."""
+
+    def __init__(self, layouts: Sequence[Any]):
+        groups: dict[Any, list[int]] = {}
+        for row, layout in enumerate(layouts):
+            groups.setdefault(layout, []).append(row)
+        self._groups = [(layout, np.array(rows)) for layout, rows in groups.items()]
+
+    def __call__(self, observations: np.ndarray, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
+        """``q`` (R, n), rad, and ``dq`` (R, n), rad/s, of the rows' observations (R, size)."""
+        if len(self._groups) == 1:
+            parts = self._groups[0][0].split(observations)
+            return parts.q, parts.dq
+        q, dq = np.empty((len(observations), n_joints)), np.empty((len(observations), n_joints))
+        for layout, rows in self._groups:
+            parts = layout.split(observations[rows])
+            q[rows], dq[rows] = parts.q, parts.dq
+        return q, dq
+
+
 class TrainingMode:
     """A training mode (module docstring). Subclasses set the class attributes and implement
     :meth:`action_rows`; :meth:`check` may refuse options the mode cannot use."""

@@ -31,7 +31,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ee_formation_env.baselines.learned.action_scale import initial_mass_matrices
-from ee_formation_env.baselines.learned.modes import ActionRows, TrainingMode, register_mode
+from ee_formation_env.baselines.learned.modes import ActionRows, RowJointStates, TrainingMode, register_mode
 from ee_formation_env.baselines.learned.velocity import VelocityMode
 from ee_formation_env.observation import ObservationLayout
 
@@ -75,24 +75,14 @@ class PositionRows(ActionRows):
         self._lower, self._upper = stacked[:, 0], stacked[:, 1]
         self._continuous = ~np.isfinite(self._lower) & ~np.isfinite(self._upper)
         self._any_continuous = bool(self._continuous.any())
-        groups: dict[ObservationLayout, list[int]] = {}
-        for row, layout in enumerate(self.layouts):
-            groups.setdefault(layout, []).append(row)
-        self._groups = [(layout, np.array(rows)) for layout, rows in groups.items()]
+        self._joint_states = RowJointStates(self.layouts)
 
     def __call__(self, observations: np.ndarray, learned: np.ndarray) -> tuple[np.ndarray, None]:
         targets = self._homes + self.joint_reach * np.clip(np.asarray(learned, dtype=np.float64), -1.0, 1.0)
         targets = np.minimum(np.maximum(targets, self._lower), self._upper)
         if self._filtered:
             targets = self._filter(targets)
-        if len(self._groups) == 1:
-            parts = self._groups[0][0].split(observations)
-            q, dq = parts.q, parts.dq
-        else:
-            q, dq = np.empty_like(targets), np.empty_like(targets)
-            for layout, rows in self._groups:
-                parts = layout.split(observations[rows])
-                q[rows], dq[rows] = parts.q, parts.dq
+        q, dq = self._joint_states(observations, targets.shape[1])
         error = targets - q
         if self._any_continuous:
             error = np.where(self._continuous, (error + math.pi) % (2 * math.pi) - math.pi, error)

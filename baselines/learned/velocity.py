@@ -25,7 +25,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ee_formation_env.baselines.learned.action_scale import initial_mass_matrices
-from ee_formation_env.baselines.learned.modes import ActionRows, TrainingMode, register_mode
+from ee_formation_env.baselines.learned.modes import ActionRows, RowJointStates, TrainingMode, register_mode
 from ee_formation_env.baselines.learned.torque import TorqueMode
 from ee_formation_env.observation import ObservationLayout
 
@@ -42,19 +42,11 @@ class VelocityRows(ActionRows):
     def __init__(self, layouts: Sequence[ObservationLayout], gains: Sequence[np.ndarray], joint_speed: float):
         self.layouts, self.gains, self.joint_speed = list(layouts), list(gains), float(joint_speed)
         self._gains = np.stack(self.gains)  # (R, n, n)
-        groups: dict[ObservationLayout, list[int]] = {}
-        for row, layout in enumerate(self.layouts):
-            groups.setdefault(layout, []).append(row)
-        self._groups = [(layout, np.array(rows)) for layout, rows in groups.items()]
+        self._joint_states = RowJointStates(self.layouts)
 
     def __call__(self, observations: np.ndarray, learned: np.ndarray) -> tuple[np.ndarray, None]:
         commanded = self.joint_speed * np.clip(np.asarray(learned, dtype=np.float64), -1.0, 1.0)  # (R, n), rad/s
-        if len(self._groups) == 1:
-            speeds = self._groups[0][0].split(observations).dq
-        else:
-            speeds = np.empty_like(commanded)
-            for layout, rows in self._groups:
-                speeds[rows] = layout.split(observations[rows]).dq
+        speeds = self._joint_states(observations, commanded.shape[1])[1]
         return np.einsum("rjk,rk->rj", self._gains, commanded - speeds), None
 
     def split(self) -> list["VelocityRows"]:
