@@ -50,7 +50,7 @@ QUICK = {"episode_seconds": 2.0, "manoeuvre": {"start": 0.5, "duration": 1.0}}  
 
 
 #: The scoreboard's learned methods this study evaluates (``--learned``; loaded by studies.scoreboard_methods.trained_policies).
-LEARNED = ("residual-ppo", "mappo-residual")
+LEARNED = ("residual-ppo", "mappo-residual", "position-ppo")
 
 
 def learned_runs(board: Path, tasks: Sequence[str] = TASKS) -> list[tuple[str, str, int, Path]]:

@@ -23,7 +23,7 @@ from ee_formation_env.baselines import MODEL_BASED_POLICIES
 from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
-from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.options import PRESET_FIELDS, TrainingOptions
 from ee_formation_env.baselines.learned.recipes import RECIPE_CHOICES, recipe_for
 from ee_formation_env.baselines.learned.set_network import POLICY_NETWORKS
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
@@ -64,7 +64,7 @@ def _option_flag(name: str, **argparse_kwargs: Any) -> Any:
     (one owner), its unit and a ``None`` default's presets added to the help."""
     spec = TrainingOptions.__dataclass_fields__[name]
     help = spec.metadata["meaning"] + (f", {spec.metadata['unit']}" if spec.metadata["unit"] else "")
-    if spec.default is None:
+    if name in PRESET_FIELDS:
         help += f" (default {_preset_text(name)})"
     return _flag(help, spec.default, **argparse_kwargs)
 
@@ -119,6 +119,7 @@ class TrainConfig:
     policy_network: str = _option_flag("policy_network", choices=POLICY_NETWORKS)
     hold_penalty: float | None = _option_flag("hold_penalty", type=float)
     contact_penalty: float = _option_flag("contact_penalty", type=float)
+    reward_error_ceiling: float | None = _option_flag("reward_error_ceiling", type=float)
     max_train_seconds: float | None = _flag("stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     max_fault_fraction: float | None = _flag("sb3: stop training with an error naming the fault when more than this "
@@ -290,9 +291,10 @@ class TrainConfig:
     #: are what those runs trained with. Every other saved setting must be in the file.
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
                           "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
-                          "joint_reach", "position_gain", "target_smoothing")
+                          "joint_reach", "position_gain", "target_smoothing", "reward_error_ceiling")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
-    NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address")
+    NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address",
+                             "reward_error_ceiling")
 
     @classmethod
     def from_saved(cls, data: Any, source: str = "config.json") -> "TrainConfig":

@@ -63,6 +63,11 @@ class TrainingOptions:
                                             "reward (shaping.py), in [0, 1]")
     contact_penalty: float = _option(0.0, "reward per step", "training only: subtract this from an agent's reward on "
                                      "every step its arm touches another arm (shaping.py), >= 0")
+    reward_error_ceiling: Optional[float] = _option(None, "success tolerances", "training only: the error at which "
+                                                    "the training reward's log term reaches 0 (None: the scenario's "
+                                                    "reward.error_ceiling, 100 by default); a start farther out "
+                                                    "than it earns nothing, so learning from such starts needs a "
+                                                    "larger one (> 1; evaluation keeps the scenario's reward)")
     action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
                                          "correction) is the torque giving a joint this acceleration at the "
                                          "initial configuration, at most its torque limit (action_scale.py)")
@@ -110,6 +115,7 @@ class TrainingOptions:
         self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
         self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
         self._number("contact_penalty", lambda x: x >= 0, "a finite value >= 0")
+        self._number("reward_error_ceiling", lambda x: x > 1, "a value > 1 or None", optional=True)
         object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
         self._number("joint_speed", lambda x: 0 < x <= 100, "a speed in (0, 100] rad/s")
         self._number("velocity_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
@@ -155,11 +161,14 @@ class TrainingOptions:
 
     def episode_overrides(self) -> dict[str, Any]:
         """Scenario overrides of the training episodes (options resolved): episode length and, if set, start
-        noise (what the learning curve's reference lines are also run with)."""
+        noise and the training reward's error ceiling (what the learning curve's reference lines are also run
+        with)."""
         options = self.resolved()
         overrides: dict[str, Any] = {"episode_seconds": options.train_episode_seconds}
         if options.train_initial_q_noise is not None:
             overrides["initial_q_noise"] = options.train_initial_q_noise
+        if options.reward_error_ceiling is not None:  # merged into the scenario's reward (load_scenario)
+            overrides["reward"] = {"error_ceiling": options.reward_error_ceiling}
         return overrides
 
     def training_overrides(self) -> dict[str, Any]:
@@ -192,7 +201,7 @@ class TrainingOptions:
         lines = ["| option | default | unit | meaning |", "|---|---|---|---|"]
         for spec in dataclasses.fields(cls):
             default = f"`{spec.default!r}`" if isinstance(spec.default, str) else f"`{spec.default}`"
-            if spec.default is None:
+            if spec.name in PRESET_FIELDS:
                 default = "mode preset (" + ", ".join(
                     f"{mode}: `{getattr(training_mode(mode).preset, spec.name)}`" for mode in mode_names()) + ")"
             lines.append(f"| `{spec.name}` | {default} | {spec.metadata['unit'] or '-'} | {spec.metadata['meaning']} |")

@@ -1,5 +1,6 @@
 """Hold shaping: only joint speed inside the formation is charged; leaving the formation never pays. Contact
-shaping: every step an arm touches another arm is charged, to both arms."""
+shaping: every step an arm touches another arm is charged, to both arms. The training reward's error ceiling:
+starts beyond the scenario's 100 tolerances earn a reward again, and only in training."""
 
 from __future__ import annotations
 
@@ -86,3 +87,28 @@ def test_contact_steps_are_charged_to_both_arms_and_only_those(make_env, closer)
 def test_a_bad_contact_penalty_names_the_field(penalty):
     with pytest.raises(ValueError, match="contact_penalty: expected a finite value >= 0"):
         TrainingOptions(contact_penalty=penalty)
+
+
+def test_a_wider_error_ceiling_rewards_far_starts_in_training_only():
+    """planar_random's draws start beyond 100 tolerances: the scenario's reward is 0 for almost every agent, the
+    widened training reward for none; the scenario the policy is evaluated on keeps its own ceiling."""
+    from ee_formation_env.scenario import load_scenario
+
+    rewards = {}
+    for ceiling in (None, 1e4):
+        options = TrainingOptions(mode="position", reward_error_ceiling=ceiling)
+        env = BatchedTrainingEnv("planar_random", options.training_overrides(), options, num_envs=4)
+        try:
+            env.reset_arrays(seed=0)
+            rewards[ceiling] = env.step_arrays(np.zeros((4, env.task.n_agents, 2))).rewards
+            assert env.scenario.reward.error_ceiling == (100.0 if ceiling is None else ceiling)
+        finally:
+            env.env.close()
+    assert (rewards[None] == 0).mean() > 0.75 and (rewards[1e4] > 0).all()
+    assert load_scenario("planar_random").reward.error_ceiling == 100.0  # what evaluation runs on
+
+
+@pytest.mark.parametrize("ceiling, error", [(1.0, ValueError), (float("nan"), ValueError), ("100", TypeError)])
+def test_a_bad_reward_error_ceiling_names_the_field(ceiling, error):
+    with pytest.raises(error, match="reward_error_ceiling"):
+        TrainingOptions(reward_error_ceiling=ceiling)
