@@ -130,6 +130,11 @@ METHODS: dict[str, Method] = {
     # scenario's 100, for tasks whose starts lie beyond 100 (planar_random's: a median of 470).
     "position-ppo-wide-reward": Method("position-ppo-wide-reward", train_flags=(
         "--mode", "position", "--reward-error-ceiling", "10000", "--max-train-seconds", "1800")),
+    # For starts far from the formation: that reward and targets over the whole turn (joint reach pi rad), since
+    # a draw of planar_random needs its joints turned by 1.6-7 rad to reach its shape (the law's final postures).
+    "position-ppo-far": Method("position-ppo-far", train_flags=(
+        "--mode", "position", "--reward-error-ceiling", "10000", "--joint-reach", "3.14159",
+        "--max-train-seconds", "1800")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
