@@ -61,7 +61,8 @@ def _flag(help: str, default: Any = None, **argparse_kwargs: Any) -> Any:
 
 def _option_flag(name: str, **argparse_kwargs: Any) -> Any:
     """The flag of the training option ``name``: its default and meaning are :class:`TrainingOptions`'
-    (one owner), its unit and a ``None`` default's presets added to the help."""
+    (one owner), its unit and, for an option a mode's preset fills (``PRESET_FIELDS``), the presets' values added
+    to the help."""
     spec = TrainingOptions.__dataclass_fields__[name]
     help = spec.metadata["meaning"] + (f", {spec.metadata['unit']}" if spec.metadata["unit"] else "")
     if name in PRESET_FIELDS:
