@@ -33,20 +33,36 @@ def _torque_commands(arm_sets: Sequence[Any]) -> list[tuple[int, list[int], list
     return [(arm.body, arm.joint_indices, [0.0] * arm.n_joints) for arm_set in arm_sets for arm in arm_set.arms]
 
 
-def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None, reads: bool = False) -> float:
+def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None, reads: bool = False,
+                       substeps: bool = False) -> float:
     """Raw floor, one client per formation: every copy of ``venv`` (reset) steps its own client ``steps``
     physics steps, zero torques re-sent before each; no env logic. ``lockstep = frame_skip``: the clients take
     turns, ``frame_skip`` physics steps each (what any env that steps all copies per call must do); None:
     each client runs all its steps in one go (free-running, cache-warm: a bound no lockstep env reaches).
     ``reads`` (lockstep only): after each turn, the reads every env step needs and PyBullet cannot batch, one
     ``getJointStates`` per arm and one ``getContactPoints`` per client, results unused: the floor of an env
-    that computes nothing from what it reads."""
+    that computes nothing from what it reads. ``substeps`` (lockstep only): each turn sends the torques once and
+    makes its ``frame_skip`` physics steps in one ``stepSimulation`` call (PyBullet's ``numSubSteps``, as the env
+    steps: :meth:`~ee_formation_env.world.PhysicsWorld.step_with_torques`), the same physics in fewer calls."""
     venv.reset(seed=0)
     set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
     joint_states, contact_points = pybullet.getJointStates, pybullet.getContactPoints
     clients = [(world.client, _torque_commands([arm_set])) for world, arm_set in zip(venv._worlds, venv._arm_sets)]
     chunk = lockstep or steps
     read = reads and lockstep is not None
+    if substeps:
+        if lockstep is None:
+            raise ValueError("substeps: the floor with substeps steps in lockstep")
+        worlds = [(world, client, commands) for world, (client, commands) in zip(venv._worlds, clients)]
+        start = time.perf_counter()
+        for _ in range(steps // chunk):
+            for world, client, commands in worlds:
+                world.step_with_torques(commands, chunk)
+                if read:
+                    for body, joints, _ in commands:
+                        joint_states(body, joints, physicsClientId=client)
+                    contact_points(physicsClientId=client)
+        return time.perf_counter() - start
     start = time.perf_counter()
     for _ in range(steps // chunk):
         for client, commands in clients:
@@ -170,24 +186,34 @@ def bench_vector(budget: Budget, counts: Sequence[int]) -> list[dict[str, Any]]:
                     "clients": lambda: time_floor_clients(venv, physics, lockstep=fs),
                     "clients_reads": lambda: time_floor_clients(venv, physics, lockstep=fs, reads=True),
                     "clients_free": lambda: time_floor_clients(venv, physics),
+                    "clients_substeps": lambda: time_floor_clients(venv, physics, lockstep=fs, substeps=True),
+                    "clients_substeps_reads": lambda: time_floor_clients(venv, physics, lockstep=fs, reads=True,
+                                                                         substeps=True),
                     "one_client": lambda: one_client.time(physics),
                     "vector": lambda: time_vector_steps(venv, env_steps),
                 }, max(1, min(budget.repeats, 3)))
             finally:
                 venv.close()
                 one_client.close()
-            floors = {key: count * physics / min(times[key]) for key in ("clients", "clients_reads", "clients_free",
-                                                                               "one_client")}
-            floor_layout = max(("clients", "one_client"), key=floors.get)
+            floors = {key: count * physics / min(times[key]) for key in (
+                "clients", "clients_reads", "clients_free", "clients_substeps", "clients_substeps_reads", "one_client")}
+            # the row's floor: the fastest way to make these physics steps (the env's own way, substeps, included)
+            floor_layout = max(("clients", "one_client", "clients_substeps"), key=floors.get)
             floor = floors[floor_layout]
             common = dict(scenario=name, n_arms=scenario.n_agents, num_envs=count, raw_physics_steps_per_s=floor,
                           floor_layout=floor_layout, floor_clients_physics_steps_per_s=floors["clients"],
                           floor_clients_free_physics_steps_per_s=floors["clients_free"],
                           floor_clients_reads_physics_steps_per_s=floors["clients_reads"],
-                          floor_one_client_physics_steps_per_s=floors["one_client"])
+                          floor_one_client_physics_steps_per_s=floors["one_client"],
+                          floor_clients_substeps_physics_steps_per_s=floors["clients_substeps"],
+                          floor_clients_substeps_reads_physics_steps_per_s=floors["clients_substeps_reads"])
             for key, what in (("clients", f"raw floor, {count} clients in lockstep ({fs} physics steps each per turn)"),
                               ("clients_reads", f"raw floor and the per-step reads, {count} clients in lockstep"),
                               ("clients_free", f"raw floor, {count} clients, each run through (free-running)"),
+                              ("clients_substeps", f"raw floor, {count} clients in lockstep, one stepSimulation of "
+                                                   f"{fs} substeps per turn"),
+                              ("clients_substeps_reads", f"raw floor with substeps and the per-step reads, {count} "
+                                                         "clients in lockstep"),
                               ("one_client", f"raw floor, one client holding {count} formations")):
                 rss = memory["one_client" if key == "one_client" else "clients"][count]  # same bodies
                 rows.append(_row("vector", f"{name}, K={count}: {what}", times[key], count * physics, 1, hz, floor,

@@ -314,6 +314,11 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
         if batched:
             add(f"vector_env / faster raw floor, K >= 16 (lowest), {scenario}",
                 min(r["ratio_to_raw"] for r in batched), 0.8, True, "x")
+            # the floor as the target was first set: torques re-sent before each single physics step
+            add(f"vector_env / faster per-step raw floor, K >= 16 (lowest), {scenario}",
+                min(r["physics_steps_per_s"] / max(r["floor_clients_physics_steps_per_s"],
+                                                   r["floor_one_client_physics_steps_per_s"]) for r in batched),
+                0.8, True, "x")
     collected = [r for r in results["rows"] if r["section"] == "torchrl" and r.get("layout") == "collector"
                  and r.get("batched") and r["num_envs"] >= 32]
     if collected:
@@ -355,17 +360,21 @@ def format_tables(results: dict[str, Any]) -> str:
     batched = [r for r in results["rows"] if r["section"] == "vector" and r.get("layout") == "vector_env"]
     if batched:
         lines += ["", "| batched env | K | physics steps/s | floor, K clients (lockstep) | floor, one client | "
-                  "x faster floor | floor and reads, K clients (lockstep) | its x faster floor | x floor and reads | "
+                  "floor, K clients (lockstep, substeps) | x faster floor | x faster per-step floor | "
+                  "floor and reads, K clients (substeps) | its x faster floor | x floor and reads | "
                   "floor, K clients (free-running) | MB per formation (K clients) | MB per formation (one client) |",
-                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
         one_client = {(r["scenario"], r["num_envs"]): r for r in results["rows"]
                       if r["section"] == "vector" and r.get("layout") == "one_client"}
         for r in batched:
             other = one_client.get((r["scenario"], r["num_envs"]), {})
-            reads = r["floor_clients_reads_physics_steps_per_s"]
+            reads = r["floor_clients_substeps_reads_physics_steps_per_s"]
+            per_step = max(r["floor_clients_physics_steps_per_s"], r["floor_one_client_physics_steps_per_s"])
             lines.append(f"| {r['scenario']} | {r['num_envs']} | {r['physics_steps_per_s']:,.0f} | "
                          f"{r['floor_clients_physics_steps_per_s']:,.0f} | {r['floor_one_client_physics_steps_per_s']:,.0f} | "
-                         f"{r['ratio_to_raw']:.2f} | {reads:,.0f} | {reads / r['raw_physics_steps_per_s']:.2f} | "
+                         f"{r['floor_clients_substeps_physics_steps_per_s']:,.0f} | "
+                         f"{r['ratio_to_raw']:.2f} | {r['physics_steps_per_s'] / per_step:.2f} | "
+                         f"{reads:,.0f} | {reads / r['raw_physics_steps_per_s']:.2f} | "
                          f"{r['physics_steps_per_s'] / reads:.2f} | {r['floor_clients_free_physics_steps_per_s']:,.0f} | "
                          f"{r['rss_mb_per_formation']:.1f} | "
                          f"{_fmt(other.get('rss_mb_per_formation'), '.1f')} |")

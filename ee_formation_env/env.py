@@ -34,7 +34,7 @@ class FormationEnv(ParallelEnv):
 
     **Action** of agent ``i``: ``Box(-1, 1, (n_i,), float32)``, joint torques divided by the per-joint
     torque limits (N m). Values outside [-1, 1] are clipped; the clipping is reported in ``info``.
-    The torque is held for ``frame_skip`` physics steps and re-sent before each of them.
+    The torque is held for ``frame_skip`` physics steps (one PyBullet call with that many substeps).
 
     **Observation** of agent ``i``: ``Box(float32)``, everything in the agent's own base frame
     (:mod:`ee_formation_env.observation`; ``m`` = ``dim``, ``w`` = 1 for distance and ``m`` for

@@ -27,8 +27,9 @@ class Arm:
 
     Physics set-up (``docs/physics.md``, "PyBullet torque control"): the default velocity motors are disabled,
     link linear/angular damping is zeroed, URDF joint damping is replaced by ``joint_damping``, and the
-    velocity clamp is lifted. Torques last one physics step, so they are re-sent before every
-    ``stepSimulation`` (:meth:`torque_command` is the one definition of that call). Movable joints that are not on the chain (e.g. a gripper's fingers) are
+    velocity clamp is lifted. A torque lasts one ``stepSimulation`` call, so it is sent before every call, which
+    makes the env step's ``frame_skip`` physics steps as substeps (:meth:`torque_command` is the one definition
+    of that command; :meth:`~ee_formation_env.world.PhysicsWorld.step_with_torques`). Movable joints that are not on the chain (e.g. a gripper's fingers) are
     held where they are by position motors.
     """
 
@@ -155,7 +156,7 @@ class ArmSet:
             arm.reset_state(q_arm)
 
     def step(self, torques: np.ndarray, physics_steps: int) -> None:
-        """Hold every arm's torques (flat, N m) for ``physics_steps`` steps, re-sent before each one."""
+        """Hold every arm's torques (flat, N m) for ``physics_steps`` physics steps (one call, as substeps)."""
         values = torques.tolist()
         commands = [arm.torque_command(values[joints]) for arm, joints in zip(self.arms, self.joint_slices)]
         self.world.step_with_torques(commands, physics_steps)

@@ -47,6 +47,7 @@ class PhysicsWorld:
         # One solver pass per step and a fixed pair order: bit-identical trajectories from one state.
         pybullet.setPhysicsEngineParameter(numSubSteps=0, deterministicOverlappingPairs=1,
                                            physicsClientId=self.client)
+        self._steps_per_call = 1  # physics steps one stepSimulation call makes now (step_with_torques)
         self._snapshot: int | None = None
         # Kept on the instance for close(): at interpreter exit the module's globals (pybullet itself,
         # pybullet.error) may already be None when a forgotten env is finally collected.
@@ -63,21 +64,37 @@ class PhysicsWorld:
         return pybullet.loadURDF(urdf, basePosition=position, baseOrientation=orientation, useFixedBase=True,
                                  flags=pybullet.URDF_USE_INERTIA_FROM_FILE, physicsClientId=self.client)
 
+    def _make_steps_per_call(self, steps: int) -> None:
+        """Have one ``stepSimulation`` call make ``steps`` physics steps of :attr:`time_step` each (PyBullet's
+        ``numSubSteps``; 1: its plain single step)."""
+        if steps != self._steps_per_call:
+            if steps == 1:
+                pybullet.setPhysicsEngineParameter(fixedTimeStep=self.time_step, numSubSteps=0,
+                                                   physicsClientId=self.client)
+            else:
+                pybullet.setPhysicsEngineParameter(fixedTimeStep=self.time_step * steps, numSubSteps=steps,
+                                                   physicsClientId=self.client)
+            self._steps_per_call = steps
+
     def step(self) -> None:
+        """One physics step of :attr:`time_step`."""
+        self._make_steps_per_call(1)
         pybullet.stepSimulation(physicsClientId=self.client)
 
     def step_with_torques(self, commands: Sequence[tuple[int, Sequence[int], Sequence[float]]], steps: int) -> None:
-        """``steps`` physics steps, each preceded by every ``(body, joint indices, torques N m)`` command.
+        """``steps`` physics steps under every ``(body, joint indices, torques N m)`` command, held constant.
 
-        PyBullet's TORQUE_CONTROL lasts one step, so the torques are re-sent before every step; this is the
-        env's inner loop, kept free of per-call Python overhead.
+        PyBullet's TORQUE_CONTROL torque lasts one ``stepSimulation`` call and acts in each of that call's
+        substeps, so one command and one call with ``numSubSteps = steps`` make the same ``steps`` physics steps
+        as re-sending the torques before each of ``steps`` single steps, bit for bit (``tests/test_world.py``),
+        with ``steps`` times fewer calls: the env's inner loop.
         """
-        client, set_motors, step = self.client, pybullet.setJointMotorControlArray, pybullet.stepSimulation
+        self._make_steps_per_call(steps)
+        client, set_motors = self.client, pybullet.setJointMotorControlArray
         torque_control = pybullet.TORQUE_CONTROL
-        for _ in range(steps):
-            for body, joints, torques in commands:
-                set_motors(body, joints, torque_control, forces=torques, physicsClientId=client)
-            step(physicsClientId=client)
+        for body, joints, torques in commands:
+            set_motors(body, joints, torque_control, forces=torques, physicsClientId=client)
+        pybullet.stepSimulation(physicsClientId=client)
 
     def save_snapshot(self) -> None:
         """Remember the current world (including contact caches) for :meth:`restore_snapshot`."""

@@ -103,7 +103,8 @@ class BudgetStop(Exception):
 
 class BudgetCallback(_Callback):
     """A BenchMARL callback that records (frames, mean reward per agent step of the batch, wall s) per batch in
-    ``curve`` (the env's reward: the batch's divided by the task's ``reward_scale``) and stops the run at the
+    ``curve`` (the env's reward: the batch's divided by the task's ``reward_scale``, or the task's tally under
+    ``reward_normalization``) and stops the run at the
     first batch collected after the budget: ``seconds`` of wall time, or, with ``frames`` given, that many frames
     (then ``seconds`` is not used). With ``lr`` given, it sets every optimizer's learning rate to
     ``lr * (1 - spent)`` before each batch's update, ``spent`` the budget's used fraction: of the frames (the
@@ -122,10 +123,13 @@ class BudgetCallback(_Callback):
 
     def on_batch_collected(self, batch: Any) -> None:
         experiment = self.experiment
-        rewards = [batch.get(("next", group, "reward")).float().mean().item() / self.reward_scale
-                   for group in experiment.group_map]
+        env_reward = experiment.task.take_env_reward()  # with reward normalization: the env's, tallied
+        if env_reward is None:
+            rewards = [batch.get(("next", group, "reward")).float().mean().item() / self.reward_scale
+                       for group in experiment.group_map]
+            env_reward = sum(rewards) / len(rewards)
         elapsed = time.time() - self.started
-        self.curve.append((int(experiment.total_frames), sum(rewards) / len(rewards), elapsed))
+        self.curve.append((int(experiment.total_frames), env_reward, elapsed))
         if self.frames is not None:
             spent = experiment.total_frames / self.frames
             if spent >= 1.0:

@@ -69,7 +69,8 @@ from torchrl.modules.distributions import IndependentNormal, TanhNormal
 
 from ee_formation_env.baselines.learned.benchmarl_actor import ACTIVATIONS, GroupActor  # noqa: F401
 from ee_formation_env.baselines.learned.benchmarl_configs import SlotDeepsets
-from ee_formation_env.baselines.learned.benchmarl_transforms import (RunningObservationNorm, TaskTransforms,  # noqa: F401
+from ee_formation_env.baselines.learned.benchmarl_transforms import (ReturnNormalizedReward, RunningObservationNorm,  # noqa: F401
+                                                                     TaskTransforms,
                                                                      task_transforms)
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.options import TrainingOptions
@@ -150,7 +151,16 @@ class TrainingTaskClass(EEFormationTaskClass):
         transforms = chosen.transforms(env, self.group_map(env), layout)
         norms = [t for t in transforms if isinstance(t, RunningObservationNorm)]
         self._observation_norm = norms[0] if norms else None
+        reward_norms = [t for t in transforms if isinstance(t, ReturnNormalizedReward)]
+        self._reward_norm = reward_norms[0] if reward_norms else None
         return transforms
+
+    def take_env_reward(self) -> Optional[float]:
+        """With ``reward_normalization``, the mean reward per agent step in the env's units since the last call, over
+        every env BenchMARL made (:meth:`ReturnNormalizedReward.take_env_reward`); else None (the batch's rewards
+        are the env's times ``reward_scale``)."""
+        norm = getattr(self, "_reward_norm", None)
+        return None if norm is None else norm.take_env_reward()
 
     def slot_layout(self) -> SlotLayout:
         """The slot layout of the task's observations (``observation_sets``; ``ValueError`` naming the field for

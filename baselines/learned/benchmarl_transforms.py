@@ -1,5 +1,5 @@
 """The TorchRL transforms a BenchMARL formation task adds to its envs (the ``torchrl`` extra): observation
-normalization, reward scaling and the slot split of the observations for set models; which of them a task
+normalization, reward scaling or normalization and the slot split of the observations for set models; which of them a task
 uses is its :class:`TaskTransforms` (``docs/training.md``, "TorchRL and BenchMARL").
 
 The slot split (``observation_sets``): each group's ``observation`` (..., n_agents, O) becomes a nested entry
@@ -56,6 +56,75 @@ class RunningObservationNorm(VecNormV2):
         loc, second = self._loc[key].detach().cpu(), self._var[key].detach().cpu()
         scale = (torch.maximum(second, loc.pow(2)) - loc.pow(2)).sqrt().clamp_min(self.eps)
         return loc.numpy().astype(np.float64), scale.numpy().astype(np.float64)
+
+
+class ReturnNormalizedReward(Transform):
+    """SB3's ``VecNormalize`` reward normalization as a TorchRL transform: each group's reward divided by the
+    running standard deviation of its discounted return, ``r / sqrt(var(G) + epsilon)`` clipped to
+    ``[-clip, clip]``, where ``G <- gamma * G + r`` per copy and agent, reset to 0 when the agent's episode ends,
+    and ``var(G)`` the running variance (infinite memory) over every copy, agent and step seen so far. The mean
+    is not subtracted: a reward's sign, and so the value of ending an episode early, stay what they are.
+
+    The statistics are **shared by its clones** (BenchMARL clones a task's transforms into each env it makes);
+    each clone keeps its own returns, whose shape is its env's. :meth:`take_env_reward` gives the mean of the
+    rewards before normalization since its last call (a learning curve in the env's units)."""
+
+    def __init__(self, groups: Sequence[str], gamma: float, clip: float = 10.0, epsilon: float = 1e-8):
+        keys = [(group, "reward") for group in groups]
+        super().__init__(in_keys=keys, out_keys=keys)
+        self.groups, self.gamma, self.clip, self.epsilon = list(groups), float(gamma), float(clip), float(epsilon)
+        # Running mean, variance and count of the returns, per group (float64; SB3's RunningMeanStd start values)
+        # and the env rewards' running sum and count for take_env_reward: one dict, shared by the clones.
+        self._statistics = {group: torch.tensor([0.0, 1.0, 1e-4], dtype=torch.float64) for group in self.groups}
+        self._statistics["env_reward"] = torch.zeros(2, dtype=torch.float64)
+        self._returns: dict[str, torch.Tensor] = {}
+
+    def clone(self) -> "ReturnNormalizedReward":
+        other = ReturnNormalizedReward(self.groups, self.gamma, self.clip, self.epsilon)
+        other._statistics = self._statistics  # shared, not copied
+        return other
+
+    def return_std(self, group: str) -> float:
+        """The running standard deviation of the group's discounted return that divides its rewards now."""
+        return float(self._statistics[group][1].add(self.epsilon).sqrt())
+
+    def take_env_reward(self) -> float:
+        """The mean reward per agent step before normalization since the last call (NaN when none)."""
+        tally = self._statistics["env_reward"]
+        mean = float(tally[0] / tally[1]) if tally[1] > 0 else float("nan")
+        tally.zero_()
+        return mean
+
+    def _update(self, group: str, returns: torch.Tensor) -> None:
+        statistics = self._statistics[group]
+        mean, var, count = statistics.tolist()
+        batch = returns.detach().to(torch.float64).flatten()
+        batch_mean, batch_var, batch_count = float(batch.mean()), float(batch.var(unbiased=False)), batch.numel()
+        delta, total = batch_mean - mean, count + batch_count  # Chan et al.'s parallel update, as SB3's
+        m2 = var * count + batch_var * batch_count + delta ** 2 * count * batch_count / total
+        statistics.copy_(torch.tensor([mean + delta * batch_count / total, m2 / total, total], dtype=torch.float64))
+
+    def _step(self, tensordict: Any, next_tensordict: Any) -> Any:
+        for group in self.groups:
+            reward = next_tensordict.get((group, "reward"))
+            returns = self._returns.get(group)
+            if returns is None or returns.shape != reward.shape:
+                returns = torch.zeros_like(reward, dtype=torch.float64)
+            returns = returns * self.gamma + reward.to(torch.float64)
+            self._update(group, returns)
+            tally = self._statistics["env_reward"]
+            tally += torch.tensor([float(reward.sum()), reward.numel()], dtype=torch.float64)
+            normalized = (reward.to(torch.float64) / (self._statistics[group][1] + self.epsilon).sqrt())
+            next_tensordict.set((group, "reward"), normalized.clamp(-self.clip, self.clip).to(reward.dtype))
+            done = next_tensordict.get((group, "done"), None)
+            self._returns[group] = returns if done is None else returns.masked_fill(done.expand_as(returns), 0.0)
+        return next_tensordict
+
+    def _reset(self, tensordict: Any, tensordict_reset: Any) -> Any:
+        return tensordict_reset
+
+    def forward(self, tensordict: Any) -> Any:  # not on stored batches: the returns are the env's own history
+        raise RuntimeError("ReturnNormalizedReward acts on an env's steps only")
 
 
 class SlotSplit(Transform):
@@ -118,13 +187,19 @@ class TaskTransforms:
     state_normalization: bool = False
     #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0 (the env's rewards are in [0, 2] per step).
     reward_scale: float = 1.0
+    #: Every reward divided by the running standard deviation of its discounted return, clipped to [-10, 10]
+    #: (:class:`ReturnNormalizedReward`: SB3's ``VecNormalize`` of rewards, what ``train.py``'s PPO trains
+    #: with). Not with ``reward_scale``, which it replaces.
+    reward_normalization: bool = False
+    #: The discount of those returns, in (0, 1]: the experiment's ``gamma`` (SB3's ``VecNormalize`` takes PPO's).
+    reward_normalization_gamma: float = 0.99
     #: Each group's observation split into its neighbour slots and own state (:class:`SlotSplit`, module
     #: docstring), for a set model such as BenchMARL's ``Deepsets`` (``model/layers/deepsets.yaml``). Not with
     #: ``observation_normalization``, whose statistics are per agent and entry, which another team size cannot use.
     observation_sets: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("observation_normalization", "state_normalization", "observation_sets"):
+        for name in ("observation_normalization", "state_normalization", "observation_sets", "reward_normalization"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if self.observation_sets and self.observation_normalization:
@@ -138,6 +213,16 @@ class TaskTransforms:
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"reward_scale: expected a finite number > 0, got {scale!r}")
         object.__setattr__(self, "reward_scale", float(scale))
+        gamma = self.reward_normalization_gamma
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)):
+            raise TypeError(f"reward_normalization_gamma: expected a number in (0, 1], got {type(gamma).__name__} "
+                            f"{gamma!r}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"reward_normalization_gamma: expected a number in (0, 1], got {gamma!r}")
+        object.__setattr__(self, "reward_normalization_gamma", float(gamma))
+        if self.reward_normalization and self.reward_scale != 1.0:
+            raise ValueError("reward_normalization: not with reward_scale (it replaces the fixed scale); set "
+                             f"reward_scale to 1.0, got {self.reward_scale!r}")
 
     @classmethod
     def fields(cls) -> tuple[str, ...]:
@@ -158,6 +243,8 @@ class TaskTransforms:
         if self.reward_scale != 1.0:
             transforms.append(RewardScaling(loc=0.0, scale=self.reward_scale,
                                             in_keys=[(group, "reward") for group in groups]))
+        if self.reward_normalization:
+            transforms.append(ReturnNormalizedReward(list(groups), self.reward_normalization_gamma))
         return transforms
 
 

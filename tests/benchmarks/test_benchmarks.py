@@ -76,9 +76,11 @@ def test_quick_benchmark_writes_every_section(tmp_path: Path) -> None:
     vector = [row for row in rows if row["section"] == "vector"]
     assert {(row["scenario"], row["num_envs"], row["layout"]) for row in vector} == {
         (scenario, k, layout) for scenario in ("planar_square", "spatial_tetrahedron") for k in (1, 4)
-        for layout in ("vector_env", "clients", "clients_reads", "clients_free", "one_client")}
+        for layout in ("vector_env", "clients", "clients_reads", "clients_free", "clients_substeps",
+                       "clients_substeps_reads", "one_client")}
     for row in vector:
-        floors = (row["floor_clients_physics_steps_per_s"], row["floor_one_client_physics_steps_per_s"])
+        floors = (row["floor_clients_physics_steps_per_s"], row["floor_one_client_physics_steps_per_s"],
+                  row["floor_clients_substeps_physics_steps_per_s"])
         assert row["raw_physics_steps_per_s"] == max(floors) and row["rss_mb_per_formation"] > 0, row["case"]
         assert row["floor_clients_reads_physics_steps_per_s"] > 0, row["case"]
     assert "| batched env |" in run.stdout

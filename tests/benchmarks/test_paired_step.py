@@ -42,7 +42,8 @@ def test_the_instruction_count_per_step_is_the_difference_of_two_runs_over_the_e
     calls = []
 
     def fake_run(command, **kwargs):
-        steps = int(command[-1])
+        steps, num_envs = int(command[-2]), command[-1]
+        assert num_envs == "0"  # the parallel env: the counter counts its steps only
         calls.append((command[:2], steps, kwargs["env"]["PYTHONHASHSEED"]))
         # 5,000,000 instructions of setup, 3 repeats of `steps` steps at 1,000 instructions each
         total = 5_000_000 + 3 * steps * 1_000
@@ -51,3 +52,14 @@ def test_the_instruction_count_per_step_is_the_difference_of_two_runs_over_the_e
     monkeypatch.setattr(paired_step.subprocess, "run", fake_run)
     assert paired_step.instructions_per_step(REPO, "planar_square", 1, 10) == 1_000.0
     assert calls == [(["valgrind", "--tool=callgrind"], 10, "0"), (["valgrind", "--tool=callgrind"], 20, "0")]
+
+
+def test_the_batched_child_counts_the_steps_of_every_copy():
+    import benchmarks.paired_step as paired_step
+
+    # a real child process on this tree: K = 2 copies, 5 timed steps
+    rate = paired_step.steps_per_second(REPO, "planar_square", 10, 5, num_envs=2)
+    single = paired_step.steps_per_second(REPO, "planar_square", 10, 5)
+    assert rate > 0 and single > 0
+    with pytest.raises(ValueError, match="--num-envs"):
+        main(["--before", str(REPO), "--num-envs", "-1"])

@@ -193,7 +193,8 @@ def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch)
     optimizer = torch.optim.Adam([parameter], lr=1.0)
     batch = types.SimpleNamespace(get=lambda key: torch.ones(3))
     experiment = types.SimpleNamespace(group_map={"arms": ["a", "b"]}, total_frames=100,
-                                       optimizers={"arms": {"loss_objective": optimizer}})
+                                       optimizers={"arms": {"loss_objective": optimizer}},
+                                       task=types.SimpleNamespace(take_env_reward=lambda: None))
     curve = []
     callback = benchmarl_runs.BudgetCallback(100.0, curve, lr=3e-4)
     callback.experiment = experiment
@@ -213,6 +214,13 @@ def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch)
     now[0] += 10.0
     constant.on_batch_collected(batch)
     assert optimizer.param_groups[0]["lr"] == 0.5
+    # under reward normalization the batch's rewards are not the env's: the curve takes the task's tally
+    tallied = benchmarl_runs.BudgetCallback(100.0, [])
+    tallied.experiment = types.SimpleNamespace(**{**vars(experiment),
+                                                  "task": types.SimpleNamespace(take_env_reward=lambda: 0.7)})
+    tallied.on_setup()
+    tallied.on_batch_collected(batch)
+    assert tallied.curve[0][1] == 0.7
 
 
 @needs_benchmarl
@@ -247,7 +255,8 @@ def test_a_frame_budget_stops_on_frames_and_decays_the_learning_rate_over_them(m
     optimizer = torch.optim.Adam([parameter], lr=1.0)
     batch = types.SimpleNamespace(get=lambda key: torch.ones(3))
     experiment = types.SimpleNamespace(group_map={"arms": ["a"]}, total_frames=250,
-                                       optimizers={"arms": {"loss_objective": optimizer}})
+                                       optimizers={"arms": {"loss_objective": optimizer}},
+                                       task=types.SimpleNamespace(take_env_reward=lambda: None))
     callback = benchmarl_runs.BudgetCallback(1.0, [], lr=2e-4, frames=1_000)  # the 1 s is not used
     callback.experiment = experiment
     now = [1000.0]

@@ -81,6 +81,11 @@ def test_a_non_boolean_advantage_normalization_is_refused():
     ({"reward_scale": 0.0}, "reward_scale", ValueError),
     ({"reward_scale": float("inf")}, "reward_scale", ValueError),
     ({"reward_scale": "0.1"}, "reward_scale", TypeError),
+    ({"reward_normalization": "yes"}, "reward_normalization", TypeError),
+    ({"reward_normalization": True, "reward_scale": 0.005}, "reward_normalization: not with reward_scale", ValueError),
+    ({"reward_normalization_gamma": 0.0}, "reward_normalization_gamma", ValueError),
+    ({"reward_normalization_gamma": 1.5}, "reward_normalization_gamma", ValueError),
+    ({"reward_normalization_gamma": True}, "reward_normalization_gamma", TypeError),
 ])
 def test_bad_transform_values_raise_naming_the_field_before_any_env_is_built(config, field, error, monkeypatch):
     monkeypatch.setattr(benchmarl_task, "BatchedTrainingEnv", lambda *args, **kwargs: pytest.fail("an env was built"))
@@ -157,6 +162,55 @@ def test_the_reward_scale_multiplies_every_reward_and_the_observations_normalize
     finally:
         plain.close()
         scaled.close()
+
+
+def test_reward_normalization_divides_by_the_running_std_of_the_discounted_return_as_sb3():
+    """The transform against SB3's own ``VecNormalize`` fed the same rewards and dones (agents as SB3's envs)."""
+    import gymnasium
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    gamma = 0.9
+    transforms = {"reward_normalization": True, "reward_normalization_gamma": gamma}
+    checked = _transformed_env(transforms)
+    try:
+        check_env_specs(checked)
+    finally:
+        checked.close()
+    # 0.05 s training episodes of a few steps: the returns restart within the rollout
+    plain, normalized = _transformed_env({}), _transformed_env(transforms)
+    try:
+        group = next(iter(plain.group_map))
+        actions = torch.rand(30, 2, 4, 2) * 2 - 1  # (steps, copies, agents, joints)
+        rewards, dones, normalized_rewards = [], [], []
+        for env in (plain, normalized):
+            td = env.reset()
+            for action in actions:
+                td[group, "action"] = action
+                td = env.step(td)
+                if env is plain:
+                    rewards.append(td["next", group, "reward"].reshape(-1).double().numpy())
+                    dones.append(td["next", group, "done"].reshape(-1).numpy())
+                else:
+                    normalized_rewards.append(td["next", group, "reward"].reshape(-1).double().numpy())
+                td = td["next"]
+        assert np.concatenate(dones).any()  # episodes ended inside the rollout
+        # only its reward statistics are used; its envs are stand-ins (8 = copies x agents)
+        reference = VecNormalize(DummyVecEnv([lambda: gymnasium.make("Pendulum-v1")] * 8), norm_obs=False, norm_reward=True, gamma=gamma)
+        expected = []
+        for reward, done in zip(rewards, dones):
+            reference.returns = reference.returns * gamma + reward  # VecNormalize.step_wait, in its order
+            reference.ret_rms.update(reference.returns)
+            expected.append(reference.normalize_reward(reward))
+            reference.returns[done] = 0.0
+        np.testing.assert_allclose(np.stack(normalized_rewards), np.stack(expected), rtol=1e-5, atol=1e-7)
+        assert normalized.transform[0].return_std(group) != 1.0
+        tally = normalized.transform[0].take_env_reward()  # the env's rewards, not the normalized ones
+        assert tally == pytest.approx(np.mean(rewards), rel=1e-5) and np.isnan(normalized.transform[0].take_env_reward())
+        twin = normalized.transform[0].clone()  # BenchMARL's clones share the statistics
+        assert twin.return_std(group) == normalized.transform[0].return_std(group)
+    finally:
+        plain.close()
+        normalized.close()
 
 
 @pytest.fixture(scope="module")
@@ -267,7 +321,8 @@ def test_the_export_carries_the_observation_statistics_and_acts_as_the_experimen
     folder = export_benchmarl_policy(experiment, tmp_path / "actor")
     description = json.loads((folder / "actor.json").read_text())
     assert description["transforms"] == {"observation_normalization": True, "state_normalization": False,
-                                         "reward_scale": 0.005, "observation_sets": False}
+                                         "reward_scale": 0.005, "reward_normalization": False,
+                                         "reward_normalization_gamma": 0.99, "observation_sets": False}
     loaded = load_benchmarl_policy(folder)
     np.testing.assert_array_equal(loaded.groups[group].observation_loc, actor.observation_loc.astype(np.float32))
     # The experiment's policy on the normalized observations = the numpy actor on the raw ones.
