@@ -224,6 +224,22 @@ class ReferenceMotion:
         block = np.concatenate([offsets, velocities, omegas], axis=-1)
         return block.reshape(len(block), -1)
 
+    def agent_targets(self, t: np.ndarray, start_points: np.ndarray) -> np.ndarray:
+        """Every end-effector's place in the moving reference (K, N, m), world, m: ``c*(t) + R(theta*(t))
+        (p_i(t0) - c0)`` from the end-effector positions at the motion's start ``start_points`` (K, N, m), c0
+        their centroid: the start shape carried along the motion."""
+        c0 = start_points.mean(axis=-2)
+        centroid, _, theta, _ = self.world(t, c0)
+        turns = rotation_about(self._axis, theta, self.dim)  # (K, m, m)
+        return centroid[:, None, :] + (start_points - c0[:, None, :]) @ turns.transpose(0, 2, 1)
+
+    def tracking_ratios(self, t: np.ndarray, start_points: np.ndarray, ee_world: np.ndarray,
+                        tolerance: float) -> np.ndarray:
+        """``|p_i - p*_i| / tolerance`` (K, N) (:meth:`agent_targets`; ``ee_world`` (K, N, 3)), 0 until the motion
+        starts: the reward's tracking term (:mod:`ee_formation_env.reward`)."""
+        distances = np.linalg.norm(ee_world[..., :self.dim] - self.agent_targets(t, start_points), axis=-1)
+        return np.where((t > self.config.start)[:, None], distances / tolerance, 0.0)
+
     def centroid_errors(self, t: np.ndarray, c0: np.ndarray, ee_world: np.ndarray) -> np.ndarray:
         """|c - c*| (K,), m, of end-effector positions ``ee_world`` (K, N, 3)."""
         centroid = self.world(t, c0)[0]

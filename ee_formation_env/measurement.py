@@ -120,8 +120,9 @@ def measure(task: Any, observer: ObservationBuilder, kinematics: Any, wrap: Any,
 
 
 def reward_array(edge_squares: np.ndarray, tolerances: np.ndarray, observer: ObservationBuilder,
-                 config: Any) -> np.ndarray:
-    """Every agent's reward (K, N) from K copies' squared edge errors (K, E)."""
+                 config: Any, tracking_ratios: np.ndarray | None = None) -> np.ndarray:
+    """Every agent's reward (K, N) from K copies' squared edge errors (K, E) (and the tracking term's ratios
+    (K, N), or None: :func:`~ee_formation_env.reward.rewards_from_ratios`)."""
     ratios, within = agent_error_ratios(np.sqrt(edge_squares), tolerances, observer.slot_edge,
                                         observer.slot_starts, observer.slot_degrees)
-    return rewards_from_ratios(ratios, within, config)
+    return rewards_from_ratios(ratios, within, config, tracking_ratios)

@@ -1,14 +1,20 @@
 """The per-agent reward: how close the agent's incident edges are to their lengths, in units of the success
 tolerance, on a log scale; plus a bonus on steps where all of them are within the tolerance.
 
-``r_i = formation * clip(log10(ceiling / (x_i + floor)) / log10(ceiling / floor), 0, 1)
-        + in_tolerance * [every incident edge k has |e_k| <= tol_k]``
+``r_i = formation * closeness(x_i) + in_tolerance * [every incident edge k has |e_k| <= tol_k]
+        + tracking * closeness(y_i)``,  ``closeness(x) = clip(log10(ceiling / (x + floor)) / log10(ceiling / floor), 0, 1)``
 
 with ``x_i = mean_k |e_k| / tol_k`` over agent i's incident edges, ``tol_k = 2 d*_k delta`` (distance
 formations, m^2: ``|z|^2 - d^2 ~ 2 d (|z| - d)``) or ``delta`` (displacement formations, m), ``delta =
 position_tolerance``. With the defaults, ``r_i`` is 1 at zero error, ~0.65 at one tolerance, 0.33 at ten,
 0 from a hundred on, plus 1 inside the tolerance: in [0, 2]. Every reward is >= 0, and there is no velocity
 or torque penalty.
+
+The tracking term (off by default: ``tracking = 0``; a scenario with a manoeuvre only): ``y_i = |p_i - p*_i| /
+tracking_tolerance``, agent i's end-effector distance to its place in the moving reference, ``p*_i(t) = c*(t)
++ R(theta*(t)) (p_i(t0) - c0)`` (m; :meth:`ee_formation_env.manoeuvre.ReferenceMotion.agent_targets`), 0
+before the motion starts. Without it a reward of the shape alone holds in any place and orientation, so it
+asks nothing of the motion.
 
 Why this shape, with the measurements: see docs/spaces.md ("Why this reward").
 """
@@ -24,6 +30,7 @@ import numpy as np
 from ee_formation_env.inputs import check_known_keys, excerpt
 
 DEFAULT_POSITION_TOLERANCE = 0.01  # m: the edge-length accuracy that counts as "in formation"
+DEFAULT_TRACKING_TOLERANCE = 0.02  # m: the manoeuvre study's centroid target (docs/manoeuvres.md)
 
 
 @dataclass(frozen=True)
@@ -33,7 +40,8 @@ class RewardConfig:
     ``formation``: weight of the log-scaled error term (>= 0); ``in_tolerance``: bonus on steps where all
     the agent's incident edges are within tolerance (>= 0); ``position_tolerance``: edge accuracy, m;
     ``error_floor`` < ``error_ceiling``: the errors, in tolerances, at which the log term saturates at 1
-    and reaches 0; ``team``: every agent receives the mean of all agents' rewards.
+    and reaches 0; ``team``: every agent receives the mean of all agents' rewards; ``tracking``: weight of the
+    manoeuvre tracking term (>= 0; > 0 needs a manoeuvre); ``tracking_tolerance``: its unit of distance, m.
     """
 
     formation: float = 1.0
@@ -42,6 +50,8 @@ class RewardConfig:
     error_floor: float = 0.1
     error_ceiling: float = 100.0
     team: bool = False
+    tracking: float = 0.0
+    tracking_tolerance: float = DEFAULT_TRACKING_TOLERANCE
 
     def __post_init__(self) -> None:
         if not self.error_floor < self.error_ceiling:
@@ -70,9 +80,9 @@ def parse_reward(value: Any) -> RewardConfig:
         if isinstance(number, bool) or not isinstance(number, (int, float, np.integer, np.floating)) \
                 or not math.isfinite(number):
             raise ValueError(f"reward.{key}: expected a finite number, got {excerpt(number)}")
-        if key in ("formation", "in_tolerance") and number < 0:
+        if key in ("formation", "in_tolerance", "tracking") and number < 0:
             raise ValueError(f"reward.{key}: expected a weight >= 0, got {excerpt(number)}")
-        if key in ("position_tolerance", "error_floor", "error_ceiling") and number <= 0:
+        if key in ("position_tolerance", "error_floor", "error_ceiling", "tracking_tolerance") and number <= 0:
             raise ValueError(f"reward.{key}: expected a positive number, got {excerpt(number)}")
         parsed[key] = float(number)
     return RewardConfig(**parsed)
@@ -108,13 +118,21 @@ def agent_error_ratios(edge_abs_errors: np.ndarray, tolerances: np.ndarray, slot
     return mean_ratios, all_within
 
 
-def rewards_from_ratios(mean_ratios: np.ndarray, all_within: np.ndarray, config: RewardConfig) -> np.ndarray:
-    """Every agent's reward (N,) from :func:`agent_error_ratios`' outputs (or (K, N) from stacked ones; the
-    team mean is then taken per copy)."""
+def closeness(ratios: np.ndarray, config: RewardConfig) -> np.ndarray:
+    """The log term (module docstring) of errors ``ratios`` in tolerances: 1 at 0, 0 from ``error_ceiling`` on."""
     span = np.log10(config.error_ceiling / config.error_floor)
-    closeness = np.log10(config.error_ceiling / (mean_ratios + config.error_floor)) / span
-    np.minimum(np.maximum(closeness, 0.0, out=closeness), 1.0, out=closeness)  # np.clip, without its overhead
-    rewards = config.formation * closeness + config.in_tolerance * all_within
+    near = np.log10(config.error_ceiling / (ratios + config.error_floor)) / span
+    return np.minimum(np.maximum(near, 0.0, out=near), 1.0, out=near)  # np.clip, without its overhead
+
+
+def rewards_from_ratios(mean_ratios: np.ndarray, all_within: np.ndarray, config: RewardConfig,
+                        tracking_ratios: np.ndarray | None = None) -> np.ndarray:
+    """Every agent's reward (N,) from :func:`agent_error_ratios`' outputs (or (K, N) from stacked ones; the
+    team mean is then taken per copy); ``tracking_ratios`` (same shape): the tracking term's ``y_i``, or None
+    without it."""
+    rewards = config.formation * closeness(mean_ratios, config) + config.in_tolerance * all_within
+    if tracking_ratios is not None:
+        rewards += config.tracking * closeness(tracking_ratios, config)
     if config.team:  # every agent gets its copy's mean (np.mean's arithmetic, without its overhead)
         rewards[...] = np.add.reduce(rewards, axis=-1, keepdims=True) / rewards.shape[-1]
     return rewards

@@ -392,6 +392,9 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     if kwargs["distribution"].active and kwargs["sensing"].active:
         raise ValueError("distribution: a scenario distribution cannot be combined with sensing imperfections "
                          "yet (the sensor's per-agent frames are built for one fixed layout)")
+    if kwargs["reward"].tracking > 0 and not kwargs["manoeuvre"].active:
+        raise ValueError(f"reward.tracking: the tracking term needs a manoeuvre to track (this scenario has none); "
+                         f"got {kwargs['reward'].tracking}")
     if kwargs["distribution"].active and kwargs["manoeuvre"].active:
         raise ValueError("distribution: a scenario distribution cannot be combined with a manoeuvre yet (the "
                          "reference is built for one fixed layout)")

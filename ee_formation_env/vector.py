@@ -154,6 +154,7 @@ class VectorFormationEnv:
             # The manoeuvre's reference (manoeuvre.py); without one the observations are the plain task's.
             self._motion = ReferenceMotion(self.scenario.manoeuvre, self.task)
             self._reference = self._motion if self.scenario.manoeuvre.active else None
+            self._tracks = self._reference is not None and self.scenario.reward.tracking > 0  # reward term
             self._observer = ObservationBuilder(self.task, scenario.max_joint_velocity, self._bounds, self._reference,
                                                 scenario.neighbour_slots)
         except BaseException:
@@ -338,15 +339,17 @@ class VectorFormationEnv:
             self._sense(measured.slot_z, every)
         observations = self._observation_matrix(*self._observed_slots(), measured.q_observed, measured.dq, every,
                                                 *self._reference_blocks())
-        if self._sampled:
+        tracking = self._motion.tracking_ratios(self._times(), self._start_points, measured.ee_world,
+                                                self.scenario.reward.tracking_tolerance) if self._tracks else None
+        if self._sampled:  # (a distribution has no manoeuvre: no tracking term)
             rewards = np.concatenate([reward_array(measured.edge_squares[k:k + 1], self._copy_tolerances[k],
                                                    self._observers[k], self.scenario.reward) for k in every])
         elif self.num_envs == 1:  # one copy: on its own arrays (ONE_COPY_FAST_PATH)
             rewards = reward_array(measured.edge_squares[0], self._copy_tolerances[0], self._observer,
-                                   self.scenario.reward)[None]
+                                   self.scenario.reward, None if tracking is None else tracking[0])[None]
         else:
             rewards = reward_array(measured.edge_squares, self._copy_tolerances[0], self._observer,
-                                   self.scenario.reward)
+                                   self.scenario.reward, tracking)
         infos = self._info_arrays(measured) if info_arrays else {}
         ended = measured.fault != 0
         if self.scenario.terminate_on_contact:

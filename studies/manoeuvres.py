@@ -18,8 +18,9 @@ contact steps, and the farthest an end-effector got from its base over its reach
 
 ``--learned BOARD``: also every trained run of the scoreboard's folder ``BOARD`` on these tasks (its
 ``runs/<task>/<method>/seed-<s>`` of the methods of :data:`LEARNED`), each on the same seeds, as rows named
-after the method (worst case over training and evaluation seeds); the reward is the shape's, so their tracking
-is what they inherit from (or lose of) their reference law. The BenchMARL ones need the ``torchrl`` extra.
+after the method (worst case over training and evaluation seeds). Their reward is the shape's, so their tracking
+is what they inherit from (or lose of) their reference law, except ``position-ppo-tracking``'s, trained with
+the reward's tracking term. The BenchMARL ones need the ``torchrl`` extra.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ QUICK = {"episode_seconds": 2.0, "manoeuvre": {"start": 0.5, "duration": 1.0}}  
 
 
 #: The scoreboard's learned methods this study evaluates (``--learned``; loaded by studies.scoreboard_methods.trained_policies).
-LEARNED = ("residual-ppo", "mappo-residual", "position-ppo")
+LEARNED = ("residual-ppo", "mappo-residual", "position-ppo", "position-ppo-tracking")
 
 
 def learned_runs(board: Path, tasks: Sequence[str] = TASKS) -> list[tuple[str, str, int, Path]]:

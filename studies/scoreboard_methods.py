@@ -135,6 +135,12 @@ METHODS: dict[str, Method] = {
     "position-ppo-far": Method("position-ppo-far", train_flags=(
         "--mode", "position", "--reward-error-ceiling", "10000", "--joint-reach", "3.14159",
         "--max-train-seconds", "1800")),
+    # On a manoeuvre: the training reward's tracking term (each end-effector near its place in the moving
+    # reference, reward.py) and training episodes that hold the whole motion (the built-ins': a 5 s hold, 20 s out
+    # and back), where position-ppo's reward, the shape's, holds in any orientation and asks nothing of the motion.
+    "position-ppo-tracking": Method("position-ppo-tracking", train_flags=(
+        "--mode", "position", "--reward-tracking", "1.0", "--train-episode-seconds", "30",
+        "--max-train-seconds", "1800")),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),

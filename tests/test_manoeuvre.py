@@ -339,3 +339,56 @@ def test_a_translation_no_end_effector_can_follow_is_refused_naming_translation_
                                          r"follow.*shortest reach 3\.000 m"):
         build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [1e6, 0.0]}))
     build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [5.9, 0.0]}))  # within
+
+
+def test_the_tracking_term_rewards_each_end_effector_near_its_place_in_the_moving_reference(make_env):
+    """reward.tracking: r_i gains tracking * closeness(|p_i - p*_i| / tracking_tolerance), p*_i the start shape
+    carried along the motion (1 before it starts); the rest of the reward is unchanged."""
+    manoeuvre = {"start": 0.3, "duration": 1.0, "translation": [0.2, -0.1], "rotation": 0.3}
+    tracking = {"tracking": 0.5, "tracking_tolerance": 0.02}
+    plain = make_env("planar_square", episode_seconds=1.5, manoeuvre=manoeuvre)
+    tracked = make_env("planar_square", episode_seconds=1.5, manoeuvre=manoeuvre, reward=tracking)
+    observations, _ = plain.reset(seed=2)
+    tracked.reset(seed=2)
+    team = PolicyTeam(make_policies("gradient", plain))
+    team.reset()
+    config = tracked.scenario.reward
+    dt, start_points, seen_motion = plain.scenario.control_dt, None, False
+    for step in range(1, 120):
+        actions = team(observations)
+        observations, rewards, *_ = plain.step(actions)
+        _, tracked_rewards, *_ = tracked.step(actions)
+        points = tracked.end_effector_positions()[:, :2]
+        t = step * dt
+        if t <= 0.3 + 1e-12:
+            start_points = points.copy()
+            expected = 0.0
+        else:  # the start shape, turned by theta*(t) about its centroid and carried by s(t) A
+            s = (1 - math.cos(2 * math.pi * (t - 0.3) / 1.0)) / 2
+            c0 = start_points.mean(axis=0)
+            turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.array([s * 0.3]), 2)[0]
+            targets = c0 + s * np.array([0.2, -0.1]) + (start_points - c0) @ turn.T
+            expected = np.linalg.norm(points - targets, axis=1) / 0.02
+            seen_motion = seen_motion or float(np.max(expected)) > 1.0
+        span = math.log10(config.error_ceiling / config.error_floor)
+        closeness = np.clip(np.log10(config.error_ceiling / (expected + config.error_floor)) / span, 0.0, 1.0)
+        for i, agent in enumerate(plain.possible_agents):
+            assert tracked_rewards[agent] == pytest.approx(rewards[agent] + 0.5 * np.atleast_1d(closeness)[
+                i if np.ndim(closeness) else 0], rel=1e-12, abs=1e-12)
+    assert seen_motion  # the law lags the reference by more than a tolerance somewhere: the term is not constant
+
+
+def test_the_tracking_term_is_refused_without_a_manoeuvre_and_checked():
+    with pytest.raises(ValueError, match="reward.tracking: the tracking term needs a manoeuvre"):
+        load_scenario("planar_square", reward={"tracking": 1.0})
+    for bad, message in (({"tracking": -1.0}, "reward.tracking"), ({"tracking_tolerance": 0.0},
+                                                                    "reward.tracking_tolerance")):
+        with pytest.raises(ValueError, match=message):
+            load_scenario("planar_square_transport", reward=bad)
+    assert load_scenario("planar_square_transport", reward={"tracking": 1.0}).reward.tracking == 1.0
+
+
+def test_the_batched_tracking_term_is_the_single_envs(lockstep):
+    # 1 s episodes, 25 steps of 0.01 s: the motion runs from 0.1 s on, within the lockstep's steps
+    manoeuvre = {"start": 0.1, "duration": 0.1, "rotation": 0.3}
+    lockstep("planar_square", {"episode_seconds": 1.0, "manoeuvre": manoeuvre, "reward": {"tracking": 1.0}}, steps=40)

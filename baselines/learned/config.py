@@ -121,6 +121,7 @@ class TrainConfig:
     hold_penalty: float | None = _option_flag("hold_penalty", type=float)
     contact_penalty: float = _option_flag("contact_penalty", type=float)
     reward_error_ceiling: float | None = _option_flag("reward_error_ceiling", type=float)
+    reward_tracking: float | None = _option_flag("reward_tracking", type=float)
     max_train_seconds: float | None = _flag("stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     max_fault_fraction: float | None = _flag("sb3: stop training with an error naming the fault when more than this "
@@ -292,10 +293,11 @@ class TrainConfig:
     #: are what those runs trained with. Every other saved setting must be in the file.
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
                           "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
-                          "joint_reach", "position_gain", "target_smoothing", "reward_error_ceiling")
+                          "joint_reach", "position_gain", "target_smoothing", "reward_error_ceiling",
+                          "reward_tracking")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address",
-                             "reward_error_ceiling")
+                             "reward_error_ceiling", "reward_tracking")
 
     @classmethod
     def from_saved(cls, data: Any, source: str = "config.json") -> "TrainConfig":

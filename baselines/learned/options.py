@@ -68,6 +68,10 @@ class TrainingOptions:
                                                     "reward.error_ceiling, 100 by default); a start farther out "
                                                     "than it earns nothing, so learning from such starts needs a "
                                                     "larger one (> 1; evaluation keeps the scenario's reward)")
+    reward_tracking: Optional[float] = _option(None, "reward per step", "training only: the weight of the reward's "
+                                               "manoeuvre tracking term, each end-effector's closeness to its place "
+                                               "in the moving reference (reward.py; None: the scenario's "
+                                               "reward.tracking, 0 by default), >= 0; a scenario with a manoeuvre")
     action_acceleration: float = _option(DEFAULT_ACTION_ACCELERATION, "rad/s²", "one unit of learned action (or "
                                          "correction) is the torque giving a joint this acceleration at the "
                                          "initial configuration, at most its torque limit (action_scale.py)")
@@ -116,6 +120,7 @@ class TrainingOptions:
         self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
         self._number("contact_penalty", lambda x: x >= 0, "a finite value >= 0")
         self._number("reward_error_ceiling", lambda x: x > 1, "a value > 1 or None", optional=True)
+        self._number("reward_tracking", lambda x: x >= 0, "a weight >= 0 or None", optional=True)
         object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
         self._number("joint_speed", lambda x: 0 < x <= 100, "a speed in (0, 100] rad/s")
         self._number("velocity_gain", lambda x: 0 < x <= 1000, "a gain in (0, 1000] 1/s")
@@ -161,14 +166,16 @@ class TrainingOptions:
 
     def episode_overrides(self) -> dict[str, Any]:
         """Scenario overrides of the training episodes (options resolved): episode length and, if set, start
-        noise and the training reward's error ceiling (what the learning curve's reference lines are also run
-        with)."""
+        noise and the training reward's error ceiling and tracking weight (what the learning curve's reference
+        lines are also run with)."""
         options = self.resolved()
         overrides: dict[str, Any] = {"episode_seconds": options.train_episode_seconds}
         if options.train_initial_q_noise is not None:
             overrides["initial_q_noise"] = options.train_initial_q_noise
-        if options.reward_error_ceiling is not None:  # merged into the scenario's reward (load_scenario)
-            overrides["reward"] = {"error_ceiling": options.reward_error_ceiling}
+        reward = {key: value for key, value in (("error_ceiling", options.reward_error_ceiling),
+                                                ("tracking", options.reward_tracking)) if value is not None}
+        if reward:  # merged into the scenario's reward (load_scenario)
+            overrides["reward"] = reward
         return overrides
 
     def training_overrides(self) -> dict[str, Any]:

@@ -112,3 +112,27 @@ def test_a_wider_error_ceiling_rewards_far_starts_in_training_only():
 def test_a_bad_reward_error_ceiling_names_the_field(ceiling, error):
     with pytest.raises(error, match="reward_error_ceiling"):
         TrainingOptions(reward_error_ceiling=ceiling)
+
+
+def test_the_tracking_weight_reaches_the_training_reward_only_and_merges_with_the_ceiling():
+    from ee_formation_env.scenario import load_scenario
+
+    options = TrainingOptions(mode="position", reward_tracking=0.5, reward_error_ceiling=1e3)
+    assert options.episode_overrides()["reward"] == {"error_ceiling": 1e3, "tracking": 0.5}
+    env = BatchedTrainingEnv("planar_square_transport", options.training_overrides(), options, num_envs=2)
+    try:
+        assert (env.scenario.reward.tracking, env.scenario.reward.error_ceiling) == (0.5, 1e3)
+        env.reset_arrays(seed=0)
+        # before the motion starts the term is its full weight: every agent gets at least 0.5
+        assert (env.step_arrays(np.zeros((2, env.task.n_agents, 2))).rewards >= 0.5).all()
+    finally:
+        env.env.close()
+    assert load_scenario("planar_square_transport").reward.tracking == 0.0  # what evaluation runs on
+    with pytest.raises(ValueError, match="reward.tracking: the tracking term needs a manoeuvre"):
+        BatchedTrainingEnv("planar_square", options.training_overrides(), options, num_envs=1)
+
+
+@pytest.mark.parametrize("weight, error", [(-0.1, ValueError), (float("nan"), ValueError), ("1", TypeError)])
+def test_a_bad_reward_tracking_names_the_field(weight, error):
+    with pytest.raises(error, match="reward_tracking"):
+        TrainingOptions(reward_tracking=weight)
