@@ -190,6 +190,9 @@ class ReferenceMotion:
         # A planar agent's turn rate about its own z: the sign of its base z axis along the world's.
         self._z_signs = task.base_rotations[:, 2, 2][None, :, None]  # (1, N, 1)
         self._full_rotations = task.base_rotations  # (N, 3, 3)
+        shape = np.asarray(task.formation.shape, dtype=np.float64)
+        self._centred_shape = shape - shape.mean(axis=0)  # (N, m): the tracking term's shape (agent_targets)
+        self._shape_turns = task.formation.kind == "distance"  # a displacement shape keeps the world's orientation
         self.n_agents = task.n_agents
         self.bound = self._bound(task)
 
@@ -225,13 +228,21 @@ class ReferenceMotion:
         return block.reshape(len(block), -1)
 
     def agent_targets(self, t: np.ndarray, start_points: np.ndarray) -> np.ndarray:
-        """Every end-effector's place in the moving reference (K, N, m), world, m: ``c*(t) + R(theta*(t))
-        (p_i(t0) - c0)`` from the end-effector positions at the motion's start ``start_points`` (K, N, m), c0
-        their centroid: the start shape carried along the motion."""
+        """Every end-effector's place in the moving reference (K, N, m), world, m: ``c*(t) + R(theta*(t)) Q0
+        (x*_i - x*_mean)``, the formation's shape ``x*`` placed as the end-effectors stood at the motion's start
+        ``start_points`` (K, N, m; c0 their centroid) and carried along the motion. ``Q0``: the orthogonal
+        matrix that best takes the centred shape onto the centred start points (orthogonal Procrustes; a
+        reflection too, since a distance formation's mirror image has its edge lengths), the identity for a
+        displacement formation, whose shape keeps the world's orientation. Whether the shape had formed by the
+        start or not, the targets are the shape."""
         c0 = start_points.mean(axis=-2)
         centroid, _, theta, _ = self.world(t, c0)
         turns = rotation_about(self._axis, theta, self.dim)  # (K, m, m)
-        return centroid[:, None, :] + (start_points - c0[:, None, :]) @ turns.transpose(0, 2, 1)
+        placed = np.broadcast_to(self._centred_shape, start_points.shape)
+        if self._shape_turns:  # Q0 = V U^T of svd(A^T B) maps the shape's rows a_i onto the start's b_i
+            u, _, vt = np.linalg.svd(self._centred_shape.T @ (start_points - c0[:, None, :]))
+            placed = placed @ (u @ vt)  # rows: (Q0 a_i)^T = a_i^T U V^T
+        return centroid[:, None, :] + placed @ turns.transpose(0, 2, 1)
 
     def tracking_ratios(self, t: np.ndarray, start_points: np.ndarray, ee_world: np.ndarray,
                         tolerance: float) -> np.ndarray:

@@ -12,7 +12,8 @@ or torque penalty.
 
 The tracking term (off by default: ``tracking = 0``; a scenario with a manoeuvre only): ``y_i = |p_i - p*_i| /
 tracking_tolerance``, agent i's end-effector distance to its place in the moving reference, ``p*_i(t) = c*(t)
-+ R(theta*(t)) (p_i(t0) - c0)`` (m; :meth:`ee_formation_env.manoeuvre.ReferenceMotion.agent_targets`), 0
++ R(theta*(t)) Q0 (x*_i - x*_mean)``: the formation's shape placed as the end-effectors stood when the motion
+started, carried along the motion (m; :meth:`ee_formation_env.manoeuvre.ReferenceMotion.agent_targets`), 0
 before the motion starts. Without it a reward of the shape alone holds in any place and orientation, so it
 asks nothing of the motion.
 
