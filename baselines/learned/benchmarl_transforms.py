@@ -1,6 +1,6 @@
 """The TorchRL transforms a BenchMARL formation task adds to its envs (the ``torchrl`` extra): observation
-normalization, reward scaling or normalization and the slot split of the observations for set models; which of them a task
-uses is its :class:`TaskTransforms` (``docs/training.md``, "TorchRL and BenchMARL").
+normalization, reward scaling or normalization and the slot split of the observations for set models; which of
+them a task uses is its :class:`TaskTransforms` (``docs/training.md``, "TorchRL and BenchMARL").
 
 The slot split (``observation_sets``): each group's ``observation`` (..., n_agents, O) becomes a nested entry
 of two parts, ``("observation", "neighbour_slots")`` (..., n_agents, D, slot_size: per neighbour slot its mask,
