@@ -282,12 +282,12 @@ def test_a_frame_budget_run_of_one_seed_repeats_bit_for_bit(tmp_path):
     records, curves = [], []
     for name in ("a", "b"):
         out = tmp_path / name
-        assert benchmarl_runs.main(["--frames", "16384", "--episodes", "1", "--mode", "torque", "--settings",
+        assert benchmarl_runs.main(["--frames", "2048", "--episodes", "1", "--mode", "torque", "--settings",
                                     "project", "--out", str(out)]) == 0
         record = json.loads((out / "evaluation.json").read_text())
         records.append((record["frames"], record["frame_budget"], record["evaluation"]["per_episode"]))
         curves.append([(row["frames"], row["mean_reward_per_step"]) for row in csv.DictReader((out / "curve.csv").open())])
-    assert records[0] == records[1] and records[0][:2] == (16384, 16384)
+    assert records[0] == records[1] and records[0][:2] == (2048, 2048)
     assert curves[0] == curves[1] and len(curves[0]) == 2  # the second batch reached the budget
     assert (tmp_path / "a" / "policy" / "actor.json").read_bytes() == (tmp_path / "b" / "policy" / "actor.json").read_bytes()
 

@@ -49,7 +49,7 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
         assert config["mode"] == mode
         task = EEFormationTrainingTask.PLANAR_SQUARE.get_from_yaml(str(CONFIG_DIR / "task" / "ee_formation_training"
                                                                        / f"{mode}.yaml"))
-        assert task.transforms() == TaskTransforms(observation_normalization=True, reward_scale=0.005)
+        assert task.transforms() == TaskTransforms(observation_normalization=True, reward_normalization=True)
     files = sorted(path.relative_to(CONFIG_DIR).as_posix() for path in CONFIG_DIR.rglob("*.yaml"))
     assert files == ["algorithm/ippo.yaml", "algorithm/mappo.yaml", "algorithm/masac.yaml",
                      "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/deepsets.yaml",
@@ -321,7 +321,7 @@ def test_the_export_carries_the_observation_statistics_and_acts_as_the_experimen
     folder = export_benchmarl_policy(experiment, tmp_path / "actor")
     description = json.loads((folder / "actor.json").read_text())
     assert description["transforms"] == {"observation_normalization": True, "state_normalization": False,
-                                         "reward_scale": 0.005, "reward_normalization": False,
+                                         "reward_scale": 1.0, "reward_normalization": True,
                                          "reward_normalization_gamma": 0.99, "observation_sets": False}
     loaded = load_benchmarl_policy(folder)
     np.testing.assert_array_equal(loaded.groups[group].observation_loc, actor.observation_loc.astype(np.float32))
