@@ -18,6 +18,7 @@ from ee_formation_env.baselines.metrics import run_episodes
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
 from ee_formation_env.team_families import TEAM_FAMILIES, TEAM_FAMILY_SOURCES, team_scenario
+from studies.benchmarl_runs import ON_POLICY
 from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
 
 
@@ -160,7 +161,7 @@ METHODS: dict[str, Method] = {
     # From scratch with the project's BenchMARL configs (normalized observations, rewards and advantages, SB3's
     # rollout): MAPPO and IPPO for PROJECT_FRAMES frames, MASAC (off-policy) for 30 minutes.
     **{f"{algorithm}-{mode}-project": Method(f"{algorithm}-{mode}-project", benchmarl=(
-        BenchmarlRun(algorithm, mode, None, "project", frames=PROJECT_FRAMES) if algorithm in ("mappo", "ippo")
+        BenchmarlRun(algorithm, mode, None, "project", frames=PROJECT_FRAMES) if algorithm in ON_POLICY
         else BenchmarlRun(algorithm, mode, 30.0, "project")))
        for mode in ("torque", "velocity", "position") for algorithm in ("mappo", "ippo", "masac")},
 }
