@@ -5,6 +5,7 @@
     python -m studies.benchmarl_runs --algorithm ippo --mode torque --settings project --minutes 30 --seed 0
     python -m studies.benchmarl_runs --algorithm ippo --mode residual --minutes 10 --scenario planar_square
     python -m studies.benchmarl_runs --algorithm mappo --mode torque --settings project --frames 1900000 --seed 0
+    python -m studies.benchmarl_runs --algorithm ippo --settings project --frames 750000 --task-set train_episode_seconds=30
     python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
     python -m studies.benchmarl_runs --plot RUN_DIR [RUN_DIR ...] --figure curves.png   (no training)
 
@@ -34,7 +35,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 ALGORITHMS = ("mappo", "ippo", "masac")
 ON_POLICY = ("mappo", "ippo")
@@ -194,12 +195,14 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str, model: str 
 
 def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: int, out: Path, episodes: int = 10,
         episode_seconds: float | None = None, settings: RunSettings | str = SETTINGS["benchmarl"],
-        frames: int | None = None, model: str = "mlp") -> dict[str, Any]:
+        frames: int | None = None, model: str = "mlp", task_overrides: Mapping[str, Any] | None = None
+        ) -> dict[str, Any]:
     """Train, evaluate and export one run into ``out``; the evaluation record. The budget: ``minutes`` of wall
     time, or ``frames`` frames (then ``minutes`` is None: :class:`BudgetCallback`). ``episode_seconds``: the
     evaluation episodes' length (default: the scenario's; training uses the mode's training length);
     ``settings``: the learning settings (:data:`SETTINGS`, or :data:`PROJECT_SETTINGS`); ``model``: the actor's
-    (:data:`MODELS`)."""
+    (:data:`MODELS`); ``task_overrides``: task config keys set over the settings' (training options such as
+    ``train_episode_seconds``, transforms, scenario overrides), checked with the task before training starts."""
     if (minutes is None) == (frames is None):
         raise ValueError(f"budget: expected minutes or frames, not both or neither (got {minutes!r}, {frames!r})")
     import torch
@@ -209,8 +212,16 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
                                                                    export_benchmarl_policy)
     from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
-    torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
     config, algorithm_config, actor_model, task_config, decayed_lr = _configs(algorithm, mode, settings, model)
+    if task_overrides is not None:
+        if not isinstance(task_overrides, Mapping):
+            raise TypeError(f"task_overrides: expected a dict of task config keys, got {type(task_overrides).__name__}")
+        if "mode" in task_overrides:
+            raise ValueError("task_overrides: 'mode' is the run's mode argument, not an override")
+        task_config = {**task_config, **task_overrides}
+    task = EEFormationTrainingTask[scenario.upper()].get_task(  # checked before any env is built
+        {**task_config, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
+    torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
     from ee_formation_env.baselines.learned import benchmarl_configs
 
     critic_model = benchmarl_configs.model_config("mlp") if model != "mlp" else actor_model
@@ -219,8 +230,6 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
     config.checkpoint_at_end, config.create_json = False, False
     out.mkdir(parents=True, exist_ok=True)
     config.save_folder = str(out)
-    task = EEFormationTrainingTask[scenario.upper()].get_task(
-        {**task_config, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
     curve: list[tuple[int, float, float]] = []
     experiment = Experiment(task=task, algorithm_config=algorithm_config, model_config=actor_model,
                             critic_model_config=critic_model, seed=seed, config=config,
@@ -326,6 +335,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--model", default="mlp", choices=MODELS,
                         help="the actor: mlp, or deepsets (the project's set model on the neighbour slots, for any team "
                              "size; with --settings project)")
+    parser.add_argument("--task-set", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="task config keys over the settings' (VALUE in JSON), e.g. --task-set "
+                             "train_episode_seconds=30 reward_normalization=false: training options, transforms "
+                             "or scenario overrides, checked before training")
     parser.add_argument("--episodes", type=int, default=10, help=f"held-out evaluation episodes (seeds {HELD_OUT_SEED_OFFSET}+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
@@ -352,10 +365,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--episodes: expected an integer >= 1")
     if args.model != "mlp" and args.settings != PROJECT_SETTINGS:
         parser.error(f"--model: {args.model} runs with --settings {PROJECT_SETTINGS}")
+    task_overrides = {}
+    for pair in args.task_set:
+        key, separator, value = pair.partition("=")
+        if not separator or not key:
+            parser.error(f"--task-set: expected KEY=VALUE (VALUE in JSON), got {pair!r}")
+        try:
+            task_overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            task_overrides[key] = value
     tag = ("" if args.settings == "benchmarl" else f"-{args.settings}") + ("" if args.model == "mlp" else f"-{args.model}")
     out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
     record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
-                 settings=SETTINGS.get(args.settings, args.settings), frames=args.frames, model=args.model)
+                 settings=SETTINGS.get(args.settings, args.settings), frames=args.frames, model=args.model,
+                 task_overrides=task_overrides or None)
     from ee_formation_env.baselines.metrics import format_table
 
     print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))

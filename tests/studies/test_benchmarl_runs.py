@@ -94,6 +94,7 @@ def test_the_settings_reach_benchmarl_and_the_record(tmp_path, experiment_argume
     (["--frames", "100", "--minutes", "1"], "not allowed with argument"),
     (["--model", "deepsets"], "--model: deepsets runs with --settings project"),
     (["--model", "gnn"], "--model: invalid choice"),
+    (["--task-set", "train_episode_seconds"], "--task-set: expected KEY=VALUE"),
 ])
 def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -244,6 +245,31 @@ def test_the_project_settings_are_the_shipped_yaml_files(tmp_path, experiment_ar
         rows = list(csv.DictReader(handle))
     assert rows and all(0 <= float(row["mean_reward_per_step"]) <= 2 for row in rows)
     assert (out / "policy" / "actor.json").is_file()
+
+
+@needs_benchmarl
+def test_task_overrides_reach_the_task_and_the_record(tmp_path, experiment_arguments):
+    out = tmp_path / "run"
+    assert benchmarl_runs.main(["--frames", "1024", "--episodes", "1", "--mode", "torque", "--settings", "project",
+                                "--task-set", "train_episode_seconds=2.5", "reward_normalization=false",
+                                "--out", str(out)]) == 0
+    record = json.loads((out / "evaluation.json").read_text())
+    assert record["task_config"]["train_episode_seconds"] == 2.5
+    assert record["task_config"]["reward_normalization"] is False
+    assert not experiment_arguments["task"].transforms().reward_normalization
+
+
+@needs_benchmarl
+@pytest.mark.parametrize("overrides, error, message", [
+    ({"train_episode_seconds": -1.0}, ValueError, "train_episode_seconds"),
+    ({"mode": "residual"}, ValueError, "task_overrides: 'mode' is the run's mode argument"),
+    (["train_episode_seconds"], TypeError, "task_overrides: expected a dict"),
+])
+def test_bad_task_overrides_are_refused_before_training(tmp_path, overrides, error, message):
+    with pytest.raises(error, match=re.escape(message)):
+        benchmarl_runs.run("ippo", "planar_square", "torque", None, 0, tmp_path / "run", settings="project",
+                           frames=1024, task_overrides=overrides)
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_frame_budget_stops_on_frames_and_decays_the_learning_rate_over_them(monkeypatch):
