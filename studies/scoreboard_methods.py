@@ -316,9 +316,12 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
     if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
         return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
     run_dir = board.run_dir(scenario, method, seed)
-    if method.benchmarl is not None:
-        metrics = run_episodes(test_scenario, trained_policies(method, run_dir), seeds,
-                               overrides={"episode_seconds": seconds})
+    if method.benchmarl is not None:  # the exported actors, in the action convention they trained in
+        from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
+
+        actors = load_benchmarl_policy(run_dir / "policy")
+        metrics = run_episodes(test_scenario, actors.policy_factory(), seeds,
+                               overrides={"episode_seconds": seconds, **actors.env_overrides()})
     elif method.learned:  # as the run's own comparison evaluates it: in the env settings it trained with
         from ee_formation_env.baselines.learned.policy import SavedRun
 

@@ -263,6 +263,12 @@ class BenchmarlActors:
                 policies[agent] = shared or LearnedPolicy(actor.predict(agent), actor.normalizer(agent))
         return policies
 
+    def env_overrides(self) -> dict[str, Any]:
+        """Scenario overrides of every env these actors act in: their action convention
+        (:meth:`TrainingOptions.env_overrides`, e.g. ``gravity_compensation`` in position and velocity mode), as
+        the training env had it."""
+        return self.options.env_overrides()
+
     def policy_factory(self) -> Callable[[Any], dict[str, Any]]:
         """``copy_env -> per-agent policies`` acting as the task's training env did, for
         :func:`~ee_formation_env.baselines.metrics.run_episodes` (fresh reference controllers per call). A set
@@ -441,7 +447,8 @@ def evaluate_benchmarl_policy(source: Any, task: Optional[TrainingTaskClass] = N
     ``source``: a BenchMARL ``Experiment`` on a training task, :class:`BenchmarlActors` or an export folder.
     ``task``: the task whose options, scenario and overrides to evaluate with (default: the one the actors
     trained on). The episodes are the scenario's own (its ``episode_seconds`` and ``initial_q_noise``, with the
-    task's overrides; not the training ones), run on the batched env (``num_envs`` copies, default one per
+    task's overrides; not the training ones) in the actors' action convention (:meth:`BenchmarlActors.env_overrides`),
+    run on the batched env (``num_envs`` copies, default one per
     episode, at most 16); the policy is the deterministic actor composed as the training env acts
     (residual mode: the reference controller plus the scaled, gated correction).
     """
@@ -461,7 +468,7 @@ def evaluate_benchmarl_policy(source: Any, task: Optional[TrainingTaskClass] = N
         actors = dataclasses.replace(actors, options=options, scenario=scenario, overrides=overrides, task=task.name)
     seeds = [seed + k for k in range(episodes)]
     results = run_episodes(actors.scenario, actors.policy_factory(), seeds, position_tolerance=position_tolerance,
-                           overrides=actors.overrides, num_envs=num_envs)
+                           overrides={**actors.overrides, **actors.env_overrides()}, num_envs=num_envs)
     summary = summarize(results)
     summary["per_episode"] = [result.as_dict() for result in results]
     return summary

@@ -189,6 +189,32 @@ def test_mappo_trains_on_the_residual_task_and_evaluates_with_the_project_metric
         evaluate_benchmarl_policy(experiment, episodes=1, seed=0)
 
 
+@pytest.mark.parametrize("options, expected", [
+    ({"mode": "residual"}, {}),
+    ({"mode": "position"}, {"gravity_compensation": True}),
+    ({"mode": "torque", "gravity_compensation": True}, {"gravity_compensation": True}),
+])
+def test_the_evaluation_runs_the_actors_in_their_action_convention(experiment, monkeypatch, options, expected):
+    """A position-mode (or gravity-compensated) policy trained in a gravity-compensated env is evaluated in one,
+    as train.py's runs are (their SavedRun.env_overrides)."""
+    from ee_formation_env.baselines.learned.benchmarl_task import actors_from_experiment
+    from ee_formation_env.baselines.learned.options import TrainingOptions
+
+    seen = {}
+
+    def capture(scenario, policy, seeds, **kwargs):
+        seen.update(kwargs["overrides"])
+        raise KeyboardInterrupt  # stop before any episode: only the env settings are checked
+
+    actors = dataclasses.replace(actors_from_experiment(experiment), overrides={"episode_seconds": 0.3},
+                                 options=TrainingOptions(**options).resolved())
+    assert actors.env_overrides() == expected
+    monkeypatch.setattr(benchmarl_task, "run_episodes", capture)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate_benchmarl_policy(actors, episodes=1)
+    assert seen == {"episode_seconds": 0.3, **expected}
+
+
 def test_the_evaluated_policies_act_as_the_training_env_with_the_actor(experiment):
     """The per-agent policies evaluation runs (reference + scaled, gated correction on featured observations)
     apply the torques the TorchRL training env applies when the experiment's actor drives it."""
