@@ -4,6 +4,7 @@
     ee-formation evaluate --scenario spatial_tetrahedron --policy all --json results.json
     ee-formation evaluate --policy adaptive_jacobian --episodes 2 --video videos   # one MP4 per episode
     ee-formation evaluate --policy runs/NAME --episodes 10 --video videos          # a train.py run folder
+    ee-formation evaluate --policy RUN/policy --seed 10000 --set episode_seconds=10  # a BenchMARL export folder
 
 (``python -m ee_formation_env.baselines.evaluate`` is the same command.)
 
@@ -11,7 +12,11 @@ Episode ``k`` uses reset seed ``seed + k``, so every policy sees the same initia
 defined in :mod:`ee_formation_env.baselines.metrics` (the same module ``train.py`` uses). A run folder is
 evaluated as its comparison evaluates it (:class:`~ee_formation_env.baselines.learned.policy.SavedRun`): on
 the scenario saved with it unless ``--scenario`` is given, in the env settings it trained with (its action
-convention, e.g. ``gravity_compensation``), with its observation features and normalization.
+convention, e.g. ``gravity_compensation``), with its observation features and normalization. A BenchMARL
+export folder (``actor.json`` + ``actor.pt``, :func:`~ee_formation_env.baselines.learned.benchmarl_task.export_benchmarl_policy`;
+the ``torchrl`` extra) is evaluated as
+:func:`~ee_formation_env.baselines.learned.benchmarl_task.evaluate_benchmarl_policy` does: on its task's
+scenario with the task's overrides, in its action convention, deterministic.
 """
 
 from __future__ import annotations
@@ -185,8 +190,9 @@ def build_parser(prog: str = "python -m ee_formation_env.baselines.evaluate") ->
                         help=f"built-in name or YAML/JSON file (default: {DEFAULT_SCENARIO}; with --policy RUN_DIR, "
                              "the scenario saved with the run)")
     parser.add_argument("--policy", default="all",
-                        help=f"one of {list(POLICIES)}, 'all', or a train.py run folder RUN_DIR (its learned "
-                             "policy, in the env settings it trained with)")
+                        help=f"one of {list(POLICIES)}, 'all', a train.py run folder RUN_DIR (its learned "
+                             "policy, in the env settings it trained with), or a BenchMARL export folder "
+                             "(actor.json, actor.pt; the torchrl extra)")
     parser.add_argument("--episodes", type=int, default=10, help="episodes per policy (default 10)")
     parser.add_argument("--seed", type=int, default=0,
                         help="reset seed of the first episode; episode k uses seed + k (default 0; a run's "
@@ -247,7 +253,7 @@ class _Evaluated:
 
     name: str
     overrides: dict[str, Any]
-    run: Any = None  # a SavedRun, or None for a reference policy (``name``)
+    run: Any = None  # a SavedRun or ExportedActors, or None for a reference policy (``name``)
 
     def source(self) -> PolicySource:
         """What :func:`evaluate_policy` runs: the reference's name, or the run's policies (a fresh model read,
@@ -260,6 +266,40 @@ class _Evaluated:
         return self.name if self.run is None else self.run.run_dir.resolve().name
 
 
+@dataclass(frozen=True)
+class ExportedActors:
+    """A BenchMARL export folder seen as a run by this command: its scenario, row label, action convention and
+    per-agent policies (:class:`~ee_formation_env.baselines.learned.benchmarl_task.BenchmarlActors`)."""
+
+    run_dir: Path
+    actors: Any
+
+    @classmethod
+    def load(cls, folder: str | Path) -> "ExportedActors":
+        from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
+
+        return cls(Path(folder), load_benchmarl_policy(folder))
+
+    @property
+    def scenario(self) -> Any:
+        return self.actors.scenario
+
+    @property
+    def scenario_name(self) -> str:
+        scenario = self.actors.scenario
+        return str(scenario.get("name", "scenario of the export")) if isinstance(scenario, dict) else str(scenario)
+
+    @property
+    def label(self) -> str:
+        return f"learned (benchmarl, {self.actors.options.mode})"
+
+    def env_overrides(self) -> dict[str, Any]:
+        return self.actors.env_overrides()
+
+    def policy_source(self) -> Callable[[Any], dict[str, Any]]:
+        return self.actors.policy_factory()
+
+
 def _policies(policy: str, parser: argparse.ArgumentParser, overrides: dict[str, Any]) -> list[_Evaluated]:
     """The policies ``--policy`` names, each with the scenario overrides it is evaluated with: a run's
     policy also with the env settings of its action convention (``SavedRun.env_overrides``)."""
@@ -268,11 +308,16 @@ def _policies(policy: str, parser: argparse.ArgumentParser, overrides: dict[str,
     if policy in POLICIES:
         return [_Evaluated(policy, overrides)]
     if not Path(policy).is_dir():
-        parser.error(f"--policy: unknown policy {policy!r}; available: {list(POLICIES)}, 'all', or a train.py "
-                     "run folder (holding config.json and model/)")
-    from ee_formation_env.baselines.learned.policy import SavedRun
+        parser.error(f"--policy: unknown policy {policy!r}; available: {list(POLICIES)}, 'all', a train.py "
+                     "run folder (holding config.json and model/) or a BenchMARL export folder (actor.json)")
+    if (Path(policy) / "actor.json").is_file():
+        require(["torchrl", "benchmarl"], "torchrl", "--policy with a BenchMARL export folder")
+        run: Any = ExportedActors.load(policy)
+        overrides = {**run.actors.overrides, **overrides}  # the task's, then the command's
+    else:
+        from ee_formation_env.baselines.learned.policy import SavedRun
 
-    run = SavedRun.load(policy, "--policy")
+        run = SavedRun.load(policy, "--policy")
     own = run.env_overrides()
     for key, value in own.items():
         if key in overrides and overrides[key] != value:

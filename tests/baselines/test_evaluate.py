@@ -49,7 +49,7 @@ def test_policy_all_evaluates_every_policy(capsys):
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
     (["--tolerance", "nan"], "--tolerance: expected an edge accuracy > 0 m"),
     (["--policy", "no_such_policy"],
-     f"--policy: unknown policy 'no_such_policy'; available: {list(POLICIES)}, 'all', or a train.py run folder"),
+     f"--policy: unknown policy 'no_such_policy'; available: {list(POLICIES)}, 'all', a train.py run folder"),
     (["--set", "frame_skip"], "KEY=VALUE"),
     (["--set", "no_such_key=1"], "no_such_key"),
     (["--scenario", "no_such_scenario"], "no_such_scenario"),
@@ -316,3 +316,10 @@ def test_a_scenario_and_policy_split_differently_at_the_separator_get_two_video_
 
     assert video_path("v", "a-b", "c", 0) != video_path("v", "a", "b-c", 0)
     assert video_path("v", "planar_square", "gradient", 3).name == "planar_square-gradient-seed3"  # plain: kept
+
+
+@pytest.mark.skipif(__import__("importlib").util.find_spec("benchmarl") is not None, reason="the torchrl extra is installed")
+def test_a_benchmarl_export_without_the_torchrl_extra_names_the_extra(tmp_path):
+    (tmp_path / "actor.json").write_text("{}")
+    with pytest.raises(SystemExit, match=r"--policy with a BenchMARL export folder needs .*\[torchrl\]"):
+        main(["--policy", str(tmp_path), "--episodes", "1"])

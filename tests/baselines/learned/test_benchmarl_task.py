@@ -215,6 +215,42 @@ def test_the_evaluation_runs_the_actors_in_their_action_convention(experiment, m
     assert seen == {"episode_seconds": 0.3, **expected}
 
 
+def test_the_evaluate_command_evaluates_an_export_folder_as_evaluate_benchmarl_policy(experiment, tmp_path, capsys):
+    from ee_formation_env.baselines.evaluate import main
+
+    folder = export_benchmarl_policy(experiment, tmp_path / "actor")
+    summary = evaluate_benchmarl_policy(folder, episodes=2)
+    assert main(["--policy", str(folder), "--episodes", "2", "--seed", "10000", "--quiet",
+                 "--json", str(tmp_path / "eval.json")]) == 0
+    record = json.loads((tmp_path / "eval.json").read_text())
+    assert record["scenario"] == "planar_square" and record["overrides"] == {"episode_seconds": 0.3}
+    assert record["learned_label"] == "learned (benchmarl, residual)"
+    learned = record["results"]["learned"]
+    for key in ("success_rate", "final_formation_error", "mean_return", "settling_time"):
+        assert learned[key] == pytest.approx(summary[key], nan_ok=True), key
+    assert "learned (benchmarl, residual)" in capsys.readouterr().out
+    # the command's overrides come over the task's
+    assert main(["--policy", str(folder), "--episodes", "1", "--seed", "10000", "--quiet", "--set",
+                 "episode_seconds=0.2", "--json", str(tmp_path / "short.json")]) == 0
+    short = json.loads((tmp_path / "short.json").read_text())
+    assert short["overrides"] == {"episode_seconds": 0.2}
+    assert short["results"]["learned"]["per_episode"][0]["sim_time"] == pytest.approx(0.2)
+
+
+def test_the_evaluate_command_refuses_a_malformed_export_folder_in_one_line(tmp_path, capsys):
+    from ee_formation_env.baselines.evaluate import main
+
+    (tmp_path / "actor.json").write_text("{}")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--policy", str(tmp_path), "--episodes", "1"])
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "error: actor.pt:" in error  # the missing file, named
+    torch.save({}, tmp_path / "actor.pt")
+    with pytest.raises(SystemExit):
+        main(["--policy", str(tmp_path), "--episodes", "1"])
+    assert "error: actor.json: expected format" in capsys.readouterr().err
+
+
 def test_the_evaluated_policies_act_as_the_training_env_with_the_actor(experiment):
     """The per-agent policies evaluation runs (reference + scaled, gated correction on featured observations)
     apply the torques the TorchRL training env applies when the experiment's actor drives it."""
