@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 import sys
@@ -173,7 +174,8 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str, model: str 
         decays = training_mode(mode).preset.ppo.learning_rate_decay and algorithm in ON_POLICY
         task = benchmarl_configs.task_config(mode)
         if model == "deepsets":
-            task.update(observation_normalization=False, observation_sets=True)
+            task.update(observation_normalization=False, observation_sets=True,
+                        global_state=True)  # the MLP critic reads the flat state, not the nested set observations
         return (config, benchmarl_configs.algorithm_config(algorithm), benchmarl_configs.model_config(model), task,
                 config.lr if decays else None)
     if not isinstance(settings, RunSettings):
@@ -195,14 +197,16 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str, model: str 
 
 def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: int, out: Path, episodes: int = 10,
         episode_seconds: float | None = None, settings: RunSettings | str = SETTINGS["benchmarl"],
-        frames: int | None = None, model: str = "mlp", task_overrides: Mapping[str, Any] | None = None
-        ) -> dict[str, Any]:
+        frames: int | None = None, model: str = "mlp", task_overrides: Mapping[str, Any] | None = None,
+        algorithm_overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Train, evaluate and export one run into ``out``; the evaluation record. The budget: ``minutes`` of wall
     time, or ``frames`` frames (then ``minutes`` is None: :class:`BudgetCallback`). ``episode_seconds``: the
     evaluation episodes' length (default: the scenario's; training uses the mode's training length);
     ``settings``: the learning settings (:data:`SETTINGS`, or :data:`PROJECT_SETTINGS`); ``model``: the actor's
     (:data:`MODELS`); ``task_overrides``: task config keys set over the settings' (training options such as
-    ``train_episode_seconds``, transforms, scenario overrides), checked with the task before training starts."""
+    ``train_episode_seconds``, transforms, scenario overrides), checked with the task before training starts;
+    ``algorithm_overrides``: fields of the algorithm's config set over the settings' (e.g. ``orthogonal_init``),
+    each checked to be one of its fields."""
     if (minutes is None) == (frames is None):
         raise ValueError(f"budget: expected minutes or frames, not both or neither (got {minutes!r}, {frames!r})")
     import torch
@@ -219,6 +223,16 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
         if "mode" in task_overrides:
             raise ValueError("task_overrides: 'mode' is the run's mode argument, not an override")
         task_config = {**task_config, **task_overrides}
+    if algorithm_overrides is not None:
+        if not isinstance(algorithm_overrides, Mapping):
+            raise TypeError(f"algorithm_overrides: expected a dict of {type(algorithm_config).__name__} fields, got "
+                            f"{type(algorithm_overrides).__name__}")
+        fields = {field.name for field in dataclasses.fields(algorithm_config)}
+        unknown = sorted(set(algorithm_overrides) - fields)
+        if unknown:
+            raise ValueError(f"algorithm_overrides: {unknown[0]!r} is not a field of {type(algorithm_config).__name__} "
+                             f"(fields: {sorted(fields)})")
+        algorithm_config = dataclasses.replace(algorithm_config, **algorithm_overrides)
     task = EEFormationTrainingTask[scenario.upper()].get_task(  # checked before any env is built
         {**task_config, **({} if episode_seconds is None else {"episode_seconds": episode_seconds})})
     torch.set_num_threads(1)  # the env copies and the update share the 2 cores better this way
@@ -253,7 +267,8 @@ def run(algorithm: str, scenario: str, mode: str, minutes: float | None, seed: i
               "minutes": minutes,
               "frame_budget": frames,
               "settings": settings if isinstance(settings, str) else asdict(settings),
-              "task_config": task.config, "train_seconds": train_seconds, "frames": int(experiment.total_frames),
+              "task_config": task.config, "algorithm_overrides": dict(algorithm_overrides or {}),
+              "train_seconds": train_seconds, "frames": int(experiment.total_frames),
               "agent_steps": int(experiment.total_frames) * n_agents, "iterations": experiment.n_iters_performed,
               "evaluation": evaluation}
     (out / "evaluation.json").write_text(json.dumps(record, indent=1, default=float), encoding="utf-8")
@@ -339,6 +354,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="task config keys over the settings' (VALUE in JSON), e.g. --task-set "
                              "train_episode_seconds=30 reward_normalization=false: training options, transforms "
                              "or scenario overrides, checked before training")
+    parser.add_argument("--algorithm-set", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="fields of the algorithm's config over the settings' (VALUE in JSON), e.g. "
+                             "--algorithm-set orthogonal_init=true share_param_critic=false")
     parser.add_argument("--episodes", type=int, default=10, help=f"held-out evaluation episodes (seeds {HELD_OUT_SEED_OFFSET}+)")
     parser.add_argument("--out", type=Path, default=None, help="default results/benchmarl/<algorithm>-<mode>-<scenario>[-<settings>]-seed<k>")
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
@@ -365,20 +383,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--episodes: expected an integer >= 1")
     if args.model != "mlp" and args.settings != PROJECT_SETTINGS:
         parser.error(f"--model: {args.model} runs with --settings {PROJECT_SETTINGS}")
-    task_overrides = {}
-    for pair in args.task_set:
-        key, separator, value = pair.partition("=")
-        if not separator or not key:
-            parser.error(f"--task-set: expected KEY=VALUE (VALUE in JSON), got {pair!r}")
-        try:
-            task_overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            task_overrides[key] = value
+    overrides: dict[str, dict[str, Any]] = {"--task-set": {}, "--algorithm-set": {}}
+    for flag, pairs in (("--task-set", args.task_set), ("--algorithm-set", args.algorithm_set)):
+        for pair in pairs:
+            key, separator, value = pair.partition("=")
+            if not separator or not key:
+                parser.error(f"{flag}: expected KEY=VALUE (VALUE in JSON), got {pair!r}")
+            try:
+                overrides[flag][key] = json.loads(value)
+            except json.JSONDecodeError:
+                overrides[flag][key] = value
     tag = ("" if args.settings == "benchmarl" else f"-{args.settings}") + ("" if args.model == "mlp" else f"-{args.model}")
     out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
     record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
                  settings=SETTINGS.get(args.settings, args.settings), frames=args.frames, model=args.model,
-                 task_overrides=task_overrides or None)
+                 task_overrides=overrides["--task-set"] or None,
+                 algorithm_overrides=overrides["--algorithm-set"] or None)
     from ee_formation_env.baselines.metrics import format_table
 
     print(format_table({f"{args.algorithm} ({args.mode})": record["evaluation"]}))

@@ -22,9 +22,9 @@ from studies.benchmarl_runs import ON_POLICY
 from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
 
 
-#: The frame budget of the on-policy BenchMARL methods from scratch (``*-project``): 3M agent steps of a 4-arm
-#: team, about 10 minutes on 2 cores; SB3's ``torque-ppo`` has 5M or 30 minutes.
-PROJECT_FRAMES = 750_000
+#: The frame budget of the on-policy BenchMARL methods from scratch (``*-project``): 5M agent steps of a 4-arm
+#: team, SB3's ``torque-ppo`` budget (5M or 30 minutes), about 16 minutes on 2 cores.
+PROJECT_FRAMES = 1_250_000
 
 
 @dataclass(frozen=True)

@@ -69,15 +69,19 @@ def orthogonal_init(model: torch.nn.Module, output_gain: float) -> None:
     """Initialize ``model``'s layers as SB3's PPO does: every weight matrix orthogonal (one per agent where the
     parameters are stacked per agent), gain :data:`HIDDEN_GAIN`, its last one ``output_gain``; biases 0. The
     layers are the model's parameters named ``weight`` in registration order (BenchMARL's MLP and Deepsets
-    register their output layer last)."""
-    weights = [(name, p) for name, p in model.named_parameters() if name.endswith("weight") and p.dim() >= 2]
-    if not weights:
-        raise ValueError(f"orthogonal_init: {type(model).__name__} has no weight matrix")
+    register their output layer last); BenchMARL's MLP without shared parameters on a centralized input holds
+    one network per agent (its ``mlp``, a ``ModuleList``), each initialized so."""
+    parts = model.mlp if isinstance(getattr(model, "mlp", None), torch.nn.ModuleList) else [model]
+    for part in parts:
+        weights = [(name, p) for name, p in part.named_parameters() if name.endswith("weight") and p.dim() >= 2]
+        if not weights:
+            raise ValueError(f"orthogonal_init: {type(model).__name__} has no weight matrix")
+        with torch.no_grad():
+            for index, (_, weight) in enumerate(weights):
+                gain = output_gain if index == len(weights) - 1 else HIDDEN_GAIN
+                for matrix in (weight.unsqueeze(0) if weight.dim() == 2 else weight.flatten(0, -3)):
+                    torch.nn.init.orthogonal_(matrix, gain=gain)
     with torch.no_grad():
-        for index, (_, weight) in enumerate(weights):
-            gain = output_gain if index == len(weights) - 1 else HIDDEN_GAIN
-            for matrix in (weight.unsqueeze(0) if weight.dim() == 2 else weight.flatten(0, -3)):
-                torch.nn.init.orthogonal_(matrix, gain=gain)
         for name, bias in model.named_parameters():
             if name.endswith("bias"):
                 bias.zero_()

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.data import Composite, Unbounded
-from torchrl.envs import EnvBase, RewardScaling, Transform
+from torchrl.envs import EnvBase, ExcludeTransform, RewardScaling, Transform
 from torchrl.envs.transforms.vecnorm import VecNormV2
 
 from ee_formation_env.baselines.learned.set_network import SlotLayout
@@ -185,6 +185,11 @@ class TaskTransforms:
     #: With ``observation_normalization``, the global ``state`` too where the env returns it (the input of
     #: MAPPO's centralized critic), per feature, the same way (docs/results.md: measured, not adopted).
     state_normalization: bool = False
+    #: The env's global ``state`` (end-effector positions in m, q, dq) kept for centralized critics (MAPPO's and
+    #: MASAC's read it where the task has one). False: removed (TorchRL's ``ExcludeTransform``), so BenchMARL's
+    #: centralized critics read every agent's observation instead, normalized and featured as the actors see
+    #: them (BenchMARL's rule for a task without a state).
+    global_state: bool = True
     #: Every reward multiplied by this (TorchRL's ``RewardScaling``), > 0 (the env's rewards are in [0, 2] per step).
     reward_scale: float = 1.0
     #: Every reward divided by the running standard deviation of its discounted return, clipped to [-10, 10]
@@ -199,7 +204,8 @@ class TaskTransforms:
     observation_sets: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("observation_normalization", "state_normalization", "observation_sets", "reward_normalization"):
+        for name in ("observation_normalization", "state_normalization", "global_state", "observation_sets",
+                     "reward_normalization"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if self.observation_sets and self.observation_normalization:
@@ -207,6 +213,8 @@ class TaskTransforms:
                              "entry; a set policy must not depend on the team size)")
         if self.state_normalization and not self.observation_normalization:
             raise ValueError("state_normalization: needs observation_normalization (the one normalization transform)")
+        if self.state_normalization and not self.global_state:
+            raise ValueError("state_normalization: the task has no state without global_state")
         scale = self.reward_scale
         if isinstance(scale, bool) or not isinstance(scale, (int, float)):
             raise TypeError(f"reward_scale: expected a number > 0, got {type(scale).__name__} {scale!r}")
@@ -233,6 +241,8 @@ class TaskTransforms:
         """The transforms for ``env`` and its agent groups ``groups`` (group -> agents); ``layout``: the slot
         layout of its observations, which ``observation_sets`` needs."""
         transforms: list[Transform] = []
+        if not self.global_state and "state" in env.observation_spec.keys():
+            transforms.append(ExcludeTransform("state"))
         if self.observation_sets:
             if layout is None:
                 raise ValueError("observation_sets: needs the observations' slot layout")

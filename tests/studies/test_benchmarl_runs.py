@@ -95,6 +95,7 @@ def test_the_settings_reach_benchmarl_and_the_record(tmp_path, experiment_argume
     (["--model", "deepsets"], "--model: deepsets runs with --settings project"),
     (["--model", "gnn"], "--model: invalid choice"),
     (["--task-set", "train_episode_seconds"], "--task-set: expected KEY=VALUE"),
+    (["--algorithm-set", "=1"], "--algorithm-set: expected KEY=VALUE"),
 ])
 def test_bad_arguments_are_refused_before_anything_runs(tmp_path, argv, message, capsys):
     with pytest.raises(SystemExit):
@@ -252,8 +253,10 @@ def test_task_overrides_reach_the_task_and_the_record(tmp_path, experiment_argum
     out = tmp_path / "run"
     assert benchmarl_runs.main(["--frames", "1024", "--episodes", "1", "--mode", "torque", "--settings", "project",
                                 "--task-set", "train_episode_seconds=2.5", "reward_normalization=false",
-                                "--out", str(out)]) == 0
+                                "--algorithm-set", "orthogonal_init=true", "--out", str(out)]) == 0
     record = json.loads((out / "evaluation.json").read_text())
+    assert experiment_arguments["algorithm_config"].orthogonal_init is True
+    assert record["algorithm_overrides"] == {"orthogonal_init": True}
     assert record["task_config"]["train_episode_seconds"] == 2.5
     assert record["task_config"]["reward_normalization"] is False
     assert not experiment_arguments["task"].transforms().reward_normalization
@@ -269,6 +272,19 @@ def test_bad_task_overrides_are_refused_before_training(tmp_path, overrides, err
     with pytest.raises(error, match=re.escape(message)):
         benchmarl_runs.run("ippo", "planar_square", "torque", None, 0, tmp_path / "run", settings="project",
                            frames=1024, task_overrides=overrides)
+    assert not (tmp_path / "run").exists()
+
+
+@needs_benchmarl
+@pytest.mark.parametrize("overrides, error, message", [
+    ({"orthogonal_initialization": True}, ValueError, "algorithm_overrides: 'orthogonal_initialization' is not a field"),
+    ({"orthogonal_init": "yes"}, TypeError, "orthogonal_init"),
+    ([("orthogonal_init", True)], TypeError, "algorithm_overrides: expected a dict"),
+])
+def test_bad_algorithm_overrides_are_refused_before_training(tmp_path, overrides, error, message):
+    with pytest.raises(error, match=re.escape(message)):
+        benchmarl_runs.run("mappo", "planar_square", "torque", None, 0, tmp_path / "run", settings="project",
+                           frames=1024, algorithm_overrides=overrides)
     assert not (tmp_path / "run").exists()
 
 

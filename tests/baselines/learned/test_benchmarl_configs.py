@@ -49,7 +49,8 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
         assert config["mode"] == mode
         task = EEFormationTrainingTask.PLANAR_SQUARE.get_from_yaml(str(CONFIG_DIR / "task" / "ee_formation_training"
                                                                        / f"{mode}.yaml"))
-        assert task.transforms() == TaskTransforms(observation_normalization=True, reward_normalization=True)
+        assert task.transforms() == TaskTransforms(observation_normalization=True, global_state=False,
+                                                   reward_normalization=True)
     files = sorted(path.relative_to(CONFIG_DIR).as_posix() for path in CONFIG_DIR.rglob("*.yaml"))
     assert files == ["algorithm/ippo.yaml", "algorithm/mappo.yaml", "algorithm/masac.yaml",
                      "experiment/off_policy.yaml", "experiment/on_policy.yaml", "model/layers/deepsets.yaml",
@@ -78,6 +79,9 @@ def test_a_non_boolean_advantage_normalization_is_refused():
     ({"observation_normalization": 1}, "observation_normalization", TypeError),
     ({"state_normalization": 1}, "state_normalization", TypeError),
     ({"state_normalization": True}, "state_normalization: needs observation_normalization", ValueError),
+    ({"global_state": "no"}, "global_state", TypeError),
+    ({"observation_normalization": True, "state_normalization": True, "global_state": False},
+     "state_normalization: the task has no state without global_state", ValueError),
     ({"reward_scale": 0.0}, "reward_scale", ValueError),
     ({"reward_scale": float("inf")}, "reward_scale", ValueError),
     ({"reward_scale": "0.1"}, "reward_scale", TypeError),
@@ -236,6 +240,43 @@ def test_the_shipped_mappo_normalizes_advantages(normalized_experiment):
     assert losses and all(loss.normalize_advantage for loss in losses.values())
 
 
+def test_the_shipped_mappo_gives_each_agent_its_own_value_of_every_agents_observation(normalized_experiment):
+    """One critic per agent (share_param_critic False) on every agent's observation (the task's global_state off):
+    two agents get two values of one joint observation."""
+    from tensordict import TensorDict
+
+    experiment = normalized_experiment
+    (group, agents), = experiment.group_map.items()
+    assert experiment.algorithm_config.share_param_critic is False and experiment.state_spec is None
+    observation = experiment.observation_spec[group, "observation"]
+    batch = TensorDict({group: TensorDict({"observation": torch.randn(3, *observation.shape)}, [3, len(agents)])}, [3])
+    values = experiment.algorithm.get_critic(group)(batch)[group, "state_value"]
+    assert values.shape == (3, len(agents), 1)
+    assert not torch.allclose(values[:, 0], values[:, 1])  # not one value expanded over the agents
+
+
+def test_without_the_global_state_mappo_s_critics_read_every_agents_observation(tmp_path):
+    from benchmarl.experiment import Experiment
+    from tensordict import TensorDict
+
+    from conftest import tiny_benchmarl_config
+
+    model = model_config()
+    model.num_cells = [16, 16]
+    config = {**task_config("torque"), **FAST, "global_state": False, "state_normalization": False}
+    experiment = Experiment(task=EEFormationTrainingTask.PLANAR_SQUARE.get_task(config),
+                            algorithm_config=algorithm_config("mappo"), model_config=model, critic_model_config=model,
+                            seed=0, config=tiny_benchmarl_config(tmp_path))
+    assert experiment.state_spec is None and "state" not in experiment.test_env.observation_spec.keys()
+    (group, agents), = experiment.group_map.items()
+    observation = experiment.observation_spec[group, "observation"]
+    batch = TensorDict({group: TensorDict({"observation": torch.randn(3, *observation.shape)}, [3, len(agents)])}, [3])
+    values = experiment.algorithm.get_critic(group)(batch)[group, "state_value"]
+    assert values.shape == (3, len(agents), 1)
+    first = next(p for name, p in experiment.algorithm.get_critic(group).named_parameters() if name.endswith("weight"))
+    assert first.shape[-1] == len(agents) * observation.shape[-1]  # every agent's observation, concatenated
+
+
 def test_the_shipped_mappo_has_one_learned_scale_per_joint_in_every_state(normalized_experiment):
     """The Gaussian's scale is a parameter (trained: it moved from its initial value), not an actor output: two
     different observations get the same scale, their means differ."""
@@ -254,8 +295,8 @@ def test_the_shipped_mappo_has_one_learned_scale_per_joint_in_every_state(normal
     torch.testing.assert_close(out[group, "scale"][0], out[group, "scale"][1])
 
 
-@pytest.mark.parametrize("algorithm", ["mappo", "ippo"])
-def test_orthogonal_init_starts_the_ppo_from_sb3_s_initialization(algorithm, tmp_path):
+@pytest.mark.parametrize("algorithm, global_state", [("mappo", False), ("mappo", True), ("ippo", False)])
+def test_orthogonal_init_starts_the_ppo_from_sb3_s_initialization(algorithm, global_state, tmp_path):
     """``orthogonal_init: True`` (off in the shipped YAML), before any update: every weight matrix of actor and critic is orthogonal at its gain (sqrt 2 hidden, 0.01
     the actor's output, 1 the critic's), biases 0, so the initial mean action is ~0 for any observation; with
     the option off, BenchMARL's default initialization (a mean action of the size of the observation's)."""
@@ -269,7 +310,8 @@ def test_orthogonal_init_starts_the_ppo_from_sb3_s_initialization(algorithm, tmp
         model.num_cells = [16, 16]
         chosen = algorithm_config(algorithm)
         chosen.orthogonal_init = orthogonal
-        task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({**task_config("torque"), **FAST})
+        task = EEFormationTrainingTask.PLANAR_SQUARE.get_task({**task_config("torque"), **FAST,
+                                                               "global_state": global_state})
         folder = tmp_path / f"orthogonal-{orthogonal}"
         folder.mkdir()
         return Experiment(task=task, algorithm_config=chosen, model_config=model, critic_model_config=model, seed=0,
@@ -283,13 +325,15 @@ def test_orthogonal_init_starts_the_ppo_from_sb3_s_initialization(algorithm, tmp
         return made.algorithm.get_policy_for_loss(group).module[0](batch)[group, "loc"]
 
     made = experiment(True)
-    (group, _), = made.group_map.items()
-    for module, output_gain in ((made.algorithm.get_policy_for_loss(group).module[0].module[0], 0.01),
-                                (made.algorithm.get_critic(group), 1.0)):
+    (group, agents), = made.group_map.items()
+    actor = made.algorithm.get_policy_for_loss(group).module[0].module[0]
+    for module, output_gain in ((actor, 0.01), (made.algorithm.get_critic(group), 1.0)):
         weights = [p for name, p in module.named_parameters() if name.endswith("weight") and p.dim() >= 2]
-        assert len(weights) == 3
+        # MAPPO's critic on the global state: one 3-layer network per agent (share_param_critic False, a
+        # ModuleList), each with its output layer; on the observations: one stacked over the agents
+        assert len(weights) == (3 * len(agents) if global_state and module is not actor else 3)
         for index, weight in enumerate(weights):
-            gain = output_gain if index == 2 else 2 ** 0.5
+            gain = output_gain if index % 3 == 2 else 2 ** 0.5
             matrix = weight.detach().reshape(-1, *weight.shape[-2:])[0]
             gram = matrix @ matrix.T if matrix.shape[0] <= matrix.shape[1] else matrix.T @ matrix
             torch.testing.assert_close(gram, gain ** 2 * torch.eye(gram.shape[0]), atol=1e-5, rtol=1e-5)
@@ -321,6 +365,7 @@ def test_the_export_carries_the_observation_statistics_and_acts_as_the_experimen
     folder = export_benchmarl_policy(experiment, tmp_path / "actor")
     description = json.loads((folder / "actor.json").read_text())
     assert description["transforms"] == {"observation_normalization": True, "state_normalization": False,
+                                         "global_state": False,
                                          "reward_scale": 1.0, "reward_normalization": True,
                                          "reward_normalization_gamma": 0.99, "observation_sets": False}
     loaded = load_benchmarl_policy(folder)
