@@ -164,12 +164,14 @@ def evaluate_policy(scenario: Any, policy: str | PolicySource, episodes: int, se
     return summary
 
 
-def _overrides(pairs: Sequence[str]) -> dict[str, Any]:
+def parse_key_values(pairs: Sequence[str], flag: str = "--set") -> dict[str, Any]:
+    """Command-line ``KEY=VALUE`` pairs as a dict, each VALUE read as JSON (kept as the string where it is not
+    JSON); a pair without ``=`` or without a key raises ``ValueError`` naming ``flag``."""
     overrides = {}
     for pair in pairs:
         key, separator, value = pair.partition("=")
-        if not separator:
-            raise ValueError(f"--set: expected KEY=VALUE (VALUE in JSON), got {pair!r}")
+        if not separator or not key:
+            raise ValueError(f"{flag}: expected KEY=VALUE (VALUE in JSON), got {pair!r}")
         try:
             overrides[key] = json.loads(value)
         except json.JSONDecodeError:
@@ -363,7 +365,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
         if problem:
             parser.error(f"--video: {problem}")
     try:
-        evaluated = _policies(args.policy, parser, _overrides(args.set))
+        evaluated = _policies(args.policy, parser, parse_key_values(args.set))
         run = evaluated[0].run
         if args.scenario is not None:
             scenario = scenario_name = args.scenario

@@ -383,16 +383,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--episodes: expected an integer >= 1")
     if args.model != "mlp" and args.settings != PROJECT_SETTINGS:
         parser.error(f"--model: {args.model} runs with --settings {PROJECT_SETTINGS}")
-    overrides: dict[str, dict[str, Any]] = {"--task-set": {}, "--algorithm-set": {}}
-    for flag, pairs in (("--task-set", args.task_set), ("--algorithm-set", args.algorithm_set)):
-        for pair in pairs:
-            key, separator, value = pair.partition("=")
-            if not separator or not key:
-                parser.error(f"{flag}: expected KEY=VALUE (VALUE in JSON), got {pair!r}")
-            try:
-                overrides[flag][key] = json.loads(value)
-            except json.JSONDecodeError:
-                overrides[flag][key] = value
+    from ee_formation_env.baselines.evaluate import parse_key_values
+
+    try:
+        overrides = {flag: parse_key_values(pairs, flag)
+                     for flag, pairs in (("--task-set", args.task_set), ("--algorithm-set", args.algorithm_set))}
+    except ValueError as error:
+        parser.error(str(error))
     tag = ("" if args.settings == "benchmarl" else f"-{args.settings}") + ("" if args.model == "mlp" else f"-{args.model}")
     out = args.out or Path("results/benchmarl") / f"{args.algorithm}-{args.mode}-{args.scenario}{tag}-seed{args.seed}"
     record = run(args.algorithm, args.scenario, args.mode, args.minutes, args.seed, out, args.episodes,
