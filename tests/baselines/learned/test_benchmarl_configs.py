@@ -240,6 +240,12 @@ def test_the_shipped_mappo_normalizes_advantages(normalized_experiment):
     assert losses and all(loss.normalize_advantage for loss in losses.values())
 
 
+@pytest.mark.parametrize("algorithm", ["mappo", "ippo"])
+def test_the_shipped_ppo_configs_start_from_orthogonal_layers(algorithm):
+    """From scratch in torque mode the first batch must start near zero torque (docs/results.md)."""
+    assert algorithm_config(algorithm).orthogonal_init is True
+
+
 def test_the_shipped_mappo_gives_each_agent_its_own_value_of_every_agents_observation(normalized_experiment):
     """One critic per agent (share_param_critic False) on every agent's observation (the task's global_state off):
     two agents get two values of one joint observation."""
@@ -297,7 +303,7 @@ def test_the_shipped_mappo_has_one_learned_scale_per_joint_in_every_state(normal
 
 @pytest.mark.parametrize("algorithm, global_state", [("mappo", False), ("mappo", True), ("ippo", False)])
 def test_orthogonal_init_starts_the_ppo_from_sb3_s_initialization(algorithm, global_state, tmp_path):
-    """``orthogonal_init: True`` (off in the shipped YAML), before any update: every weight matrix of actor and critic is orthogonal at its gain (sqrt 2 hidden, 0.01
+    """``orthogonal_init: True`` (on in the shipped PPO YAMLs), before any update: every weight matrix of actor and critic is orthogonal at its gain (sqrt 2 hidden, 0.01
     the actor's output, 1 the critic's), biases 0, so the initial mean action is ~0 for any observation; with
     the option off, BenchMARL's default initialization (a mean action of the size of the observation's)."""
     from benchmarl.experiment import Experiment
