@@ -8,6 +8,7 @@
     python -m studies.benchmarl_runs --algorithm ippo --settings project --frames 750000 --task-set train_episode_seconds=30
     python -m studies.benchmarl_runs --algorithm masac --mode torque --minutes 30 --out results/benchmarl/masac
     python -m studies.benchmarl_runs --plot RUN_DIR [RUN_DIR ...] --figure curves.png   (no training)
+    python -m studies.benchmarl_runs --plot RUN_DIR [RUN_DIR ...] --bands --figure curves.png   (median, band over seeds)
 
 Needs the ``torchrl`` extra. The task is
 :class:`~ee_formation_env.baselines.learned.benchmarl_task.EEFormationTrainingTask` with ``--mode`` and its
@@ -289,35 +290,65 @@ def _scalar(run_dir: Path, pattern: str) -> list[float]:
         return [float(row[1]) for row in csv.reader(handle)]
 
 
-def plot_runs(run_dirs: Sequence[Path], figure: Path) -> Path:
+def _run_label(record: Mapping[str, Any]) -> str:
+    """A run's algorithm, mode and settings (the name of its :data:`SETTINGS` entry, or ``custom``)."""
+    saved = record.get("settings", {})
+    if isinstance(saved, str):
+        settings = saved
+    else:
+        used = {**asdict(RunSettings()), **saved}  # a knob a run predates: its default
+        settings = next((name for name, named in SETTINGS.items() if asdict(named) == used), "custom")
+    return f"{record['algorithm']} {record['mode']}, {settings} settings"
+
+
+def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Path:
     """The learning curves of finished runs (their ``curve.csv`` and BenchMARL scalars) against agent steps:
-    the mean reward per agent step, the training formation error and the policy's entropy, one line per run,
-    labelled with its algorithm, settings, seed and held-out success."""
+    the mean reward per agent step, the training formation error and the policy's entropy. One line per run,
+    labelled with its algorithm, settings, seed and held-out success; with ``bands``, one line per
+    algorithm/mode/settings, the median over its runs (seeds) with the band from their smallest to their
+    largest value, labelled with the seeds and each one's held-out success (runs of one group are cut to
+    the shortest; each run's values first averaged over a running window of 2 % of its batches)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
     from studies._common import save_figure
 
-    fig, axes = plt.subplots(1, 1 + len(CURVE_SCALARS), figsize=(5 * (1 + len(CURVE_SCALARS)), 3.8))
+    groups: dict[str, list[tuple[dict[str, Any], list[float], list[list[float]]]]] = {}
     for run_dir in run_dirs:
         record = json.loads((run_dir / "evaluation.json").read_text(encoding="utf-8"))
         with (run_dir / "curve.csv").open(newline="", encoding="utf-8") as handle:
             rows = list(csv.DictReader(handle))
         steps = [int(row["agent_steps"]) / 1e6 for row in rows]
-        saved = record.get("settings", {})
-        if isinstance(saved, str):
-            settings = saved
-        else:
-            used = {**asdict(RunSettings()), **saved}  # a knob a run predates: its default
-            settings = next((name for name, named in SETTINGS.items() if asdict(named) == used), "custom")
-        label = (f"{record['algorithm']} {record['mode']}, {settings} settings, seed {record['seed']}: "
-                 f"{record['evaluation']['success_rate']:.0%} success")
-        axes[0].plot(steps, [float(row["mean_reward_per_step"]) for row in rows], label=label)
-        for axis, (pattern, _, _) in zip(axes[1:], CURVE_SCALARS):
-            values = _scalar(run_dir, pattern)[:len(steps)]
-            axis.plot(steps[:len(values)], values, label=label)
+        curves = [[float(row["mean_reward_per_step"]) for row in rows]]
+        curves += [_scalar(run_dir, pattern)[:len(steps)] for pattern, _, _ in CURVE_SCALARS]
+        key = _run_label(record) if bands else str(run_dir)
+        groups.setdefault(key, []).append((record, steps, curves))
+    fig, axes = plt.subplots(1, 1 + len(CURVE_SCALARS), figsize=(5 * (1 + len(CURVE_SCALARS)), 3.8))
+    for key, runs in groups.items():
+        if not bands:
+            ((record, steps, curves),) = runs
+            label = (f"{_run_label(record)}, seed {record['seed']}: "
+                     f"{record['evaluation']['success_rate']:.0%} success")
+            for axis, values in zip(axes, curves):
+                axis.plot(steps[:len(values)], values, label=label)
+            continue
+        successes = ", ".join(f"{run[0]['seed']}: {run[0]['evaluation']['success_rate']:.0%}"
+                              for run in sorted(runs, key=lambda run: run[0]["seed"]))
+        label = f"{key}, {len(runs)} seeds (success {successes})"
+        for index, axis in enumerate(axes):
+            length = min(len(curves[index]) for _, _, curves in runs)
+            if length == 0:
+                continue
+            values = np.array([curves[index][:length] for _, _, curves in runs])
+            window = max(1, length // 50)  # batch-to-batch noise would hide the band: a running mean first
+            kernel = np.ones(window) / window
+            values = np.array([np.convolve(row, kernel, mode="valid") for row in values])
+            steps = runs[0][1][window - 1:length]
+            line, = axis.plot(steps, np.median(values, axis=0), label=label)
+            axis.fill_between(steps, values.min(axis=0), values.max(axis=0), color=line.get_color(), alpha=0.2)
     axes[0].set(ylabel="mean reward per agent step")
     for axis, (_, title, log) in zip(axes[1:], CURVE_SCALARS):
         axis.set(ylabel=title, yscale="log" if log else "linear")
@@ -362,12 +393,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--plot", type=Path, nargs="+", default=None, metavar="RUN_DIR",
                         help="no training: draw the learning curves of these finished runs into --figure")
     parser.add_argument("--figure", type=Path, default=Path("results/benchmarl/curves.png"), help="with --plot")
+    parser.add_argument("--bands", action="store_true",
+                        help="with --plot: one median curve per algorithm/mode/settings, the band over its seeds")
     args = parser.parse_args(argv)
     if args.plot is not None:
         missing = [str(d) for d in args.plot if not (d / "evaluation.json").is_file() or not (d / "curve.csv").is_file()]
         if missing:
             parser.error(f"--plot: not a finished run (no evaluation.json and curve.csv): {missing}")
-        print(f"wrote {plot_runs(args.plot, args.figure)}")
+        print(f"wrote {plot_runs(args.plot, args.figure, bands=args.bands)}")
         return 0
     from ee_formation_env.builtin import BUILTIN_SCENARIOS
 

@@ -156,15 +156,16 @@ def test_the_set_method_is_evaluated_at_every_team_size_and_records_its_model_fi
     assert json.dumps(files) in json.dumps(cell) and cell["budget"]["model"] == "deepsets"
 
 
-def _finished_run(folder, settings=None):
+def _finished_run(folder, settings=None, seed=0, scalar_rows=2):
     scalars = folder / "exp" / "exp" / "scalars"
     scalars.mkdir(parents=True)
-    (scalars / "collection_planar_2link_info_formation_error.csv").write_text("0,10.0\n1,5.0\n")
+    (scalars / "collection_planar_2link_info_formation_error.csv").write_text("".join(
+        f"{k},{10.0 / (k + 1)}\n" for k in range(scalar_rows)))
     (scalars / "train_planar_2link_entropy.csv").write_text("0,1.0\n1,0.5\n")
     (scalars / "train_planar_2link_loss_entropy.csv").write_text("0,-9.0\n1,-9.0\n")
     (folder / "curve.csv").write_text("frames,agent_steps,mean_reward_per_step,wall_seconds\n"
                                       "8000,32000,0.1,3.0\n16000,64000,0.2,6.0\n")
-    record = {"algorithm": "mappo", "mode": "torque", "seed": 0, "evaluation": {"success_rate": 0.5}}
+    record = {"algorithm": "mappo", "mode": "torque", "seed": seed, "evaluation": {"success_rate": 0.5}}
     if settings is not None:
         record["settings"] = settings
     (folder / "evaluation.json").write_text(json.dumps(record))
@@ -181,6 +182,11 @@ def test_plot_draws_finished_runs_without_training(tmp_path, capsys):
     figure = tmp_path / "curves.png"
     assert benchmarl_runs.main(["--plot", str(tmp_path / "a"), str(tmp_path / "b"), "--figure", str(figure)]) == 0
     assert figure.stat().st_size > 10_000
+    _finished_run(tmp_path / "c", seed=1, scalar_rows=1)  # a group's runs of different lengths: cut to the shortest
+    banded = tmp_path / "bands.png"
+    assert benchmarl_runs.main(["--plot", str(tmp_path / "a"), str(tmp_path / "c"), str(tmp_path / "b"), "--bands",
+                                "--figure", str(banded)]) == 0
+    assert banded.stat().st_size > 10_000
     with pytest.raises(SystemExit):
         benchmarl_runs.main(["--plot", str(tmp_path / "missing"), "--figure", str(figure)])
     assert "--plot: not a finished run" in capsys.readouterr().err
