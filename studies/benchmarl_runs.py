@@ -335,9 +335,9 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Pa
             for axis, values in zip(axes, curves):
                 axis.plot(steps[:len(values)], values, label=label)
             continue
-        successes = ", ".join(f"{run[0]['seed']}: {run[0]['evaluation']['success_rate']:.0%}"
-                              for run in sorted(runs, key=lambda run: run[0]["seed"]))
-        label = f"{key}, {len(runs)} seeds (success {successes})"
+        ordered = sorted(runs, key=lambda run: run[0]["seed"])
+        label = (f"{key}: seeds {', '.join(str(run[0]['seed']) for run in ordered)}, success "
+                 f"{' / '.join(format(100 * run[0]['evaluation']['success_rate'], '.0f') for run in ordered)} %")
         for index, axis in enumerate(axes):
             length = min(len(curves[index]) for _, _, curves in runs)
             if length == 0:
@@ -354,7 +354,7 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Pa
         axis.set(ylabel=title, yscale="log" if log else "linear")
     for axis in axes:
         axis.set(xlabel="agent steps (millions)")
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=6, loc="lower right")
     figure.parent.mkdir(parents=True, exist_ok=True)
     return save_figure(fig, figure)
 
