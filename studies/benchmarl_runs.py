@@ -324,7 +324,7 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Pa
         steps = [int(row["agent_steps"]) / 1e6 for row in rows]
         curves = [[float(row["mean_reward_per_step"]) for row in rows]]
         curves += [_scalar(run_dir, pattern)[:len(steps)] for pattern, _, _ in CURVE_SCALARS]
-        key = _run_label(record) if bands else str(run_dir)
+        key = _run_label(record) if bands else str(len(groups))  # a run given twice: drawn twice
         groups.setdefault(key, []).append((record, steps, curves))
     fig, axes = plt.subplots(1, 1 + len(CURVE_SCALARS), figsize=(5 * (1 + len(CURVE_SCALARS)), 3.8))
     for key, runs in groups.items():
@@ -396,6 +396,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--bands", action="store_true",
                         help="with --plot: one median curve per algorithm/mode/settings, the band over its seeds")
     args = parser.parse_args(argv)
+    if args.bands and args.plot is None:
+        parser.error("--bands: draws finished runs, so only with --plot RUN_DIR ...")
     if args.plot is not None:
         missing = [str(d) for d in args.plot if not (d / "evaluation.json").is_file() or not (d / "curve.csv").is_file()]
         if missing:

@@ -188,6 +188,9 @@ def test_plot_draws_finished_runs_without_training(tmp_path, capsys):
                                 "--figure", str(banded)]) == 0
     assert banded.stat().st_size > 10_000
     with pytest.raises(SystemExit):
+        benchmarl_runs.main(["--bands", "--figure", str(banded)])
+    assert "--bands: draws finished runs" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
         benchmarl_runs.main(["--plot", str(tmp_path / "missing"), "--figure", str(figure)])
     assert "--plot: not a finished run" in capsys.readouterr().err
 
