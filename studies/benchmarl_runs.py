@@ -301,6 +301,21 @@ def _run_label(record: Mapping[str, Any]) -> str:
     return f"{record['algorithm']} {record['mode']}, {settings} settings"
 
 
+def seed_band(steps: Sequence[float], curves: Sequence[Sequence[float]]) -> tuple[Any, Any, Any, Any] | None:
+    """One quantity of several runs (seeds) as (steps, median, smallest, largest) over the runs, each run first
+    averaged over a running window of 2 % of its values (batch-to-batch noise would hide the band) and all cut
+    to the shortest; None when a run has no values."""
+    import numpy as np
+
+    length = min(len(curve) for curve in curves)
+    if length == 0:
+        return None
+    window = max(1, length // 50)
+    kernel = np.ones(window) / window
+    values = np.array([np.convolve(np.asarray(curve[:length], dtype=float), kernel, mode="valid") for curve in curves])
+    return np.asarray(steps[window - 1:length]), np.median(values, axis=0), values.min(axis=0), values.max(axis=0)
+
+
 def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Path:
     """The learning curves of finished runs (their ``curve.csv`` and BenchMARL scalars) against agent steps:
     the mean reward per agent step, the training formation error and the policy's entropy. One line per run,
@@ -312,7 +327,6 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Pa
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     from studies._common import save_figure
 
@@ -339,16 +353,12 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Pa
         label = (f"{key}: seeds {', '.join(str(run[0]['seed']) for run in ordered)}, success "
                  f"{' / '.join(format(100 * run[0]['evaluation']['success_rate'], '.0f') for run in ordered)} %")
         for index, axis in enumerate(axes):
-            length = min(len(curves[index]) for _, _, curves in runs)
-            if length == 0:
+            banded = seed_band(runs[0][1], [curves[index] for _, _, curves in runs])
+            if banded is None:
                 continue
-            values = np.array([curves[index][:length] for _, _, curves in runs])
-            window = max(1, length // 50)  # batch-to-batch noise would hide the band: a running mean first
-            kernel = np.ones(window) / window
-            values = np.array([np.convolve(row, kernel, mode="valid") for row in values])
-            steps = runs[0][1][window - 1:length]
-            line, = axis.plot(steps, np.median(values, axis=0), label=label)
-            axis.fill_between(steps, values.min(axis=0), values.max(axis=0), color=line.get_color(), alpha=0.2)
+            steps, median, low, high = banded
+            line, = axis.plot(steps, median, label=label)
+            axis.fill_between(steps, low, high, color=line.get_color(), alpha=0.2)
     axes[0].set(ylabel="mean reward per agent step")
     for axis, (_, title, log) in zip(axes[1:], CURVE_SCALARS):
         axis.set(ylabel=title, yscale="log" if log else "linear")

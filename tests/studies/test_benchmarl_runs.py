@@ -8,6 +8,7 @@ import json
 import importlib.util
 import re
 
+import numpy as np
 import pytest
 
 from studies import benchmarl_runs
@@ -193,6 +194,20 @@ def test_plot_draws_finished_runs_without_training(tmp_path, capsys):
     with pytest.raises(SystemExit):
         benchmarl_runs.main(["--plot", str(tmp_path / "missing"), "--figure", str(figure)])
     assert "--plot: not a finished run" in capsys.readouterr().err
+
+
+def test_the_seed_band_is_the_median_and_range_of_the_smoothed_runs_cut_to_the_shortest():
+    steps, median, low, high = benchmarl_runs.seed_band([1, 2, 3], [[1.0, 5.0, 9.0], [3.0, 1.0], [2.0, 3.0, 4.0]])
+    np.testing.assert_array_equal(steps, [1, 2])
+    np.testing.assert_array_equal(median, [2.0, 3.0])
+    np.testing.assert_array_equal(low, [1.0, 1.0])
+    np.testing.assert_array_equal(high, [3.0, 5.0])
+    # 100 values: a running mean over 2 of them, one step fewer
+    steps, median, low, high = benchmarl_runs.seed_band(list(range(100)), [list(range(100)), [0.0] * 100])
+    np.testing.assert_array_equal(steps, list(range(1, 100)))
+    np.testing.assert_allclose(high, np.arange(99) + 0.5)
+    np.testing.assert_allclose(median, (np.arange(99) + 0.5) / 2)
+    assert benchmarl_runs.seed_band([1], [[1.0], []]) is None
 
 
 def test_the_wall_clock_callback_decays_the_learning_rate_and_stops(monkeypatch):
