@@ -136,6 +136,9 @@ METHODS: dict[str, Method] = {
     # scenario's 100, for tasks whose starts lie beyond 100 (planar_random's: a median of 470).
     "position-ppo-wide-reward": Method("position-ppo-wide-reward", train_flags=(
         "--mode", "position", "--reward-error-ceiling", "10000", "--max-train-seconds", "1800")),
+    # The same reward in torque mode, the convention that learns every planar built-in with a fixed shape.
+    "torque-ppo-wide-reward": Method("torque-ppo-wide-reward", train_flags=(
+        "--mode", "torque", "--reward-error-ceiling", "10000", "--max-train-seconds", "1800")),
     # For starts far from the formation: that reward and targets over the whole turn (joint reach pi rad), since
     # a draw of planar_random needs its joints turned by 1.6-7 rad to reach its shape (the law's final postures).
     "position-ppo-far": Method("position-ppo-far", train_flags=(

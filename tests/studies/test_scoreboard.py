@@ -3,6 +3,7 @@ bootstrap intervals, the merge into the committed board, the quick mode end to e
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -151,6 +152,27 @@ def test_an_invariant_method_runs_on_arms_turning_about_their_base_z_only(name):
     assert "base z axis" in method.unavailable("spatial_tetrahedron")  # the PERA arm's first joint is not
     config = TrainConfig.from_args(list(method.train_flags))
     assert (config.mode, config.obs_features) == (name.split("-")[0], "invariant")
+
+
+@pytest.mark.parametrize("name", [name for name, method in scoreboard_methods.METHODS.items()
+                                  if method.learned and method.benchmarl is None])
+def test_every_sb3_method_is_a_valid_train_py_configuration(name):
+    """A mistyped flag in a method's definition fails here, not after a board's earlier cells have trained."""
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    flags = scoreboard_methods.METHODS[name].train_flags
+    config = TrainConfig.from_args(list(flags))
+    assert config.mode == flags[flags.index("--mode") + 1]
+
+
+def test_the_wide_reward_methods_widen_the_training_reward_only():
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    for name, mode in (("torque-ppo-wide-reward", "torque"), ("position-ppo-wide-reward", "position")):
+        wide = TrainConfig.from_args(list(scoreboard_methods.METHODS[name].train_flags))
+        plain = TrainConfig.from_args(list(scoreboard_methods.METHODS[f"{mode}-ppo"].train_flags))
+        assert wide != plain
+        assert dataclasses.replace(wide, reward_error_ceiling=plain.reward_error_ceiling) == plain
 
 
 def test_benchmarl_methods_are_skipped_without_the_torchrl_extra(tmp_path, capsys):
