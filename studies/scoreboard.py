@@ -4,8 +4,8 @@
 then aggregates every cached cell (of this and earlier invocations) into ``results/scoreboard/scoreboard.json`` and a markdown table;
 ``--docs`` also merges those rows into the committed board (``docs/results/scoreboard.json``: a row
 recomputed here replaces its committed one, the others stay, and none is replaced by one of fewer episodes or
-seeds unless ``--replace-smaller``; :func:`merged_rows`) and regenerates the tables of ``docs/scoreboard.md``
-from it. A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the command resumes
+seeds unless ``--replace-smaller``; :func:`merged_rows`), regenerates the tables of ``docs/scoreboard.md``
+from it and archives the cells behind the merged rows in ``docs/results/cells/`` (:func:`archive_cells`). A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the command resumes
 where it stopped, and the board can be filled over several sessions (a learned cell's training run under
 ``<out>/runs/`` resumes from its newest checkpoint). Each cell carries the schema, code version and protocol it
 was computed with; one computed otherwise, or a corrupt file, is recomputed, never aggregated silently
@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -76,8 +77,13 @@ def cached_records(board: Board, progress: Callable[[str], None] = print) -> lis
     """Every complete cell under ``board.out`` (whichever invocation ran it), in board order
     (:func:`_board_order`), then seeds. A cell this invocation did not recompute that is corrupt, or stale
     (another schema, code version or protocol; kept with ``board.accept_stale``), is left out, each in one line."""
+    return [record for _, record in aggregated_cells(board, progress)]
+
+
+def aggregated_cells(board: Board, progress: Callable[[str], None] = print) -> list[tuple[Path, dict[str, Any]]]:
+    """The cells of :func:`cached_records`, each with its file."""
     places = _board_places()
-    records = []
+    cells = []
     for path in sorted((board.out / "cells").rglob("*.json")):
         record, problem = read_cell(path)
         if record is None:
@@ -90,9 +96,22 @@ def cached_records(board: Board, progress: Callable[[str], None] = print) -> lis
             progress(f"left out {path}: {stale}; rerun its scenario and method to recompute it, or "
                      "--accept-stale-cells to aggregate it")
             continue
-        records.append(record)
+        cells.append((path, record))
     order = _board_order(places)
-    return sorted(records, key=lambda r: (*order(r), -1 if r["seed"] is None else r["seed"]))
+    return sorted(cells, key=lambda cell: (*order(cell[1]), -1 if cell[1]["seed"] is None else cell[1]["seed"]))
+
+
+def archive_cells(cells: Sequence[tuple[Path, dict[str, Any]]], cells_root: Path, archive: Path) -> None:
+    """Copy ``cells`` (files under ``cells_root``) into ``archive`` in the same layout, the folder of each of their
+    training scenario x method replaced whole, so that it holds exactly the cells behind the rows last merged
+    from it. Copied into another board's ``<out>/cells``, the archive lets a committed row gain training seeds on
+    a fresh clone without training its archived seeds again (docs/scoreboard.md, "The cells behind the board")."""
+    for scenario, method in {path.relative_to(cells_root).parts[:2] for path, _ in cells}:
+        shutil.rmtree(archive / scenario / method, ignore_errors=True)
+    for path, _ in cells:
+        target = archive / path.relative_to(cells_root)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, target)
 
 
 def merged_rows(committed: Sequence[dict[str, Any]], fresh: Sequence[dict[str, Any]],
@@ -132,6 +151,7 @@ def _smaller(row: dict[str, Any], committed: dict[str, Any]) -> bool:
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "scoreboard.md"
 DOCS_JSON = DOCS_PAGE.parent / "results" / "scoreboard.json"
 DOCS_FIGURE = DOCS_PAGE.parent / "figures" / "scoreboard_team_size.png"  # the team-size split's success vs N
+DOCS_CELLS = DOCS_JSON.parent / "cells"  # the cells behind the rows --docs merged (archive_cells)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -196,16 +216,18 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"model is saved in {stopped.run_dir}. The same command resumes the board: finished cells are kept, "
               "and this cell continues from its newest checkpoint.", file=sys.stderr)
         return stopped.exit_code
-    board_rows = rows(cached_records(board))  # every cell ever completed here, not only this invocation's
+    board_cells = aggregated_cells(board)  # every cell ever completed here, not only this invocation's
+    board_rows = rows([record for _, record in board_cells])
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
     figures = [team_size_figure(board_rows, out / "team_size_success.png")]
     if args.docs:  # merged into the committed board: its other rows' cells may be on another machine
         committed = json.loads(DOCS_JSON.read_text(encoding="utf-8"))["rows"] if DOCS_JSON.is_file() else []
         merged = merged_rows(committed, board_rows, args.replace_smaller)
         write_outputs(merged, DOCS_JSON, generated_page=DOCS_PAGE)
+        archive_cells(board_cells, out / "cells", DOCS_CELLS)
         figures.append(team_size_figure(merged, DOCS_FIGURE))
     print(format_board(board_rows))
-    written = ([out / "scoreboard.json", out / "scoreboard.md"] + ([DOCS_JSON, DOCS_PAGE] if args.docs else [])
+    written = ([out / "scoreboard.json", out / "scoreboard.md"] + ([DOCS_JSON, DOCS_PAGE, DOCS_CELLS] if args.docs else [])
                + [figure for figure in figures if figure is not None])
     print(f"wrote {', '.join(map(str, written))}")
     if not_done:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -244,6 +245,36 @@ def test_docs_keeps_the_committed_board_when_refused_and_replaces_it_with_replac
     (row,) = json.loads(board.read_text())["rows"]
     assert row["eval_seeds"] == [10_000] and row["metrics"]["settling_time_or_limit"]["mean"] == 3.0
     assert "old" not in page.read_text()
+
+
+def test_docs_archives_the_cells_behind_its_rows_and_a_row_gains_seeds_from_the_archive(tmp_path, monkeypatch):
+    """Machine A merges seeds 0, 1 and archives their cells; machine B (a fresh board) copies the archive into its
+    cells, trains seed 2 only, and merges a row of three seeds; the archive then holds exactly those three."""
+    page, board, archive = tmp_path / "scoreboard.md", tmp_path / "scoreboard.json", tmp_path / "cells-archive"
+    page.write_text("# Scoreboard\n\n<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
+    monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
+    monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
+    monkeypatch.setattr(scoreboard, "DOCS_CELLS", archive)
+    trained = []
+
+    def run_cell(board_, scenario, method, seed):
+        trained.append(seed)
+        return _record(scenario, method.name, seed, 1.0 + seed)
+
+    monkeypatch.setattr(scoreboard_methods, "run_cell", run_cell)
+    argv = ["--scenarios", "planar_square", "--methods", "residual-ppo", "--episodes", "1", "--no-test-sets", "--docs"]
+    assert scoreboard.main([*argv, "--seeds", "0", "1", "--out", str(tmp_path / "a")]) == 0
+    folder = archive / "planar_square" / "residual-ppo"
+    assert sorted(path.name for path in folder.iterdir()) == ["seed-0.json", "seed-1.json"]
+    (folder / "seed-9.json").write_text("{}")  # a cell of a row no longer merged: gone after the next merge
+
+    shutil.copytree(archive, tmp_path / "b" / "cells")
+    trained.clear()
+    assert scoreboard.main([*argv, "--seeds", "0", "1", "2", "--out", str(tmp_path / "b")]) == 0
+    assert trained == [2]
+    (row,) = json.loads(board.read_text())["rows"]
+    assert row["seeds"] == [0, 1, 2] and row["metrics"]["settling_time_or_limit"]["per_seed"] == [1.0, 2.0, 3.0]
+    assert sorted(path.name for path in folder.iterdir()) == ["seed-0.json", "seed-1.json", "seed-2.json"]
 
 
 def _fabricate(path, **changes):
