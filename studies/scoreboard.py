@@ -5,9 +5,10 @@ then aggregates every cached cell (of this and earlier invocations) into ``resul
 ``--docs`` also merges those rows into the committed board (``docs/results/scoreboard.json``: a row
 recomputed here replaces its committed one, the others stay, and none is replaced by one of fewer episodes or
 seeds unless ``--replace-smaller``; :func:`merged_rows`), regenerates the tables of ``docs/scoreboard.md``
-from it and archives the cells behind the merged rows in ``docs/results/cells/`` (:func:`archive_cells`). A cell is a JSON file under ``<out>/cells/`` written when the cell is complete, so the command resumes
-where it stopped, and the board can be filled over several sessions (a learned cell's training run under
-``<out>/runs/`` resumes from its newest checkpoint). Each cell carries the schema, code version and protocol it
+from it and archives the cells behind the merged rows in ``docs/results/cells/`` (:func:`archive_cells`). A cell
+is a JSON file under ``<out>/cells/`` written when the cell is complete, so the command resumes where it
+stopped, and the board can be filled over several sessions (a learned cell's training run under ``<out>/runs/``
+resumes from its newest checkpoint). Each cell carries the schema, code version and protocol it
 was computed with; one computed otherwise, or a corrupt file, is recomputed, never aggregated silently
 (:mod:`studies.scoreboard_cells`). ``--quick``: tiny budgets and a few
 short episodes, into a temporary folder by default; never writes into ``docs/``. ``--address``: the missing
@@ -227,7 +228,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         archive_cells(board_cells, out / "cells", DOCS_CELLS)
         figures.append(team_size_figure(merged, DOCS_FIGURE))
     print(format_board(board_rows))
-    written = ([out / "scoreboard.json", out / "scoreboard.md"] + ([DOCS_JSON, DOCS_PAGE, DOCS_CELLS] if args.docs else [])
+    written = ([out / "scoreboard.json", out / "scoreboard.md"]
+               + ([DOCS_JSON, DOCS_PAGE, DOCS_CELLS] if args.docs else [])
                + [figure for figure in figures if figure is not None])
     print(f"wrote {', '.join(map(str, written))}")
     if not_done:
