@@ -79,6 +79,25 @@ def test_committed_board_matches_its_page():
     assert scoreboard.format_board(rows).strip() in page
 
 
+def test_the_archived_cells_are_the_committed_rows_cells():
+    """Each scenario x method folder of docs/results/cells holds the training cells of the committed row: its
+    seeds, and each seed's success as the row reports it."""
+    archive = scoreboard.DOCS_CELLS
+    if not archive.is_dir():
+        pytest.skip("no archived cells yet")
+    rows = {(row["scenario"], row["method"]): row
+            for row in json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"] if row["split"] == "train"}
+    folders = [folder for scenario in archive.iterdir() for folder in scenario.iterdir()]
+    assert folders
+    for folder in folders:
+        cells = [json.loads(path.read_text(encoding="utf-8")) for path in sorted(folder.glob("*.json"))]
+        row = rows[(folder.parent.name, folder.name)]
+        assert sorted(cell["seed"] for cell in cells if cell["seed"] is not None) == row["seeds"]
+        by_seed = {cell["seed"]: np.mean([episode["success"] for episode in cell["episodes"]]) for cell in cells}
+        seeds = row["seeds"] or [None]  # a reference: one cell, no training seed
+        assert [by_seed[seed] for seed in seeds] == pytest.approx(row["metrics"]["success"]["per_seed"])
+
+
 def test_the_board_aggregates_every_cached_cell_in_board_order(tmp_path, capsys):
     base = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--episodes", "1", "--no-test-sets"]
     assert scoreboard.main([*base, "--methods", "adaptive_jacobian"]) == 0
@@ -233,6 +252,7 @@ def test_docs_keeps_the_committed_board_when_refused_and_replaces_it_with_replac
     board.write_text(json.dumps({"rows": committed}))
     monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
     monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
+    monkeypatch.setattr(scoreboard, "DOCS_CELLS", tmp_path / "cells-archive")
     monkeypatch.setattr(scoreboard_methods, "run_cell", lambda *args: _record("planar_square", "gradient", None, 3.0))
     argv = ["--out", str(tmp_path / "out"), "--scenarios", "planar_square", "--methods", "gradient", "--episodes", "1",
             "--no-test-sets", "--docs"]
