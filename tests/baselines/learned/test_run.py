@@ -172,13 +172,22 @@ def test_imitation_options_are_validated(argv, match, capsys):
 # in this process: with the flat defaults (--recipe none) as training computed them before the training code was
 # reorganized, and with planar_square's recipe (residual on gradient; a torque run takes no residual recipe). Any
 # change of the training env, the PPO settings or the model changes them.
-# With torch's kernels pinned as tests/conftest.py pins them (MKL's vendor-independent branch), so that every
-# x86 machine gives these bits; re-pinned for that pin alone, the training code unchanged.
-PINNED_TRAINING_DIGESTS = {("residual", "none"): "601df0ac22a86863", ("torque", "none"): "5ca4e9e2475de1d8",
-                           ("residual", "board"): "2bd4cdf70601cd4f", ("torque", "board"): "5ca4e9e2475de1d8"}
+# With torch's kernels pinned as tests/conftest.py pins them (MKL's vendor-independent branch). That pin gives one
+# set of bits on the machines it was measured on (an Intel Xeon with AVX-512 among them) and another on an AMD EPYC
+# with AVX-512, from the tree before this file's change as from this one (docs/physics.md, "The same bits on another
+# machine"): a machine passes with the digests of one kernel family; any change of the training code changes them all.
+PINNED_TRAINING_DIGESTS = {
+    "MKL compatible branch, Intel Xeon AVX-512": {
+        ("residual", "none"): "601df0ac22a86863", ("torque", "none"): "5ca4e9e2475de1d8",
+        ("residual", "board"): "2bd4cdf70601cd4f", ("torque", "board"): "5ca4e9e2475de1d8"},
+    "MKL compatible branch, AMD EPYC AVX-512": {
+        ("residual", "none"): "f1dd1817ea2149b8", ("torque", "none"): "356d49e55795232b",
+        ("residual", "board"): "4dca90f7dbc8a3d9", ("torque", "board"): "356d49e55795232b"},
+}
 
 
-@pytest.mark.parametrize("mode, recipe", list(PINNED_TRAINING_DIGESTS))
+@pytest.mark.parametrize("mode, recipe", [("residual", "none"), ("torque", "none"), ("residual", "board"),
+                                          ("torque", "board")])
 def test_three_ppo_updates_give_the_pinned_parameters(mode, recipe):
     import hashlib
 
@@ -192,7 +201,8 @@ def test_three_ppo_updates_give_the_pinned_parameters(mode, recipe):
             digest.update(name.encode())
             digest.update(value.detach().cpu().numpy().tobytes())
         assert model.num_timesteps == 3 * 4096
-        assert digest.hexdigest()[:16] == PINNED_TRAINING_DIGESTS[mode, recipe]
+        families = {digests[mode, recipe]: family for family, digests in PINNED_TRAINING_DIGESTS.items()}
+        assert digest.hexdigest()[:16] in families, f"no kernel family gives {digest.hexdigest()[:16]}: {families}"
     finally:
         model.get_env().close()
 
