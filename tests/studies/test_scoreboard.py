@@ -80,22 +80,19 @@ def test_committed_board_matches_its_page():
 
 
 def test_the_archived_cells_are_the_committed_rows_cells():
-    """Each scenario x method folder of docs/results/cells holds the training cells of the committed row: its
-    seeds, and each seed's success as the row reports it."""
+    """The rows that docs/results/cells aggregates to are committed rows: the same seeds, and each seed's success
+    as the committed row reports it (the training split, a distribution's train and test sets alike)."""
     archive = scoreboard.DOCS_CELLS
     if not archive.is_dir():
         pytest.skip("no archived cells yet")
-    rows = {(row["scenario"], row["method"]): row
-            for row in json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"] if row["split"] == "train"}
-    folders = [folder for scenario in archive.iterdir() for folder in scenario.iterdir()]
-    assert folders
-    for folder in folders:
-        cells = [json.loads(path.read_text(encoding="utf-8")) for path in sorted(folder.glob("*.json"))]
-        row = rows[(folder.parent.name, folder.name)]
-        assert sorted(cell["seed"] for cell in cells if cell["seed"] is not None) == row["seeds"]
-        by_seed = {cell["seed"]: np.mean([episode["success"] for episode in cell["episodes"]]) for cell in cells}
-        seeds = row["seeds"] or [None]  # a reference: one cell, no training seed
-        assert [by_seed[seed] for seed in seeds] == pytest.approx(row["metrics"]["success"]["per_seed"])
+    committed = {(row["scenario"], row["split"], row["method"]): row
+                 for row in json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"]}
+    archived = scoreboard.rows([json.loads(path.read_text(encoding="utf-8")) for path in sorted(archive.rglob("*.json"))])
+    assert archived
+    for row in archived:
+        row_committed = committed[row["scenario"], row["split"], row["method"]]
+        assert row["seeds"] == row_committed["seeds"]
+        assert row["metrics"]["success"]["per_seed"] == pytest.approx(row_committed["metrics"]["success"]["per_seed"])
 
 
 def test_the_board_aggregates_every_cached_cell_in_board_order(tmp_path, capsys):
