@@ -74,15 +74,10 @@ def _board_order(places: Sequence[tuple[str, str]]) -> Callable[[dict[str, Any]]
     return lambda item: (places.index(_place(item)), item.get("split") == "test", methods.index(item["method"]))
 
 
-def cached_records(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Every complete cell under ``board.out`` (whichever invocation ran it), in board order
+def aggregated_cells(board: Board, progress: Callable[[str], None] = print) -> list[tuple[Path, dict[str, Any]]]:
+    """Every complete cell under ``board.out`` (whichever invocation ran it) with its file, in board order
     (:func:`_board_order`), then seeds. A cell this invocation did not recompute that is corrupt, or stale
     (another schema, code version or protocol; kept with ``board.accept_stale``), is left out, each in one line."""
-    return [record for _, record in aggregated_cells(board, progress)]
-
-
-def aggregated_cells(board: Board, progress: Callable[[str], None] = print) -> list[tuple[Path, dict[str, Any]]]:
-    """The cells of :func:`cached_records`, each with its file."""
     places = _board_places()
     cells = []
     for path in sorted((board.out / "cells").rglob("*.json")):
