@@ -131,23 +131,24 @@ class FormationIppo(_FormationPPO, Ippo):
     """BenchMARL's IPPO with the options of :class:`_FormationPPO`."""
 
 
-def _check_flags(config: Any) -> None:
-    for name in ("normalize_advantage", "state_independent_scale", "orthogonal_init"):
-        if not isinstance(getattr(config, name), bool):
-            raise TypeError(f"{name}: expected True or False, got {getattr(config, name)!r}")
-
-
 @dataclass
-class FormationMappoConfig(MappoConfig):
-    """:class:`~benchmarl.algorithms.MappoConfig` plus ``normalize_advantage``, ``state_independent_scale`` and
-    ``orthogonal_init``."""
+class _FormationPPOOptions:
+    """The fields of :class:`_FormationPPO`'s options, each True or False; a base listed before BenchMARL's config
+    class, so that they follow its fields (which have no defaults) and its YAML may set them."""
 
     normalize_advantage: bool = True
     state_independent_scale: bool = True
     orthogonal_init: bool = False
 
     def __post_init__(self) -> None:
-        _check_flags(self)
+        for name in ("normalize_advantage", "state_independent_scale", "orthogonal_init"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+
+
+@dataclass
+class FormationMappoConfig(_FormationPPOOptions, MappoConfig):
+    """:class:`~benchmarl.algorithms.MappoConfig` plus the options of :class:`_FormationPPOOptions`."""
 
     @staticmethod
     def associated_class() -> Type[Mappo]:
@@ -155,16 +156,8 @@ class FormationMappoConfig(MappoConfig):
 
 
 @dataclass
-class FormationIppoConfig(IppoConfig):
-    """:class:`~benchmarl.algorithms.IppoConfig` plus ``normalize_advantage``, ``state_independent_scale`` and
-    ``orthogonal_init``."""
-
-    normalize_advantage: bool = True
-    state_independent_scale: bool = True
-    orthogonal_init: bool = False
-
-    def __post_init__(self) -> None:
-        _check_flags(self)
+class FormationIppoConfig(_FormationPPOOptions, IppoConfig):
+    """:class:`~benchmarl.algorithms.IppoConfig` plus the options of :class:`_FormationPPOOptions`."""
 
     @staticmethod
     def associated_class() -> Type[Ippo]:
