@@ -158,6 +158,11 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
                     model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
             except TrainingFaults as fault:
                 _save_model(out_dir, model, args, "physics faults")
+                # timing.json and the learning curve end at the stop, as they do at the budget's end
+                update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps),
+                               train_seconds=time.time() - started, interrupted="physics faults", running=False,
+                               **faults.as_dict())
+                write_learning_curve(out_dir, timing["segments"])
                 raise TrainingFaults(f"{fault} (the model so far is saved in {out_dir / MODEL_FOLDER})") from None
             except WorkerFault as fault:  # an env worker died or stopped: the model itself is fine
                 if not _stopping_for_the_same_signal(fault, stop):

@@ -235,6 +235,11 @@ def test_training_stops_naming_the_fault_when_most_episodes_fault(tmp_path, caps
     assert "joint speed" in message and "--action-acceleration" in message
     assert (run_dir / "model" / "state.json").is_file()  # the model so far is kept
     assert not (run_dir / "comparison.json").exists()  # no comparison table from faulted training
+    timing = json.loads((run_dir / "timing.json").read_text())  # ends at the stop, not "running" at 0 steps
+    segment = timing["segments"][-1]
+    assert not segment["running"] and segment["interrupted"] == timing["interrupted"] == "physics faults"
+    assert 0 < timing["agent_steps"] == segment["agent_steps"] < 1000000 and timing["train_seconds"] > 0
+    assert segment["faulted_training_episodes"] > 90 and (run_dir / "learning_curve.csv").is_file()
 
 
 def test_faults_below_the_threshold_are_reported_not_hidden(tmp_path, capsys):
