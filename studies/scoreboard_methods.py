@@ -252,10 +252,18 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
 
         try:
             episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
-        except TrainingFaults as fault:  # a result too: this method does not train on this scenario
+        except TrainingFaults as fault:  # a result too: this seed's run of the method stopped here
+            run_dir = board.run_dir(scenario, method, seed)
+            if not (run_dir / "model" / "state.json").is_file():  # nothing saved to evaluate
+                return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
+                        "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
+                        "episodes": [], "failed": str(fault)}
+            # The policy as it stood at the stop is this seed's result: leaving the seed out of the row would
+            # count only the runs that went well.
+            episodes, budget = _stopped_cell(run_dir, method, scenario, seeds, seconds)
             return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
-                    "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
-                    "episodes": [], "failed": str(fault)}
+                    "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
+                    "episodes": episodes, "stopped": str(fault)}
     else:
         metrics = run_episodes(scenario, method.reference, seeds, overrides=overrides)
         episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
@@ -290,12 +298,28 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
             argv = [*train_argv(board, scenario, method, seed), "--out", str(run_dir), "--overwrite", *evaluation]
         train(TrainConfig.from_args(argv))
     comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))
+    return comparison["results"]["learned"]["per_episode"], _budget(run_dir)
+
+
+def _budget(run_dir: Path) -> dict[str, Any]:
+    """A learned cell's budget, from its run folder: agent steps and training seconds done, the budget asked."""
     timing = json.loads((run_dir / "timing.json").read_text(encoding="utf-8"))
     config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-    budget = {"agent_steps": int(timing["agent_steps"]), "train_seconds": float(timing["train_seconds"]),
-              "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
-              "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
-    return comparison["results"]["learned"]["per_episode"], budget
+    return {"agent_steps": int(timing["agent_steps"]), "train_seconds": float(timing["train_seconds"]),
+            "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
+            "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
+
+
+def _stopped_cell(run_dir: Path, method: Method, scenario: str, seeds: Sequence[int], seconds: float
+                  ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The held-out episodes of a run that training stopped early (the model it saved at the stop), evaluated as
+    the run's own comparison evaluates a finished one, and its budget."""
+    from ee_formation_env.baselines.learned.policy import SavedRun
+
+    run = SavedRun.load(run_dir, f"{method.name} run")
+    metrics = run_episodes(scenario, run.policy_source(), seeds,
+                           overrides={"episode_seconds": seconds, **run.env_overrides()})
+    return [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics], _budget(run_dir)
 
 
 def train_argv(board: Board, scenario: str, method: Method, seed: int) -> list[str]:
@@ -315,7 +339,8 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
     seconds = board.episode_seconds or load_scenario(test_scenario).episode_seconds
     seeds = board.eval_seeds() if seeds is None else list(seeds)
     record = {"scenario": test, "trained_on": scenario, "split": split, "method": method.name, "seed": seed,
-              "eval_seeds": seeds, "episode_seconds": seconds, "budget": trained["budget"]}
+              "eval_seeds": seeds, "episode_seconds": seconds, "budget": trained["budget"],
+              **({"stopped": trained["stopped"]} if trained.get("stopped") else {})}
     if trained.get("failed"):  # no policy to evaluate: the training cell's failure is this cell's too
         return {**record, "wall_seconds": 0.0, "episodes": [], "failed": trained["failed"]}
     run_dir = board.run_dir(scenario, method, seed)

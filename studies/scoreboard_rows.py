@@ -1,6 +1,7 @@
 """The scoreboard's rows: its cells aggregated per (place, split, method), and their markdown tables.
 
-A row holds a method's seeds, budget, wall time, physics faults, failed training runs and every metric of
+A row holds a method's seeds, budget, wall time, physics faults, failed training runs (left out: nothing to
+evaluate), runs that training stopped early (in, as their saved policy stood at the stop) and every metric of
 :data:`METRICS` aggregated over training seeds within each evaluation episode (:func:`studies.bootstrap.aggregate`);
 ``studies.scoreboard`` computes the cells and merges the rows into the committed board.
 """
@@ -61,6 +62,8 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         every_cell = sorted(every_cell, key=lambda c: -1 if c["seed"] is None else c["seed"])
         failures = [{"seed": c["seed"], "reason": c["failed"]} for c in every_cell if c.get("failed")]
         cells = [c for c in every_cell if not c.get("failed")]
+        # runs that training stopped early, in the row as evaluated at the stop
+        stopped = [{"seed": c["seed"], "reason": c["stopped"]} for c in cells if c.get("stopped")]
         if not cells:  # every training run of this row stopped: reported, with no metrics
             out.append({"scenario": scenario, "method": method, **split,
                         "seeds": [c["seed"] for c in every_cell], "eval_seeds": every_cell[0]["eval_seeds"],
@@ -83,6 +86,7 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             "faults": [{"reason": reason, "episodes": count} for reason, count in fault_kinds(collections.Counter(
                 e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]))],
             "failures": failures,
+            **({"stopped": stopped} if stopped else {}),
             "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS},
             # the code versions of its cells (studies.scoreboard_cells): one, unless stale cells were accepted
             "code": [dict(code) for code in {json.dumps(c.get("code"), sort_keys=True): c.get("code")
@@ -137,6 +141,10 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
         for row in (r for r in board_rows if table(r) == (place, split) and r["failures"]):
             for failure in row["failures"]:
                 lines.append(f"\n- {row['method']}, seed {failure['seed']}: {failure['reason']}")
+        for row in (r for r in board_rows if table(r) == (place, split) and r.get("stopped")):
+            for stop in row["stopped"]:
+                lines.append(f"\n- {row['method']}, seed {stop['seed']}, in the row as its policy stood when "
+                             f"training stopped early: {stop['reason']}")
         lines.append("")
     return "\n".join(lines + team_size_table(board_rows)).rstrip() + "\n"
 

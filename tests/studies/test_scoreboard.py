@@ -104,7 +104,7 @@ def test_the_board_aggregates_every_cached_cell_in_board_order(tmp_path, capsys)
     assert methods == ["gradient", "adaptive_jacobian"]  # both, in the registry's order
 
 
-def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypatch, capsys):
+def test_a_training_run_stopped_by_faults_with_nothing_saved_is_a_reported_cell(tmp_path, monkeypatch, capsys):
     from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
 
     def stopped(*args, **kwargs):
@@ -119,6 +119,37 @@ def test_a_training_run_stopped_by_faults_is_a_reported_cell(tmp_path, monkeypat
     assert "physics fault" in row["failures"][0]["reason"]
     table = (tmp_path / "scoreboard.md").read_text()
     assert "training failed" in table and "- torque-ppo, seed 0: training: 100 of the last 100" in table
+
+
+def test_a_run_stopped_early_counts_in_its_row_as_its_saved_policy_stood(tmp_path, monkeypatch, capsys):
+    """Training that the fault guard stops saves its model; that policy is the seed's result, in the row's
+    metrics (on the test scenarios too) and named under the table, not left out of the row."""
+    from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
+
+    train_cell = scoreboard_methods._learned_cell
+
+    def stopped_on_seed_0(board, scenario, method, seed, seconds):
+        result = train_cell(board, scenario, method, seed, seconds)  # the run folder and its saved model
+        if seed == 0:
+            raise TrainingFaults("training: 91 of the last 100 training episodes ended in a physics fault (...)")
+        return result
+
+    monkeypatch.setattr(scoreboard_methods, "_learned_cell", stopped_on_seed_0)
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "torque-ppo",
+            "--seeds", "0", "1", "--episodes", "1"]
+    assert scoreboard.main(argv) == 0
+    rows = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+    assert {row["split"] for row in rows} == {"train", "test"}
+    for row in rows:
+        assert row["seeds"] == [0, 1] and row["failures"] == []
+        assert len(row["metrics"]["success"]["per_seed"]) == 2
+        assert row["stopped"] == [{"seed": 0, "reason": "training: 91 of the last 100 training episodes ended in "
+                                                        "a physics fault (...)"}]
+    assert rows[0]["budget"]["agent_steps_per_seed"][0] > 0  # the steps done before the stop
+    table = (tmp_path / "scoreboard.md").read_text()
+    assert ("- torque-ppo, seed 0, in the row as its policy stood when training stopped early: training: 91 of "
+            "the last 100") in table
+    assert "training failed" not in table
 
 
 def test_a_run_lost_before_its_first_checkpoint_trains_again(tmp_path, capsys):

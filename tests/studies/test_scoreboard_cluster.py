@@ -86,6 +86,22 @@ def test_a_group_is_a_training_cell_and_its_test_cells_and_only_missing_cells_ar
     assert scoreboard_cluster.cell_groups(board, progress=lambda line: None) == []  # nothing left to submit
 
 
+def test_a_node_evaluates_a_stopped_run_only_where_its_saved_model_is(tmp_path):
+    """A run that training stopped early has its saved model and no comparison: a node holding that model can
+    evaluate its test cells; one without it trains the cell again."""
+    board = _quick_board(tmp_path, methods=("torque-ppo",))
+    (group,) = scoreboard_cluster.cell_groups(board, progress=lambda line: None)
+    method = scoreboard.METHODS["torque-ppo"]
+    stopped = {"stopped": "training: 91 of the last 100 training episodes ended in a physics fault"}
+    assert not scoreboard_cluster._trained_here(board, group, method, stopped)
+    model = board.run_dir("planar_square", method, 0) / "model"
+    model.mkdir(parents=True)
+    (model / "state.json").write_text("{}", encoding="utf-8")
+    assert scoreboard_cluster._trained_here(board, group, method, stopped)
+    assert scoreboard_cluster._trained_here(board, group, method, {"failed": "training: ..."})  # nothing to evaluate
+    assert not scoreboard_cluster._trained_here(board, group, method, {})  # a finished run needs its comparison
+
+
 def test_a_learned_group_declares_its_training_processes():
     board = _quick_board(Path("unused"), methods=("residual-ppo",))
     group = scoreboard_cluster.CellGroup("planar_square", "residual-ppo", 0, "label", None, (), None)
