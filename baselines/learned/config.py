@@ -128,6 +128,9 @@ class TrainConfig:
                                              f"share of the last {FAULT_WINDOW} training episodes ended in a physics "
                                              f"fault (1: never stop; default {_preset_text('max_fault_fraction')})",
                                              type=float)
+    fault_guard_start: float | None = _flag("sb3: the share of --total-timesteps done before --max-fault-fraction "
+                                            "is judged (0: from the start), in [0, 1) (default "
+                                            f"{_preset_text('fault_guard_start')})", type=float)
     seed: int = _flag(f"training seed, an integer >= 0; the first reset of env slot j uses seed + j, which stays below "
                       f"the held-out evaluation seeds ({HELD_OUT_SEED_OFFSET} and up)", 0, type=int)
     out: str | None = _flag("run directory (default runs/<name>); a folder that already holds files is refused "
@@ -181,7 +184,7 @@ class TrainConfig:
         if config.obs_features is None:  # an imitated policy sees what its reference sees
             config.obs_features = "none" if imitating else preset.obs_features
         for name in ("train_episode_seconds", "gamma", "log_std_init", "hold_penalty", "n_envs", "n_steps",
-                     "n_workers", "max_fault_fraction"):
+                     "n_workers", "max_fault_fraction", "fault_guard_start"):
             if getattr(config, name) is None:
                 setattr(config, name, getattr(preset, name))
         if config.train_initial_q_noise is None:
@@ -250,6 +253,8 @@ class TrainConfig:
             raise ValueError("--contact-penalty: expected a finite value >= 0")
         if not 0 < self.max_fault_fraction <= 1:
             raise ValueError("--max-fault-fraction: expected a value in (0, 1]")
+        if not 0 <= self.fault_guard_start < 1:
+            raise ValueError("--fault-guard-start: expected a value in [0, 1)")
         if self.max_train_seconds is not None and not self.max_train_seconds > 0:
             raise ValueError("--max-train-seconds: expected a value > 0")
         if not math.isfinite(self.log_std_init):
@@ -294,7 +299,7 @@ class TrainConfig:
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
                           "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
                           "joint_reach", "position_gain", "target_smoothing", "reward_error_ceiling",
-                          "reward_tracking")
+                          "reward_tracking", "fault_guard_start")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address",
                              "reward_error_ceiling", "reward_tracking")

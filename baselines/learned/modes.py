@@ -60,6 +60,10 @@ class ModePreset:
     #: sb3: a run stops when more than this share of its last 100 training episodes faulted. A mode that learns
     #: from scratch passes through an exploration phase of many faults and learns after it (docs/training.md).
     max_fault_fraction: float = 0.5
+    #: sb3: the share of the agent-step budget done before that judgment starts: a run learning from scratch can
+    #: fault in every episode for a while early on and recover (docs/training.md); a setup the arms cannot be
+    #: driven in still stops, a quarter of the way in.
+    fault_guard_start: float = 0.0
 
 
 class ActionRows:

@@ -148,7 +148,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
             callbacks.append(_progress_callback(collected_steps(args.total_timesteps - start_steps, model,
                                                                 venv.num_envs)))
         faults = FaultTally()
-        callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents)))
+        callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents),
+                                         int(args.fault_guard_start * args.total_timesteps)))
         remaining = args.total_timesteps - start_steps
         if remaining > 0:
             try:
@@ -271,10 +272,10 @@ class FaultTally:
                 "fault_reasons": dict(fault_kinds(self.reasons)[:5])}
 
 
-def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int) -> Any:
+def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int, start_steps: int = 0) -> Any:
     """Counts every training episode's end (its ``physics_fault_reason``, on the first slot of its copy) into
-    ``tally``; raises :class:`TrainingFaults` when more than ``max_fraction`` of the last
-    :data:`~ee_formation_env.baselines.learned.config.FAULT_WINDOW` episodes faulted."""
+    ``tally``; from ``start_steps`` agent steps on, raises :class:`TrainingFaults` when more than ``max_fraction``
+    of the last :data:`~ee_formation_env.baselines.learned.config.FAULT_WINDOW` episodes faulted."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class FaultMonitor(BaseCallback):
@@ -286,7 +287,8 @@ def _fault_callback(tally: FaultTally, max_fraction: float, n_agents: int) -> An
             for copy in np.flatnonzero(ended):
                 tally.add(str(infos[copy * n_agents].get("physics_fault_reason", "")))
             faulted = sum(tally.recent)
-            if len(tally.recent) == FAULT_WINDOW and faulted > max_fraction * FAULT_WINDOW:
+            if (self.model.num_timesteps >= start_steps and len(tally.recent) == FAULT_WINDOW
+                    and faulted > max_fraction * FAULT_WINDOW):
                 example, count = fault_kinds(tally.reasons)[0]
                 raise TrainingFaults(
                     f"training: {faulted} of the last {FAULT_WINDOW} training episodes ended in a physics fault "

@@ -51,7 +51,8 @@ class TorqueMode(TrainingMode):
         total_timesteps=5_000_000, train_episode_seconds=10.0, train_initial_q_noise=0.1, obs_features="log-error",
         gamma=0.99, hold_penalty=0.5, log_std_init=-2.0,
         ppo=PPOSettings(net_arch=(128, 128), n_epochs=10, learning_rate=3e-4, learning_rate_decay=True),
-        n_envs=8, n_steps=128, n_workers=0, in_process_envs=0, max_fault_fraction=0.9)
+        n_envs=8, n_steps=128, n_workers=0, in_process_envs=0, max_fault_fraction=0.9,
+        fault_guard_start=0.25)
 
     def action_rows(self, options: Any, copies: Sequence[Any], agents: Sequence[str],
                     joint_scales: Mapping[str, np.ndarray] | None) -> TorqueRows:

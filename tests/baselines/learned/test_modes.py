@@ -102,15 +102,17 @@ def test_a_registered_mode_trains_and_evaluates_through_train_py(half_torque, tm
 
 
 def test_the_fault_guard_is_the_modes_own_and_the_flag_wins():
-    """A mode learning from scratch tolerates its exploration faults (0.9); a residual on a law does not (0.5)."""
+    """A mode learning from scratch tolerates its exploration faults (0.9, judged from a quarter of the budget
+    on); a residual on a law does not (0.5, from the start)."""
     from ee_formation_env.baselines.learned.config import TrainConfig
 
     def guard(*argv):
-        return TrainConfig.from_args([*argv, "--recipe", "none", "--no-progress"]).max_fault_fraction
+        config = TrainConfig.from_args([*argv, "--recipe", "none", "--no-progress"])
+        return config.max_fault_fraction, config.fault_guard_start
 
-    assert guard("--mode", "residual") == 0.5
-    assert guard("--mode", "torque") == guard("--mode", "velocity") == 0.9
-    assert guard("--mode", "torque", "--max-fault-fraction", "0.3") == 0.3
+    assert guard("--mode", "residual") == (0.5, 0.0)
+    assert guard("--mode", "torque") == guard("--mode", "velocity") == guard("--mode", "position") == (0.9, 0.25)
+    assert guard("--mode", "torque", "--max-fault-fraction", "0.3", "--fault-guard-start", "0") == (0.3, 0.0)
 
 
 @pytest.mark.parametrize("mode", ["torque", "velocity", "position"])

@@ -222,7 +222,7 @@ def _undrivable_scenario(tmp_path):
 
 
 UNDRIVABLE = ["--mode", "torque", "--n-envs", "4", "--n-workers", "0", "--train-episode-seconds", "0.05",
-              "--log-std-init", "0", "--action-acceleration", "1e9", *EVAL_FAST]
+              "--log-std-init", "0", "--action-acceleration", "1e9", "--fault-guard-start", "0", *EVAL_FAST]
 
 
 def test_training_stops_naming_the_fault_when_most_episodes_fault(tmp_path, capsys):
@@ -240,6 +240,18 @@ def test_training_stops_naming_the_fault_when_most_episodes_fault(tmp_path, caps
     assert not segment["running"] and segment["interrupted"] == timing["interrupted"] == "physics faults"
     assert 0 < timing["agent_steps"] == segment["agent_steps"] < 1000000 and timing["train_seconds"] > 0
     assert segment["faulted_training_episodes"] > 90 and (run_dir / "learning_curve.csv").is_file()
+
+
+def test_the_fault_guard_judges_from_its_share_of_the_budget_on(tmp_path, capsys):
+    """A run learning from scratch may fault in every episode early on and recover: the guard waits for
+    --fault-guard-start of the budget, then stops a run that still faults."""
+    run_dir = tmp_path / "run"
+    argv = ["--scenario", str(_undrivable_scenario(tmp_path)), "--total-timesteps", "40000", "--out", str(run_dir),
+            *UNDRIVABLE, "--fault-guard-start", "0.5"]  # the later flag wins
+    assert train_command(argv) == 2
+    assert "of the last 100 training episodes ended in a physics fault" in capsys.readouterr().err
+    timing = json.loads((run_dir / "timing.json").read_text())
+    assert 20000 <= timing["agent_steps"] < 40000 and timing["interrupted"] == "physics faults"
 
 
 def test_faults_below_the_threshold_are_reported_not_hidden(tmp_path, capsys):
