@@ -188,9 +188,11 @@ def compute_group(board: Board, group: CellGroup) -> list[tuple[str, dict[str, A
 def _trained_here(board: Board, group: CellGroup, method: Method, trained: dict[str, Any]) -> bool:
     """Whether this node can evaluate the cached training cell's policy (or its failure needs none); a run
     stopped early has its saved model and no comparison."""
+    from ee_formation_env.baselines.learned.policy import MODEL_FOLDER
+
     run_dir = board.run_dir(group.scenario, method, group.seed)
     if trained.get("stopped"):
-        return (run_dir / "model" / "state.json").is_file()
+        return (run_dir / MODEL_FOLDER / "state.json").is_file()
     return bool(trained.get("failed")) or any((run_dir / name).is_file()
                                               for name in ("comparison.json", "evaluation.json"))
 

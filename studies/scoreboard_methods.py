@@ -248,13 +248,14 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
     seeds = board.eval_seeds(scenario)
     split = {"split": "test"} if scenario in DISTRIBUTIONS else {}  # a distribution's held-out draws
     if method.learned:
+        from ee_formation_env.baselines.learned.policy import MODEL_FOLDER
         from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
 
         try:
             episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
         except TrainingFaults as fault:  # a result too: this seed's run of the method stopped here
             run_dir = board.run_dir(scenario, method, seed)
-            if not (run_dir / "model" / "state.json").is_file():  # nothing saved to evaluate
+            if not (run_dir / MODEL_FOLDER / "state.json").is_file():  # nothing saved to evaluate
                 return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
                         "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
                         "episodes": [], "failed": str(fault)}
