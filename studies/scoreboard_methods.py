@@ -247,6 +247,7 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
     overrides = {"episode_seconds": seconds}
     seeds = board.eval_seeds(scenario)
     split = {"split": "test"} if scenario in DISTRIBUTIONS else {}  # a distribution's held-out draws
+    outcome: dict[str, str] = {}  # "stopped" or "failed", with the reason, where training ended early
     if method.learned:
         from ee_formation_env.baselines.learned.policy import MODEL_FOLDER
         from ee_formation_env.baselines.learned.sb3_backend import TrainingFaults
@@ -255,22 +256,19 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
             episodes, budget = _learned_cell(board, scenario, method, seed, seconds)
         except TrainingFaults as fault:  # a result too: this seed's run of the method stopped here
             run_dir = board.run_dir(scenario, method, seed)
-            if not (run_dir / MODEL_FOLDER / "state.json").is_file():  # nothing saved to evaluate
-                return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
-                        "episode_seconds": seconds, "budget": {}, "wall_seconds": time.time() - started,
-                        "episodes": [], "failed": str(fault)}
-            # The policy as it stood at the stop is this seed's result: leaving the seed out of the row would
-            # count only the runs that went well.
-            episodes, budget = _stopped_cell(run_dir, method, scenario, seeds, seconds)
-            return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
-                    "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
-                    "episodes": episodes, "stopped": str(fault)}
+            if (run_dir / MODEL_FOLDER / "state.json").is_file():
+                # The policy as it stood at the stop is this seed's result: leaving the seed out of the row
+                # would count only the runs that went well.
+                episodes = [m.as_dict() for m in _saved_run_metrics(run_dir, method, scenario, seeds, seconds)]
+                budget, outcome = _budget(run_dir), {"stopped": str(fault)}
+            else:  # nothing saved to evaluate
+                episodes, budget, outcome = [], {}, {"failed": str(fault)}
     else:
         metrics = run_episodes(scenario, method.reference, seeds, overrides=overrides)
         episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
     return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
             "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
-            "episodes": [{k: v for k, v in e.items() if k != "trajectory"} for e in episodes]}
+            "episodes": [{k: v for k, v in e.items() if k != "trajectory"} for e in episodes], **outcome}
 
 
 def _learned_cell(board: Board, scenario: str, method: Method, seed: int, seconds: float
@@ -311,16 +309,15 @@ def _budget(run_dir: Path) -> dict[str, Any]:
             "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
 
 
-def _stopped_cell(run_dir: Path, method: Method, scenario: str, seeds: Sequence[int], seconds: float
-                  ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The held-out episodes of a run that training stopped early (the model it saved at the stop), evaluated as
-    the run's own comparison evaluates a finished one, and its budget."""
+def _saved_run_metrics(run_dir: Path, method: Method, scenario: Any, seeds: Sequence[int], seconds: float
+                       ) -> list[Any]:
+    """The episode metrics of the SB3 policy saved in ``run_dir`` on ``scenario``, as the run's own comparison
+    evaluates it: in the env settings it trained with."""
     from ee_formation_env.baselines.learned.policy import SavedRun
 
     run = SavedRun.load(run_dir, f"{method.name} run")
-    metrics = run_episodes(scenario, run.policy_source(), seeds,
-                           overrides={"episode_seconds": seconds, **run.env_overrides()})
-    return [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics], _budget(run_dir)
+    return run_episodes(scenario, run.policy_source(), seeds,
+                        overrides={"episode_seconds": seconds, **run.env_overrides()})
 
 
 def train_argv(board: Board, scenario: str, method: Method, seed: int) -> list[str]:
@@ -351,12 +348,8 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
         actors = load_benchmarl_policy(run_dir / "policy")
         metrics = run_episodes(test_scenario, actors.policy_factory(), seeds,
                                overrides={"episode_seconds": seconds, **actors.env_overrides()})
-    elif method.learned:  # as the run's own comparison evaluates it: in the env settings it trained with
-        from ee_formation_env.baselines.learned.policy import SavedRun
-
-        run = SavedRun.load(run_dir, f"{method.name} run")
-        metrics = run_episodes(test_scenario, run.policy_source(), seeds,
-                               overrides={"episode_seconds": seconds, **run.env_overrides()})
+    elif method.learned:
+        metrics = _saved_run_metrics(run_dir, method, test_scenario, seeds, seconds)
     else:
         metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds})
     episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]

@@ -151,20 +151,15 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents),
                                          int(args.fault_guard_start * args.total_timesteps)))
         remaining = args.total_timesteps - start_steps
+        stopped_by: TrainingFaults | None = None
         if remaining > 0:
             try:
                 if resume_from is None:
                     model.learn(total_timesteps=args.total_timesteps, callback=callbacks)
                 else:  # SB3 counts the budget from the restored step count: the schedules continue where they were
                     model.learn(total_timesteps=remaining, callback=callbacks, reset_num_timesteps=False)
-            except TrainingFaults as fault:
-                _save_model(out_dir, model, args, "physics faults")
-                # timing.json and the learning curve end at the stop, as they do at the budget's end
-                update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps),
-                               train_seconds=time.time() - started, interrupted="physics faults", running=False,
-                               **faults.as_dict())
-                write_learning_curve(out_dir, timing["segments"])
-                raise TrainingFaults(f"{fault} (the model so far is saved in {out_dir / MODEL_FOLDER})") from None
+            except TrainingFaults as fault:  # the model, timing.json and the curve end at the stop, then raised
+                stopped_by = fault
             except WorkerFault as fault:  # an env worker died or stopped: the model itself is fine
                 if not _stopping_for_the_same_signal(fault, stop):
                     _save_model(out_dir, model, args, f"{type(fault).__name__}: {fault}")
@@ -172,9 +167,13 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
                     raise RunStopped(f"training: {first}; the model at {model.num_timesteps} agent steps is saved "
                                      f"in {out_dir / MODEL_FOLDER}", out_dir, "continues the run",
                                      details=rest or None) from fault
-        interrupted = stop.signal_name if stop is not None and stop.requested else None
+        if stopped_by is not None:
+            interrupted = "physics faults"
+        else:
+            interrupted = stop.signal_name if stop is not None and stop.requested else None
         _save_model(out_dir, model, args, interrupted)
-        model.save(out_dir / "model.zip")  # SB3's own format, for SB3 users; never read by the project
+        if stopped_by is None:
+            model.save(out_dir / "model.zip")  # SB3's own format, for SB3 users; never read by the project
     except CheckpointWriteError as error:
         raise RunStopped(f"{error}; {_intact_checkpoints(out_dir)}", out_dir,
                          "continues from it once there is room") from None
@@ -191,6 +190,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
     timing["agent_steps_per_s"] = (model.num_timesteps - start_steps) / max(seconds, 1e-9)  # this segment's
     write_timing(out_dir, timing)
     write_learning_curve(out_dir, timing["segments"])
+    if stopped_by is not None:
+        raise TrainingFaults(f"{stopped_by} (the model so far is saved in {out_dir / MODEL_FOLDER})")
     return timing
 
 
