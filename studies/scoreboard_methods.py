@@ -56,6 +56,20 @@ class Method:
         return self.reference is None
 
     @property
+    def kind(self) -> str:
+        """``"law"`` (a reference controller), ``"residual"`` (a learned correction on a law) or ``"from scratch"``
+        (every other learned method): the groups the board's headline compares. An SB3 method's mode is its
+        ``--mode`` flag (the board trains with ``--recipe none``, so residual without one)."""
+        if not self.learned:
+            return "law"
+        if self.benchmarl is not None:
+            mode = self.benchmarl.mode
+        else:
+            flags = self.train_flags
+            mode = next((b for a, b in zip(flags, flags[1:]) if a == "--mode"), "residual")
+        return "residual" if mode == "residual" else "from scratch"
+
+    @property
     def serves_any_team(self) -> bool:
         """Whether its policy acts on teams of any size: a law, SB3's set network (``--policy-network set``) or
         BenchMARL's set actor (``model="deepsets"``); the board's team-size split evaluates these."""

@@ -149,6 +149,93 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines + team_size_table(board_rows)).rstrip() + "\n"
 
 
+#: The fewest training seeds of a learned row the headline ranks: one or two runs do not make a method's result.
+HEADLINE_MIN_SEEDS = 3
+#: The headline's columns: (metric key, title) of :data:`METRICS`.
+HEADLINE_METRICS = (("success", "success (%)"), ("settling_time_or_limit", "settle (s)"),
+                    ("contact_steps", "contacts (steps)"))
+
+
+def _headline_tasks(board_rows: Sequence[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """Task -> its rows with metrics, in board order: a fixed scenario's training-scenario rows, a distribution's
+    test-set rows (its held-out draws); test scenarios and team sizes (transfer) are not tasks here."""
+    tasks: dict[str, list[dict[str, Any]]] = {}
+    for row in board_rows:
+        trained_on, scenario = _place(row)
+        wanted = "test" if scenario in DISTRIBUTIONS else "train"
+        if row["split"] == wanted and trained_on == scenario and row["metrics"]:
+            tasks.setdefault(scenario, []).append(row)
+    return tasks
+
+
+def _best(rows_of_kind: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """The row of the highest mean success, then the shortest mean settling time."""
+    key = lambda row: (-row["metrics"]["success"]["mean"], row["metrics"]["settling_time_or_limit"]["mean"])  # noqa: E731
+    return min(rows_of_kind, key=key, default=None)
+
+
+def beats(learned: dict[str, Any], law: dict[str, Any]) -> list[str]:
+    """Why the learned row does not beat the law's (empty: it does): it must succeed at least as often, settle
+    faster with disjoint 95 % intervals and have no more contact steps per episode."""
+    mine, theirs = learned["metrics"], law["metrics"]
+    reasons = []
+    if mine["success"]["mean"] < theirs["success"]["mean"]:
+        reasons.append("lower success")
+    if mine["settling_time_or_limit"]["mean"] >= theirs["settling_time_or_limit"]["mean"]:
+        reasons.append("slower")
+    elif mine["settling_time_or_limit"]["ci_high"] >= theirs["settling_time_or_limit"]["ci_low"]:
+        reasons.append("settling intervals overlap")
+    if mine["contact_steps"]["mean"] > theirs["contact_steps"]["mean"]:
+        reasons.append("more contacts")
+    return reasons
+
+
+def headline_table(board_rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown: per task, the best law, the best learned method from scratch and the best residual (learned rows
+    of at least :data:`HEADLINE_MIN_SEEDS` seeds; the best: highest success, then shortest settling), and whether
+    each learned one beats the law (:func:`beats`); then the count of tasks a learned method wins."""
+    from studies.scoreboard_methods import METHODS  # the methods' kinds; rows of retired methods are left out
+
+    lines = ["| task | kind | method | seeds | " + " | ".join(title for _, title in HEADLINE_METRICS) +
+             " | beats the best law |", "|---|---|---|---:|" + "---:|" * len(HEADLINE_METRICS) + "---|"]
+    won, five_seeds, tasks = [], [], _headline_tasks(board_rows)
+    for task, task_rows in tasks.items():
+        kinds = {kind: [row for row in task_rows if row["method"] in METHODS and METHODS[row["method"]].kind == kind
+                        and (kind == "law" or len(row["seeds"]) >= HEADLINE_MIN_SEEDS)]
+                 for kind in ("law", "from scratch", "residual")}
+        law = _best(kinds["law"])
+        name = f"{task} (test draws)" if task in DISTRIBUTIONS else task
+        winners = []
+        for kind, rows_of_kind in kinds.items():
+            row = _best(rows_of_kind)
+            if row is None:
+                continue
+            cells = []
+            for key, _ in HEADLINE_METRICS:
+                spec = next(spec for k, *_, spec in METRICS if k == key)
+                metric = row["metrics"][key]
+                cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
+                             f"{spec.format(metric['ci_high'])}]")
+            verdict = ""
+            if kind != "law" and law is not None:
+                reasons = beats(row, law)
+                verdict = "no: " + ", ".join(reasons) if reasons else "**yes**"
+                if not reasons:
+                    winners.append(row)
+            lines.append(f"| {name} | {kind} | {row['method']} | {len(row['seeds']) or '-'} | " + " | ".join(cells) +
+                         f" | {verdict} |")
+            name = ""
+        if winners:
+            won.append(task)
+        best_learned = _best(kinds["from scratch"] + kinds["residual"])
+        if best_learned is not None and len(best_learned["seeds"]) >= 5:
+            five_seeds.append(task)
+    lines += ["", f"A learned method beats the best law on {len(won)} of {len(tasks)} tasks"
+              + (f" ({', '.join(won)})" if won else "") + f"; the best learned row has 5 seeds or more on "
+              f"{len(five_seeds)} of {len(tasks)}."]
+    return "\n".join(lines) + "\n"
+
+
 def team_size(scenario: str) -> int:
     """The team size N of a team-size split's scenario (``planar_team_5``: 5)."""
     return int(scenario.rsplit("_", 1)[1])
@@ -238,11 +325,17 @@ def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdow
     if markdown_path is not None:
         markdown_path.write_text(table, encoding="utf-8")
     if generated_page is not None:
-        import re
-
         text = generated_page.read_text(encoding="utf-8")
-        pattern = r"(<!-- generated: scoreboard -->\n)(.*?)(\n<!-- end generated -->)"
-        if not re.search(pattern, text, re.S):
-            raise ValueError(f"--docs: {generated_page} has no generated scoreboard block")
-        generated_page.write_text(re.sub(pattern, lambda m: m.group(1) + table.strip() + m.group(3), text,
-                                         flags=re.S), encoding="utf-8")
+        for block, content in (("scoreboard", table), ("headline", headline_table(board_rows))):
+            text = _filled_block(text, block, content, generated_page)
+        generated_page.write_text(text, encoding="utf-8")
+
+
+def _filled_block(text: str, block: str, content: str, page: Path) -> str:
+    """``text`` with its ``<!-- generated: block -->`` ... ``<!-- end generated -->`` block holding ``content``."""
+    import re
+
+    pattern = rf"(<!-- generated: {block} -->\n)(.*?)(<!-- end generated -->)"
+    if not re.search(pattern, text, re.S):
+        raise ValueError(f"--docs: {page} has no generated {block} block")
+    return re.sub(pattern, lambda m: m.group(1) + content.strip() + "\n" + m.group(3), text, count=1, flags=re.S)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ee_formation_env.scenario_sets import TEST_SEEDS, held_out_scenarios
-from studies import scoreboard, scoreboard_methods
+from studies import scoreboard, scoreboard_methods, scoreboard_rows
 
 
 def test_quick_board_writes_rows_and_resumes_from_its_cells(tmp_path, capsys):
@@ -77,6 +77,7 @@ def test_committed_board_matches_its_page():
     rows = json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"]
     page = scoreboard.DOCS_PAGE.read_text(encoding="utf-8")
     assert scoreboard.format_board(rows).strip() in page
+    assert scoreboard_rows.headline_table(rows).strip() in page
 
 
 def test_the_archived_cells_are_the_committed_rows_cells():
@@ -191,6 +192,70 @@ def test_a_test_scenario_named_as_a_builtin_is_its_own_row():
     assert "### planar_square_rotated (test: policies trained on planar_square" in table
 
 
+def _headline_row(scenario, method, seeds, success, settle, contacts=0.0, split="train", **place):
+    """A board row with the headline's metrics: ``settle`` (mean, ci_low, ci_high), the others exact."""
+    exact = lambda value: {"mean": value, "ci_low": value, "ci_high": value}  # noqa: E731
+    return {"scenario": scenario, "method": method, "split": split, "seeds": list(range(seeds)), **place,
+            "metrics": {"success": exact(success), "contact_steps": exact(contacts),
+                        "settling_time_or_limit": dict(zip(("mean", "ci_low", "ci_high"), settle))}}
+
+
+def test_the_headline_ranks_each_kind_and_judges_it_against_the_best_law():
+    board_rows = [
+        _headline_row("planar_square", "adaptive_jacobian", 0, 1.0, (1.14, 1.10, 1.18)),
+        _headline_row("planar_square", "gradient", 0, 1.0, (0.94, 0.90, 0.99)),
+        _headline_row("planar_square", "torque-ppo", 3, 1.0, (0.75, 0.71, 0.79)),
+        _headline_row("planar_square", "position-ppo", 1, 1.0, (0.30, 0.29, 0.31)),  # one seed: not ranked
+        _headline_row("planar_square", "residual-ppo", 3, 1.0, (0.95, 0.93, 0.97)),
+        _headline_row("planar_square", "residual-ppo-gradient", 5, 1.0, (0.92, 0.88, 0.96)),
+        _headline_row("planar_square", "retired-method", 3, 1.0, (0.10, 0.09, 0.11)),  # not a method any more
+        # transfer is not a task: a test scenario of planar_square
+        _headline_row("planar_square_rotated", "gradient", 0, 1.0, (0.94, 0.90, 0.99), split="test",
+                      trained_on="planar_square"),
+        # a distribution: its test draws are the task, its train draws are not
+        _headline_row("spatial_random", "gradient", 0, 1.0, (9.0, 8.0, 10.0)),
+        _headline_row("spatial_random", "gradient", 0, 1.0, (1.12, 0.94, 1.33), split="test"),
+        _headline_row("spatial_random", "position-ppo", 3, 1.0, (0.59, 0.37, 0.81), contacts=66.8, split="test"),
+        _headline_row("spatial_random", "mappo-residual", 3, 0.9, (0.50, 0.40, 0.60), split="test"),
+    ]
+    table = scoreboard_rows.headline_table(board_rows)
+    lines = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert [line.split(" | ")[:4] for line in lines] == [
+        ["| planar_square", "law", "gradient", "-"],
+        ["| ", "from scratch", "torque-ppo", "3"],
+        ["| ", "residual", "residual-ppo-gradient", "5"],
+        ["| spatial_random (test draws)", "law", "gradient", "-"],
+        ["| ", "from scratch", "position-ppo", "3"],
+        ["| ", "residual", "mappo-residual", "3"]]
+    assert [line.rsplit(" | ", 1)[1] for line in lines] == [
+        " |", "**yes** |", "no: settling intervals overlap |", " |", "no: more contacts |", "no: lower success |"]
+    assert "0.75 [0.71, 0.79]" in lines[1] and "1.12 [0.94, 1.33]" in lines[3]
+    # the headline row is the best learned one of either kind (torque-ppo, 3 seeds), not any row of 5 seeds
+    assert table.rstrip().endswith("A learned method beats the best law on 1 of 2 tasks (planar_square); the best "
+                                   "learned row has 5 seeds or more on 0 of 2.")
+
+
+@pytest.mark.parametrize("name, kind", [
+    ("gradient", "law"), ("residual-ppo", "residual"), ("residual-ppo-set", "residual"),
+    ("mappo-residual", "residual"), ("torque-ppo", "from scratch"), ("position-ppo", "from scratch"),
+    ("mappo-torque-project", "from scratch"), ("masac-position-project", "from scratch")])
+def test_each_method_has_its_kind(name, kind):
+    assert scoreboard_methods.METHODS[name].kind == kind
+
+
+def test_a_page_without_the_headline_block_is_refused(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("<!-- generated: scoreboard -->\n<!-- end generated -->\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="no generated headline block"):
+        scoreboard_rows.write_outputs([], tmp_path / "board.json", generated_page=page)
+    page.write_text("<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n<!-- generated: headline -->\n"
+                    "<!-- end generated -->\nkept\n", encoding="utf-8")
+    scoreboard_rows.write_outputs([], tmp_path / "board.json", generated_page=page)
+    text = page.read_text(encoding="utf-8")
+    assert "old" not in text and text.endswith("<!-- end generated -->\nkept\n")
+    assert text.count("<!-- end generated -->") == 2 and "beats the best law on 0 of 0 tasks" in text
+
+
 @pytest.mark.parametrize("name", ["residual-ppo-invariant", "torque-ppo-invariant"])
 def test_an_invariant_method_runs_on_arms_turning_about_their_base_z_only(name):
     from ee_formation_env.baselines.learned.config import TrainConfig
@@ -273,7 +338,8 @@ def test_docs_refuses_to_replace_a_committed_row_by_one_of_fewer_episodes_or_see
 
 def test_docs_keeps_the_committed_board_when_refused_and_replaces_it_with_replace_smaller(tmp_path, monkeypatch):
     page = tmp_path / "scoreboard.md"
-    page.write_text("# Scoreboard\n\n<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
+    page.write_text("# Scoreboard\n\n<!-- generated: headline -->\n<!-- end generated -->\n\n"
+                    "<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
     board = tmp_path / "scoreboard.json"
     committed = scoreboard.rows([{**_record("planar_square", "gradient", None, 1.0), "eval_seeds": [10_000, 10_001],
                                   "episodes": [_record("planar_square", "gradient", None, 1.0)["episodes"][0]] * 2}])
@@ -299,7 +365,8 @@ def test_docs_archives_the_cells_behind_its_rows_and_a_row_gains_seeds_from_the_
     """Machine A merges seeds 0, 1 and archives their cells; machine B (a fresh board) copies the archive into its
     cells, trains seed 2 only, and merges a row of three seeds; the archive then holds exactly those three."""
     page, board, archive = tmp_path / "scoreboard.md", tmp_path / "scoreboard.json", tmp_path / "cells-archive"
-    page.write_text("# Scoreboard\n\n<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
+    page.write_text("# Scoreboard\n\n<!-- generated: headline -->\n<!-- end generated -->\n\n"
+                    "<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
     monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
     monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
     monkeypatch.setattr(scoreboard, "DOCS_CELLS", archive)
