@@ -151,6 +151,8 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
 
 #: The fewest training seeds of a learned row the headline ranks: one or two runs do not make a method's result.
 HEADLINE_MIN_SEEDS = 3
+#: The training seeds of a headline claim: the headline counts the tasks whose best learned row has as many.
+HEADLINE_CLAIM_SEEDS = 5
 #: The headline's columns: (metric key, title) of :data:`METRICS`.
 HEADLINE_METRICS = (("success", "success (%)"), ("settling_time_or_limit", "settle (s)"),
                     ("contact_steps", "contacts (steps)"))
@@ -198,41 +200,38 @@ def headline_table(board_rows: Sequence[dict[str, Any]]) -> str:
 
     lines = ["| task | kind | method | seeds | " + " | ".join(title for _, title in HEADLINE_METRICS) +
              " | beats the best law |", "|---|---|---|---:|" + "---:|" * len(HEADLINE_METRICS) + "---|"]
-    won, five_seeds, tasks = [], [], _headline_tasks(board_rows)
+    formats = {key: spec for key, *_, spec in METRICS}
+    won, claims, tasks = [], [], _headline_tasks(board_rows)
     for task, task_rows in tasks.items():
         kinds = {kind: [row for row in task_rows if row["method"] in METHODS and METHODS[row["method"]].kind == kind
                         and (kind == "law" or len(row["seeds"]) >= HEADLINE_MIN_SEEDS)]
                  for kind in ("law", "from scratch", "residual")}
         law = _best(kinds["law"])
         name = f"{task} (test draws)" if task in DISTRIBUTIONS else task
-        winners = []
         for kind, rows_of_kind in kinds.items():
             row = _best(rows_of_kind)
             if row is None:
                 continue
             cells = []
             for key, _ in HEADLINE_METRICS:
-                spec = next(spec for k, *_, spec in METRICS if k == key)
-                metric = row["metrics"][key]
+                spec, metric = formats[key], row["metrics"][key]
                 cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
                              f"{spec.format(metric['ci_high'])}]")
             verdict = ""
             if kind != "law" and law is not None:
                 reasons = beats(row, law)
                 verdict = "no: " + ", ".join(reasons) if reasons else "**yes**"
-                if not reasons:
-                    winners.append(row)
+                if not reasons and task not in won:
+                    won.append(task)
             lines.append(f"| {name} | {kind} | {row['method']} | {len(row['seeds']) or '-'} | " + " | ".join(cells) +
                          f" | {verdict} |")
             name = ""
-        if winners:
-            won.append(task)
         best_learned = _best(kinds["from scratch"] + kinds["residual"])
-        if best_learned is not None and len(best_learned["seeds"]) >= 5:
-            five_seeds.append(task)
+        if best_learned is not None and len(best_learned["seeds"]) >= HEADLINE_CLAIM_SEEDS:
+            claims.append(task)
     lines += ["", f"A learned method beats the best law on {len(won)} of {len(tasks)} tasks"
-              + (f" ({', '.join(won)})" if won else "") + f"; the best learned row has 5 seeds or more on "
-              f"{len(five_seeds)} of {len(tasks)}."]
+              + (f" ({', '.join(won)})" if won else "") + f"; the best learned row has {HEADLINE_CLAIM_SEEDS} "
+              f"seeds or more on {len(claims)} of {len(tasks)}."]
     return "\n".join(lines) + "\n"
 
 
