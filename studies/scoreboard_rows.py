@@ -95,6 +95,11 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def _interval(spec: str, metric: dict[str, Any]) -> str:
+    """One metric as ``mean [ci_low, ci_high]`` in the format ``spec``."""
+    return f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, {spec.format(metric['ci_high'])}]"
+
+
 def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
     """Markdown: one table per scenario, a row per method, each metric as mean [95 % interval]."""
     lines: list[str] = []
@@ -124,11 +129,7 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
                 lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
                              " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
                 continue
-            cells = []
-            for key, _, _, _, spec in METRICS:
-                metric = row["metrics"][key]
-                cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
-                             f"{spec.format(metric['ci_high'])}]")
+            cells = [_interval(spec, row["metrics"][key]) for key, _, _, _, spec in METRICS]
             seeds = ", ".join(map(str, row["seeds"])) or "-"
             steps = row["budget"]["agent_steps_per_seed"]  # differ where a wall-clock cap stopped a run
             budget = f"{max(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}-{max(steps):,}"
@@ -212,11 +213,7 @@ def headline_table(board_rows: Sequence[dict[str, Any]]) -> str:
             row = _best(rows_of_kind)
             if row is None:
                 continue
-            cells = []
-            for key, _ in HEADLINE_METRICS:
-                spec, metric = formats[key], row["metrics"][key]
-                cells.append(f"{spec.format(metric['mean'])} [{spec.format(metric['ci_low'])}, "
-                             f"{spec.format(metric['ci_high'])}]")
+            cells = [_interval(formats[key], row["metrics"][key]) for key, _ in HEADLINE_METRICS]
             verdict = ""
             if kind != "law" and law is not None:
                 reasons = beats(row, law)
