@@ -137,6 +137,12 @@ METHODS: dict[str, Method] = {
     # The gravity-compensated torque convention (docs/spaces.md, "Action conventions"), at the same budget.
     "torque-gc-ppo": Method("torque-gc-ppo", train_flags=(
         "--mode", "torque", "--gravity-compensation", "--max-train-seconds", "1800")),
+    # The same with gSDE's exploration (docs/training.md, "Flags"): noise that is a function of the state, held
+    # for 4 control steps, at the white noise's initial size (an initial std of 0.135 per action on the built-in
+    # networks, as torque mode's log std of -2), where white noise is integrated twice by the undamped joints.
+    "torque-gc-gsde-ppo": Method("torque-gc-gsde-ppo", train_flags=(
+        "--mode", "torque", "--gravity-compensation", "--sde-sample-freq", "4", "--log-std-init", "-3.8",
+        "--max-train-seconds", "1800")),
     # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
     # compensation, from scratch, at the same budget.
     "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),

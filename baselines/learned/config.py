@@ -116,6 +116,10 @@ class TrainConfig:
     gamma: float | None = _flag(f"discount per control step (default {_preset_text('gamma')})", type=float)
     log_std_init: float | None = _flag("initial log standard deviation of the Gaussian policy (ppo; default "
                                        f"{_preset_text('log_std_init')})", type=float)
+    sde_sample_freq: int = _flag("ppo (sb3): 0 explores with white Gaussian action noise, drawn anew at each control "
+                                 "step (the default); N >= 1 with generalized state-dependent exploration (gSDE): "
+                                 "the noise is a function of the policy's features, its random matrix drawn anew "
+                                 "every N control steps; -1: once per rollout", 0, type=int)
     obs_features: str | None = _option_flag("obs_features", choices=FEATURE_SETS)
     policy_network: str = _option_flag("policy_network", choices=POLICY_NETWORKS)
     hold_penalty: float | None = _option_flag("hold_penalty", type=float)
@@ -259,6 +263,14 @@ class TrainConfig:
             raise ValueError("--max-train-seconds: expected a value > 0")
         if not math.isfinite(self.log_std_init):
             raise ValueError("--log-std-init: expected a finite number")
+        if isinstance(self.sde_sample_freq, bool) or not isinstance(self.sde_sample_freq, int):
+            raise TypeError(f"--sde-sample-freq: expected an integer, got {self.sde_sample_freq!r}")
+        if self.sde_sample_freq < -1:
+            raise ValueError(f"--sde-sample-freq: expected -1, 0 or a number of steps >= 1, got {self.sde_sample_freq}")
+        if self.sde_sample_freq and (self.backend != "sb3" or self.algo != "ppo" or imitating
+                                     or self.policy_network == "set"):
+            raise ValueError("--sde-sample-freq: gSDE trains with --backend sb3 and --algo ppo, an MLP policy and "
+                             "no --imitate (0: off)")
         if (self.train_initial_q_noise is not None and self.train_initial_q_noise < 0) or self.train_episode_seconds <= 0:
             raise ValueError("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
         try:  # the training options' own checks (the mode's included), named by flag
@@ -299,7 +311,7 @@ class TrainConfig:
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
                           "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
                           "joint_reach", "position_gain", "target_smoothing", "reward_error_ceiling",
-                          "reward_tracking", "fault_guard_start")
+                          "reward_tracking", "fault_guard_start", "sde_sample_freq")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address",
                              "reward_error_ceiling", "reward_tracking")

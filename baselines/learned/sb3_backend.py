@@ -48,13 +48,16 @@ def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
     A small initial action noise (log_std -1: std 0.37 of the action range): with the default 0 a residual
     policy starts far from "no correction" and a torque policy saturates its joints half of the time.
 
-    A run with ``policy_network`` set adds ``set_network``: the slot layout and the team signature of its
+    With gSDE (``sde_sample_freq`` not 0) it adds ``use_sde``: the network holds gSDE's noise parameters, so
+    rebuilding it needs the flag. A run with ``policy_network`` set adds ``set_network``: the slot layout and the team signature of its
     scenario (:func:`~ee_formation_env.baselines.learned.set_network.set_description`). Plain data (a run's
     ``policy.json`` saves it); :func:`~ee_formation_env.baselines.learned.set_network.sb3_policy_kwargs` turns
     it into SB3's."""
     kwargs: dict[str, Any] = dict(net_arch=list(args.ppo.net_arch))  # --imitate: the wider actor
     if args.algo == "ppo":
         kwargs["log_std_init"] = args.log_std_init
+    if args.sde_sample_freq:  # gSDE's noise matrix is a parameter of the network (latent x action)
+        kwargs["use_sde"] = True
     if args.policy_network == "set":
         kwargs["set_network"] = set_description(args.scenario, args.obs_features)
     return kwargs
@@ -80,7 +83,9 @@ def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str =
     if "set_network" in plain_kwargs:  # statistics shared across slots (set_network.py)
         venv.obs_rms = pooled_running_statistics(slot_layout_of(plain_kwargs["set_network"]))
     settings = args.ppo
-    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=sb3_policy_kwargs(plain_kwargs),
+    sb3_kwargs = sb3_policy_kwargs(plain_kwargs)
+    use_sde = sb3_kwargs.pop("use_sde", False)  # PPO passes it to the policy itself
+    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=sb3_kwargs,
                   tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
     if args.algo == "ppo":
         rate = settings.learning_rate
@@ -89,7 +94,8 @@ def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str =
         # n_steps x (n_envs x agents) slots per update: 4,096 agent steps with either mode's defaults.
         return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=min(1024, args.n_steps * venv.num_envs),
                    n_epochs=settings.n_epochs, learning_rate=learning_rate, gamma=args.gamma, gae_lambda=0.95,
-                   clip_range=0.2, **common)
+                   clip_range=0.2, use_sde=use_sde, sde_sample_freq=args.sde_sample_freq if use_sde else -1,
+                   **common)
     return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
                learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
 

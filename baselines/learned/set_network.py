@@ -226,9 +226,9 @@ def masked_pool(encoded: Any, real: Any, pooling: str) -> Any:
 
 
 def sb3_policy_kwargs(plain: Mapping[str, Any]) -> dict[str, Any]:
-    """SB3 ``policy_kwargs`` from the plain ones a run saves (``net_arch``, ``log_std_init`` and, for the set
-    network, ``set_network``: the slot layout and the team signature)."""
-    kwargs = {key: plain[key] for key in ("net_arch", "log_std_init") if key in plain}
+    """SB3 ``policy_kwargs`` from the plain ones a run saves (``net_arch``, ``log_std_init``, ``use_sde`` with gSDE
+    and, for the set network, ``set_network``: the slot layout and the team signature)."""
+    kwargs = {key: plain[key] for key in ("net_arch", "log_std_init", "use_sde") if key in plain}
     if "set_network" in plain:
         layout = plain["set_network"]["layout"]
         kwargs["features_extractor_class"] = set_extractor_class()

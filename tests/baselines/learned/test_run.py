@@ -80,6 +80,54 @@ def test_bad_arguments_fail_before_training(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def test_gsde_explores_through_the_features_and_its_saved_policy_acts_as_the_model(tmp_path):
+    from ee_formation_env.baselines.learned.checkpoint import load_policy
+
+    args = TrainConfig.from_args(["--mode", "torque", "--sde-sample-freq", "4", "--n-envs", "1", "--n-workers", "0",
+                                  "--no-progress"])
+    model = build_sb3_model(args, None)
+    try:
+        assert model.use_sde and model.sde_sample_freq == 4
+        assert tuple(model.policy.log_std.shape) == (128, model.action_space.shape[0])  # latent x action
+        observation = model.get_env().reset()
+        first, _ = model.predict(observation, deterministic=False)
+        again, _ = model.predict(observation, deterministic=False)
+        np.testing.assert_array_equal(first, again)  # the noise is a function of the state while its matrix holds
+        model.policy.reset_noise()
+        assert not np.array_equal(model.predict(observation, deterministic=False)[0], first)
+    finally:
+        model.get_env().close()
+    white = build_sb3_model(TrainConfig.from_args(["--mode", "torque", "--n-envs", "1", "--n-workers", "0"]), None)
+    try:  # the default draws white noise at each step
+        assert not white.use_sde
+        observation = white.get_env().reset()
+        assert not np.array_equal(white.predict(observation)[0], white.predict(observation)[0])
+    finally:
+        white.get_env().close()
+
+    run_dir = tmp_path / "run"
+    assert train_command(["--total-timesteps", "300", "--mode", "torque", "--sde-sample-freq", "4",
+                          "--out", str(run_dir), *FAST]) == 0
+    assert json.loads((run_dir / "config.json").read_text())["sde_sample_freq"] == 4
+    policy = load_policy(run_dir / "model")
+    assert policy.use_sde
+    from stable_baselines3 import PPO
+
+    trained = PPO.load(run_dir / "model.zip", device="cpu")
+    observation = np.random.default_rng(0).normal(size=(3, *policy.observation_space.shape)).astype(np.float32)
+    np.testing.assert_allclose(policy.predict(observation, deterministic=True)[0],
+                               trained.policy.predict(observation, deterministic=True)[0], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("argv", [["--sde-sample-freq", "-2"], ["--sde-sample-freq", "4", "--algo", "sac"],
+                                  ["--sde-sample-freq", "4", "--backend", "rllib"],
+                                  ["--sde-sample-freq", "4", "--mode", "torque", "--imitate", "gradient"]])
+def test_gsde_options_are_validated(argv, capsys):
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(argv)
+    assert "--sde-sample-freq" in capsys.readouterr().err
+
+
 def test_max_train_seconds_stops_training_early(tmp_path):
     run_dir = tmp_path / "run"
     assert train_command(["--total-timesteps", "10000000", "--max-train-seconds", "2", "--mode", "torque",
