@@ -138,8 +138,9 @@ METHODS: dict[str, Method] = {
     "torque-gc-ppo": Method("torque-gc-ppo", train_flags=(
         "--mode", "torque", "--gravity-compensation", "--max-train-seconds", "1800")),
     # The same with gSDE's exploration (docs/training.md, "Flags"): noise that is a function of the state, held
-    # for 4 control steps, at the white noise's initial size (an initial std of 0.135 per action on the built-in
-    # networks, as torque mode's log std of -2), where white noise is integrated twice by the undamped joints.
+    # for 4 control steps, where white noise is integrated twice by the undamped joints. Its log std of -3.8 gives
+    # the white noise's initial size (std 0.135 per action at torque mode's log std of -2; measured on
+    # spatial_tetrahedron's [128, 128] network, where gSDE's std sums over the 128 features).
     "torque-gc-gsde-ppo": Method("torque-gc-gsde-ppo", train_flags=(
         "--mode", "torque", "--gravity-compensation", "--sde-sample-freq", "4", "--log-std-init", "-3.8",
         "--max-train-seconds", "1800")),
