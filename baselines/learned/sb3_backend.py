@@ -50,9 +50,9 @@ def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
 
     With gSDE (``sde_sample_freq`` not 0) it adds ``use_sde``: the network holds gSDE's noise parameters, so
     rebuilding it needs the flag. A run with ``policy_network`` set adds ``set_network``: the slot layout and the
-    team signature of its scenario (:func:`~ee_formation_env.baselines.learned.set_network.set_description`). Plain data (a run's
-    ``policy.json`` saves it); :func:`~ee_formation_env.baselines.learned.set_network.sb3_policy_kwargs` turns
-    it into SB3's."""
+    team signature of its scenario (:func:`~ee_formation_env.baselines.learned.set_network.set_description`).
+    Plain data (a run's ``policy.json`` saves it);
+    :func:`~ee_formation_env.baselines.learned.set_network.sb3_policy_kwargs` turns it into SB3's."""
     kwargs: dict[str, Any] = dict(net_arch=list(args.ppo.net_arch))  # --imitate: the wider actor
     if args.algo == "ppo":
         kwargs["log_std_init"] = args.log_std_init
