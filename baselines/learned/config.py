@@ -266,7 +266,8 @@ class TrainConfig:
         if isinstance(self.sde_sample_freq, bool) or not isinstance(self.sde_sample_freq, int):
             raise TypeError(f"--sde-sample-freq: expected an integer, got {self.sde_sample_freq!r}")
         if self.sde_sample_freq < -1:
-            raise ValueError(f"--sde-sample-freq: expected -1, 0 or a number of steps >= 1, got {self.sde_sample_freq}")
+            raise ValueError("--sde-sample-freq: expected -1, 0 or a number of steps >= 1, got "
+                             f"{self.sde_sample_freq}")
         if self.sde_sample_freq and (self.backend != "sb3" or self.algo != "ppo" or imitating
                                      or self.policy_network == "set"):
             raise ValueError("--sde-sample-freq: gSDE trains with --backend sb3 and --algo ppo, an MLP policy and "
