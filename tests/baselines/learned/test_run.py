@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 
 from ee_formation_env import baselines  # noqa: E402
 from ee_formation_env.baselines.cli import train_command  # noqa: E402
+from ee_formation_env.baselines.learned.checkpoint import load_policy  # noqa: E402
 from ee_formation_env.baselines.learned.config import PRESETS, TrainConfig  # noqa: E402
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET  # noqa: E402
 from ee_formation_env.baselines.learned.imitation import actor_mean, fit_actor  # noqa: E402
@@ -81,7 +82,7 @@ def test_bad_arguments_fail_before_training(tmp_path, capsys):
 
 
 def test_gsde_explores_through_the_features_and_its_saved_policy_acts_as_the_model(tmp_path):
-    from ee_formation_env.baselines.learned.checkpoint import load_policy
+    from stable_baselines3 import PPO
 
     args = TrainConfig.from_args(["--mode", "torque", "--sde-sample-freq", "4", "--n-envs", "1", "--n-workers", "0",
                                   "--no-progress"])
@@ -111,8 +112,6 @@ def test_gsde_explores_through_the_features_and_its_saved_policy_acts_as_the_mod
     assert json.loads((run_dir / "config.json").read_text())["sde_sample_freq"] == 4
     policy = load_policy(run_dir / "model")
     assert policy.use_sde
-    from stable_baselines3 import PPO
-
     trained = PPO.load(run_dir / "model.zip", device="cpu")
     observation = np.random.default_rng(0).normal(size=(3, *policy.observation_space.shape)).astype(np.float32)
     np.testing.assert_allclose(policy.predict(observation, deterministic=True)[0],
