@@ -50,6 +50,9 @@ class Method:
     train_flags: tuple[str, ...] = ()  # train.py flags of a learned method (its preset sets the rest)
     needs_invariant_arms: bool = False  # its observation features need arms turning about their base z axis
     benchmarl: BenchmarlRun | None = None  # a BenchMARL method's run
+    #: A learned method whose run of the same scenario and seed this method's policy starts as a copy of
+    #: (``--imitate RUN_DIR``): its cell is trained first, and its budget counts in this method's.
+    teacher: str | None = None
 
     @property
     def learned(self) -> bool:
@@ -144,6 +147,13 @@ METHODS: dict[str, Method] = {
     "torque-gc-gsde-ppo": Method("torque-gc-gsde-ppo", train_flags=(
         "--mode", "torque", "--gravity-compensation", "--sde-sample-freq", "4", "--log-std-init", "-3.8",
         "--max-train-seconds", "1800")),
+    # The gravity-compensated torque convention learned through a copy: position-ppo's run of the same seed (the
+    # joint-position convention, learned from the reward) is the reference whose applied torques a torque policy
+    # copies (--imitate RUN_DIR: 3 DAgger rounds of 30 training episodes), then 1M agent steps of PPO in torque
+    # mode. The budget counts the teacher's run, its demonstrations and the PPO steps (docs/training.md, "Modes").
+    "torque-gc-copy-ppo": Method("torque-gc-copy-ppo", train_flags=(
+        "--mode", "torque", "--gravity-compensation", "--imitation-episodes", "30", "--total-timesteps", "1000000",
+        "--max-train-seconds", "900"), teacher="position-ppo"),
     # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
     # compensation, from scratch, at the same budget.
     "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),
@@ -231,6 +241,8 @@ class Board:
                     protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode, run.model)
         if method.learned:
             protocol["extra_train_flags"] = list(self.extra_train_flags)
+        if method.teacher is not None:  # a changed teacher is another starting policy
+            protocol["teacher"] = self.protocol(METHODS[method.teacher])
         return protocol
 
     def cell_path(self, scenario: str, method: Method, seed: int | None, test: str | None = None) -> Path:
@@ -307,6 +319,9 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
         mark_run(run_dir, board.protocol(method))
     if method.benchmarl is not None:
         return _benchmarl_cell(board, scenario, method, seed, run_dir, current)
+    teacher = None if method.teacher is None else METHODS[method.teacher]
+    if teacher is not None:  # its run first (a cell of its own, reused where it is current)
+        _learned_cell(board, scenario, teacher, seed, seconds)
     if not current or not (run_dir / "comparison.json").is_file():
         evaluation = ["--eval-episodes", str(len(board.eval_seeds(scenario))), "--eval-seconds", str(seconds),
                       "--no-progress",
@@ -316,18 +331,36 @@ def _learned_cell(board: Board, scenario: str, method: Method, seed: int, second
             argv = ["--resume", str(run_dir), *evaluation]
         else:
             argv = [*train_argv(board, scenario, method, seed), "--out", str(run_dir), "--overwrite", *evaluation]
+            if teacher is not None:
+                argv += ["--imitate", str(board.run_dir(scenario, teacher, seed))]
         train(TrainConfig.from_args(argv))
     comparison = json.loads((run_dir / "comparison.json").read_text(encoding="utf-8"))
-    return comparison["results"]["learned"]["per_episode"], _budget(run_dir)
+    budget = _budget(run_dir)
+    if teacher is not None:
+        budget = _with_teacher(budget, _budget(board.run_dir(scenario, teacher, seed)))
+    return comparison["results"]["learned"]["per_episode"], budget
 
 
 def _budget(run_dir: Path) -> dict[str, Any]:
-    """A learned cell's budget, from its run folder: agent steps and training seconds done, the budget asked."""
+    """A learned cell's budget, from its run folder: agent steps and training seconds done (a copy's
+    demonstrations included: ``imitation.json``), the budget asked."""
     timing = json.loads((run_dir / "timing.json").read_text(encoding="utf-8"))
     config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-    return {"agent_steps": int(timing["agent_steps"]), "train_seconds": float(timing["train_seconds"]),
-            "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
-            "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
+    budget = {"agent_steps": int(timing["agent_steps"]), "train_seconds": float(timing["train_seconds"]),
+              "total_timesteps": int(config["total_timesteps"]), "mode": config["mode"],
+              "faulted_training_episodes": sum(s.get("faulted_training_episodes", 0) for s in timing["segments"])}
+    if (run_dir / "imitation.json").is_file():
+        rounds = json.loads((run_dir / "imitation.json").read_text(encoding="utf-8"))["rounds"]
+        budget["imitation_seconds"] = float(rounds[-1]["seconds"]) if rounds else 0.0
+        budget["train_seconds"] += budget["imitation_seconds"]
+    return budget
+
+
+def _with_teacher(budget: dict[str, Any], teacher: dict[str, Any]) -> dict[str, Any]:
+    """A copy's budget with its teacher's counted in: agent steps and seconds are the sums (what the method
+    took from scratch), the teacher's own budget kept beside them."""
+    return {**budget, "agent_steps": budget["agent_steps"] + teacher["agent_steps"],
+            "train_seconds": budget["train_seconds"] + teacher["train_seconds"], "teacher": teacher}
 
 
 def _saved_run_metrics(run_dir: Path, method: Method, scenario: Any, seeds: Sequence[int], seconds: float

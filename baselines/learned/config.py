@@ -21,7 +21,8 @@ from typing import Any, Collection, Iterator, Mapping, Sequence
 
 from ee_formation_env.baselines import MODEL_BASED_POLICIES
 from ee_formation_env.baselines.learned.features import FEATURE_SETS
-from ee_formation_env.baselines.learned.imitation import IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS
+from ee_formation_env.baselines.learned.imitation import (IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS,
+                                                         reference_features)
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
 from ee_formation_env.baselines.learned.options import PRESET_FIELDS, TrainingOptions
 from ee_formation_env.baselines.learned.recipes import RECIPE_CHOICES, recipe_for
@@ -91,9 +92,11 @@ class TrainConfig:
     joint_reach: float = _option_flag("joint_reach", type=float)
     position_gain: float = _option_flag("position_gain", type=float)
     target_smoothing: float = _option_flag("target_smoothing", type=float)
-    imitate: str | None = _flag("torque mode: start the policy as a copy of this reference controller, learned from "
-                                "its demonstrations (DAgger) before PPO (default none: learn from the reward alone); "
-                                "residual mode: none only", None, choices=(*MODEL_BASED_POLICIES, "none"))
+    imitate: str | None = _flag("torque mode: start the policy as a copy of this reference, learned from its "
+                                "demonstrations (DAgger) before PPO: a reference law "
+                                f"({', '.join(MODEL_BASED_POLICIES)}) or a run folder of the same scenario and env "
+                                "settings, whose learned policy's applied torques are copied (default none: learn from "
+                                "the reward alone); residual mode: none only", None, metavar="LAW|RUN_DIR|none")
     imitation_rounds: int = _flag("--imitate: demonstration rounds (the first driven by the reference, the next ones "
                                   "partly by the learner)", IMITATION_ROUNDS, type=int)
     imitation_episodes: int = _flag("--imitate: training episodes per demonstration round", IMITATION_EPISODES,
@@ -186,7 +189,7 @@ class TrainConfig:
         if config.total_timesteps is None and not config.resume:  # a resumed run keeps its saved budget unless given
             config.total_timesteps = IMITATION_TIMESTEPS if imitating else preset.total_timesteps
         if config.obs_features is None:  # an imitated policy sees what its reference sees
-            config.obs_features = "none" if imitating else preset.obs_features
+            config.obs_features = reference_features(config.imitate) if imitating else preset.obs_features
         for name in ("train_episode_seconds", "gamma", "log_std_init", "hold_penalty", "n_envs", "n_steps",
                      "n_workers", "max_fault_fraction", "fault_guard_start"):
             if getattr(config, name) is None:
@@ -218,8 +221,11 @@ class TrainConfig:
             raise ValueError("--total-timesteps must be >= 1 (>= 0 with --imitate: the imitated policy as it is)")
         if self.n_envs < 1 or self.n_steps < 1 or self.eval_episodes < 1:
             raise ValueError("--n-envs, --n-steps and --eval-episodes must be >= 1")
-        if imitating and self.obs_features != "none":
-            raise ValueError("--obs-features: expected none with --imitate (the policy sees what its reference sees)")
+        if not isinstance(self.imitate, str):
+            raise TypeError(f"--imitate: expected a reference law's name, a run folder or none, got {self.imitate!r}")
+        if self.imitate in MODEL_BASED_POLICIES and self.obs_features != "none":
+            raise ValueError("--obs-features: expected none with --imitate of a law (the policy sees what its "
+                             "reference sees)")
         if not 0 < self.residual_scale <= 1:
             raise ValueError("--residual-scale: expected a value in (0, 1]")
         if not (math.isfinite(self.action_acceleration) and self.action_acceleration > 0):

@@ -21,6 +21,7 @@ from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.learned.checkpoint import write_json
 from ee_formation_env.baselines.learned.compare import compare, reference_returns, saved_scenario
 from ee_formation_env.baselines.learned.config import TrainConfig
+from ee_formation_env.baselines.learned.imitation import check_reference_run, reference_run
 from ee_formation_env.baselines.learned.interruption import (RunStopped, StopSignal, TrainingInterrupted,
                                                              raise_on_signals, stop_on_signals)
 from ee_formation_env.baselines.learned.run_folder import check_out, created_run_folder, has_resumable_state
@@ -173,6 +174,9 @@ def _validated_scenario(config: TrainConfig) -> tuple[Any, TeamPadding | None]:
             raise ValueError(f"--backend: {config.backend} cannot train a mixed team yet: {team}; use --backend sb3")
         if config.imitate not in (None, "none"):
             raise ValueError(f"--imitate: the imitation cannot start a mixed team's policy yet: {team}")
+    run = reference_run(config.imitate or "none")
+    if run is not None:
+        check_reference_run(run, config, scenario)
     if config.policy_network == "set":  # one robot and layout, slots kept by the features: refused here
         if padding is not None:
             raise ValueError(f"--policy-network: set shares one network over agents of one robot and layout; "

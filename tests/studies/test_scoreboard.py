@@ -496,3 +496,29 @@ def test_a_set_method_and_the_laws_get_a_row_per_team_size_with_a_table_and_a_fi
     assert (tmp_path / "team_size_success.png").stat().st_size > 0
     assert scoreboard_methods.METHODS["residual-ppo-set"].serves_any_team
     assert not scoreboard_methods.METHODS["residual-ppo"].serves_any_team
+
+
+def test_a_method_with_a_teacher_trains_the_teachers_run_first_and_counts_its_budget(tmp_path):
+    """A copy (``teacher``): the teacher's run of the same scenario and seed is trained (or reused) first, the
+    method's run imitates it (``--imitate RUN_DIR``), and the cell's budget is the sum of both."""
+    pytest.importorskip("stable_baselines3")
+    method = scoreboard_methods.METHODS["torque-gc-copy-ppo"]
+    assert method.teacher == "position-ppo" and method.kind == "from scratch"
+    board = scoreboard_methods.Board(
+        out=tmp_path, scenarios=("planar_square",), methods=(method.name,), seeds=(0,), episodes=1,
+        episode_seconds=0.2, eval_workers=0, test_sets=False,
+        extra_train_flags=(*scoreboard_methods.QUICK_FLAGS, "--train-episode-seconds", "0.2",
+                           "--imitation-rounds", "1", "--imitation-episodes", "1"))
+    cell = scoreboard_methods.run_cell(board, "planar_square", method, 0)
+    teacher_dir = board.run_dir("planar_square", scoreboard_methods.METHODS["position-ppo"], 0)
+    config = json.loads((board.run_dir("planar_square", method, 0) / "config.json").read_text())
+    assert config["imitate"] == str(teacher_dir) and config["gravity_compensation"] is True
+    budget, teacher = cell["budget"], cell["budget"]["teacher"]
+    assert teacher["mode"] == "position" and budget["mode"] == "torque" and budget["imitation_seconds"] > 0
+    student_steps = json.loads((board.run_dir("planar_square", method, 0) / "timing.json").read_text())["agent_steps"]
+    assert budget["agent_steps"] == student_steps + teacher["agent_steps"]
+    assert budget["train_seconds"] > teacher["train_seconds"] + budget["imitation_seconds"]
+    assert "teacher" in board.protocol(method)  # a changed teacher retrains the copy
+    started = (teacher_dir / "comparison.json").stat().st_mtime_ns
+    scoreboard_methods.run_cell(board, "planar_square", method, 0)  # both runs reused
+    assert (teacher_dir / "comparison.json").stat().st_mtime_ns == started
