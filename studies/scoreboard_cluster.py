@@ -46,7 +46,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from studies.scoreboard_methods import (METHODS, Board, Method, evaluation_cells, run_cell, train_argv,
                                         training_cells)
@@ -147,6 +147,14 @@ def cell_groups(board: Board, progress: Callable[[str], None] = print) -> list[C
     return groups
 
 
+def teacher_task(group: CellGroup, submitted: Mapping[tuple[str, str, int | None], Any]) -> Any:
+    """The task already submitted that trains ``group``'s teacher run (same scenario and seed; ``submitted``:
+    (scenario, method, seed) -> task), or None: a copy's task takes it as an argument, so Ray starts the copy
+    after it, where the two would otherwise race for one run folder on a shared filesystem."""
+    teacher = METHODS[group.method].teacher
+    return None if teacher is None else submitted.get((group.scenario, teacher, group.seed))
+
+
 def learned_cpus(board: Board, group: CellGroup) -> int:
     """The CPUs a learned group's training uses: ``max(n_workers, eval_workers) + 1`` of its resolved
     ``train.py`` configuration (the method's flags, the board's, the mode's preset); BenchMARL's
@@ -197,8 +205,11 @@ def _trained_here(board: Board, group: CellGroup, method: Method, trained: dict[
                                               for name in ("comparison.json", "evaluation.json"))
 
 
-def run_group(board: Board, group: CellGroup, driver_code: dict[str, Any], start_log: Any) -> dict[str, Any]:
-    """The task: record this start, check this node's code version against the driver's, compute the group."""
+def run_group(board: Board, group: CellGroup, driver_code: dict[str, Any], start_log: Any,
+              teacher_result: Any = None) -> dict[str, Any]:
+    """The task: record this start, check this node's code version against the driver's, compute the group.
+    ``teacher_result``: the result of the task that trains this group's teacher run (a method with a
+    ``teacher``), passed so that Ray starts this task only after it; unused here."""
     import ray
 
     node = ray.get_runtime_context().get_node_id()
@@ -251,7 +262,7 @@ def fill_on_cluster(board: Board, address: str, cpus_per_learned_cell: int | Non
             ray.get_runtime_context().get_node_id(), soft=False)).remote()
         task = ray.remote(max_retries=MAX_RETRIES, retry_exceptions=False)(run_group)
         driver_code = code_version()
-        pending, not_done = {}, []
+        pending, not_done, submitted = {}, [], {}
         for group in groups:
             cpus = group_cpus(board, group, cpus_per_learned_cell)
             if cpus > node_cpus:
@@ -259,8 +270,9 @@ def fill_on_cluster(board: Board, address: str, cpus_per_learned_cell: int | Non
                          "(--cpus-per-learned-cell declares another number); its cells are not written")
                 not_done.append(group.label)
                 continue
-            ref = task.options(num_cpus=cpus, name=group.label).remote(board, group, driver_code, start_log)
-            pending[ref] = group
+            after = teacher_task(group, submitted)
+            ref = task.options(num_cpus=cpus, name=group.label).remote(board, group, driver_code, start_log, after)
+            pending[ref], submitted[(group.scenario, group.method, group.seed)] = group, ref
             progress(f"queued  {group.label}: {len(group.missing)} cell(s) as one task, {cpus} CPU(s)")
         starts = _StartReporter(start_log, progress)
         try:

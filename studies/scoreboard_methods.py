@@ -147,13 +147,6 @@ METHODS: dict[str, Method] = {
     "torque-gc-gsde-ppo": Method("torque-gc-gsde-ppo", train_flags=(
         "--mode", "torque", "--gravity-compensation", "--sde-sample-freq", "4", "--log-std-init", "-3.8",
         "--max-train-seconds", "1800")),
-    # The gravity-compensated torque convention learned through a copy: position-ppo's run of the same seed (the
-    # joint-position convention, learned from the reward) is the reference whose applied torques a torque policy
-    # copies (--imitate RUN_DIR: 3 DAgger rounds of 30 training episodes), then 1M agent steps of PPO in torque
-    # mode. The budget counts the teacher's run, its demonstrations and the PPO steps (docs/training.md, "Modes").
-    "torque-gc-copy-ppo": Method("torque-gc-copy-ppo", train_flags=(
-        "--mode", "torque", "--gravity-compensation", "--imitation-episodes", "30", "--total-timesteps", "1000000",
-        "--max-train-seconds", "900"), teacher="position-ppo"),
     # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
     # compensation, from scratch, at the same budget.
     "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),
@@ -181,6 +174,14 @@ METHODS: dict[str, Method] = {
     "position-ppo-tracking": Method("position-ppo-tracking", train_flags=(
         "--mode", "position", "--reward-tracking", "1.0", "--train-episode-seconds", "30",
         "--max-train-seconds", "1800")),
+    # The gravity-compensated torque convention learned through a copy: position-ppo's run of the same seed (the
+    # joint-position convention, learned from the reward; above it, as a teacher must be in board order) is the
+    # reference whose applied torques a torque policy copies (--imitate RUN_DIR: 3 DAgger rounds of 30 training
+    # episodes), then 1M agent steps of PPO in torque mode. Its budget counts the teacher's run, the
+    # demonstrations and the PPO steps (docs/training.md, "--mode torque").
+    "torque-gc-copy-ppo": Method("torque-gc-copy-ppo", train_flags=(
+        "--mode", "torque", "--gravity-compensation", "--imitation-episodes", "30", "--total-timesteps", "1000000",
+        "--max-train-seconds", "900"), teacher="position-ppo"),
     # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
     "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
     "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),

@@ -522,3 +522,13 @@ def test_a_method_with_a_teacher_trains_the_teachers_run_first_and_counts_its_bu
     started = (teacher_dir / "comparison.json").stat().st_mtime_ns
     scoreboard_methods.run_cell(board, "planar_square", method, 0)  # both runs reused
     assert (teacher_dir / "comparison.json").stat().st_mtime_ns == started
+
+
+def test_a_teacher_comes_before_its_copies_in_board_order():
+    """A board fills in board order: a copy's teacher cell is then trained first, and a cluster submits it first."""
+    names = list(scoreboard_methods.METHODS)
+    for name, method in scoreboard_methods.METHODS.items():
+        if method.teacher is not None:
+            teacher = scoreboard_methods.METHODS[method.teacher]
+            assert teacher.learned and teacher.benchmarl is None and teacher.teacher is None
+            assert names.index(method.teacher) < names.index(name)

@@ -297,3 +297,15 @@ def test_a_node_of_another_code_version_fails_its_cells_by_name(tmp_path):
     print(failed[0])
     assert "1 cell group(s) not done: planar_square / gradient" in board.stderr
     assert not (out / "cells").exists() and (out / "scoreboard.md").is_file()
+
+
+def test_a_copys_task_waits_for_its_teachers_task_of_the_same_scenario_and_seed():
+    def group(method, seed=0, scenario="spatial_tetrahedron"):
+        return scoreboard_cluster.CellGroup(scenario, method, seed, "label", None, (), None)
+
+    submitted = {("spatial_tetrahedron", "position-ppo", 0): "teacher task",
+                 ("spatial_tetrahedron", "position-ppo", 1): "other seed's"}
+    assert scoreboard_cluster.teacher_task(group("torque-gc-copy-ppo"), submitted) == "teacher task"
+    assert scoreboard_cluster.teacher_task(group("torque-gc-copy-ppo", seed=2), submitted) is None  # cached: none
+    assert scoreboard_cluster.teacher_task(group("torque-gc-copy-ppo", scenario="planar_square"), submitted) is None
+    assert scoreboard_cluster.teacher_task(group("position-ppo"), submitted) is None  # no teacher
