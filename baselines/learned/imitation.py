@@ -90,7 +90,7 @@ def check_reference_run(run: SavedRun, config: "TrainConfig", scenario: Any) -> 
 def reference_policies(reference: str | SavedRun, env: Any) -> dict[str, Any]:
     """Per-agent policies of ``reference`` on ``env``'s raw observations (a law, or a saved run's learned
     policy, its features and mode's rule included)."""
-    if isinstance(reference, SavedRun):
+    if isinstance(reference, SavedRun):  # built on the raw env: a training env's spaces carry its features
         return reference.policy_source()(env.batched.env.copy_view(0) if hasattr(env, "batched") else env)
     if reference not in baselines.MODEL_BASED_POLICIES:
         raise ValueError(f"reference: expected one of {list(baselines.MODEL_BASED_POLICIES)}, got {reference!r}")
@@ -147,8 +147,8 @@ def _per_agent(agents: list[str], actions: np.ndarray) -> Mapping[str, np.ndarra
 
 
 def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
-    """Start ``model``'s policy as a copy of the reference ``args.imitate`` (a law, or a saved run's policy): DAgger rounds of demonstrations
-    in the training env (:func:`ee_formation_env.baselines.learned.imitation.demonstrations`), the actor's mean fitted to the
+    """Start ``model``'s policy as a copy of the reference ``args.imitate`` (a law, or a saved run's policy):
+    DAgger rounds of demonstrations in the training env (:func:`demonstrations`), the actor's mean fitted to the
     reference's actions after each round, the observation normalization set from the data; then PPO's
     exploration noise is narrowed to ``IMITATION_LOG_STD``. Writes ``imitation.json``."""
     import torch
