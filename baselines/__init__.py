@@ -63,13 +63,16 @@ def agent_model(env: FormationEnv, agent: str) -> AgentModel:
     )
 
 
-def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping[str, Any] | None = None,
+def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping[str, Any] | str | None = None,
                 a_hat0: Any = None, seed: int = 0, **options: Any):
     """A reference policy for one agent: ``reset()`` and ``__call__(observation) -> action``.
 
     ``gains``: a :class:`Gains`, or a dict of overrides of the defaults for this scenario
     (:func:`ee_formation_env.baselines.reference.gains.default_gains`); on a scenario distribution the defaults
-    are those of the env's current draw, taken again at every ``reset()`` of the policy (after the env's). ``a_hat0``: initial kinematic estimate (default: the nominal
+    are those of the env's current draw, taken again at every ``reset()`` of the policy (after the env's);
+    ``"tuned"``: the law's tuned gains for the env's built-in scenario
+    (:mod:`ee_formation_env.baselines.reference.tuned`; ``ValueError`` where there are none), per draw on a
+    distribution. ``a_hat0``: initial kinematic estimate (default: the nominal
     URDF's parameters). ``options``: controller options: ``anti_windup`` (``approx_jacobian`` and
     ``adaptive_jacobian``), ``projection`` and ``parameter_bounds`` (``adaptive_jacobian``; default box
     ``[0.5, 2] x`` the nominal parameters), see :mod:`ee_formation_env.baselines.reference.controllers`. ``seed`` seeds ``random``.
@@ -85,12 +88,22 @@ def make_policy(name: str, env: FormationEnv, agent: str, gains: Gains | Mapping
         raise ValueError(f"policy: {name} sends the paper's raw joint torques; evaluate it on the scenario with "
                          "gravity_compensation: false")
     index = env.task.agent_index(agent)
+    if isinstance(gains, str):
+        if gains != "tuned":
+            raise ValueError(f"gains: expected a Gains, a dict, None or 'tuned', got {gains!r}")
+        from ee_formation_env.baselines.reference.tuned import tuned_gains_source
+
+        source = tuned_gains_source(env, index, name)
+        controller = make_controller(name, model, source(), a_hat0, **options)
+        if env.scenario.distribution.active:  # each draw its own gains, taken at every reset
+            controller.gains_source = source
+        return controller
     follow = gains is None or isinstance(gains, Mapping)
     if follow:
         updates = dict(gains or {})
         gains = default_gains(env.task, index).with_updates(**updates)
     elif not isinstance(gains, Gains):
-        raise TypeError(f"gains: expected a Gains, a dict or None, got {type(gains).__name__}")
+        raise TypeError(f"gains: expected a Gains, a dict, None or 'tuned', got {type(gains).__name__}")
     controller = make_controller(name, model, gains, a_hat0, **options)
     if follow and env.scenario.distribution.active:  # each draw its own gains, taken at every reset
         controller.gains_source = lambda: default_gains(env.task, index).with_updates(**updates)

@@ -35,7 +35,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 import ee_formation_env
-from ee_formation_env.baselines import POLICIES, make_policies
+from ee_formation_env.baselines import POLICIES, REFERENCE_CONTROLLERS, make_policies
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.metrics import (DEFAULT_EVALUATION_COPIES, DEFAULT_POSITION_TOLERANCE, EpisodeMetrics,
                                                 PolicySource, format_table, metric_definitions, run_episode,
@@ -203,6 +203,9 @@ def build_parser(prog: str = "python -m ee_formation_env.baselines.evaluate") ->
                         help="edge-length accuracy (m) that counts as success")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="scenario overrides, VALUE in JSON, e.g. --set torque_limits=1e6 frame_skip=1")
+    parser.add_argument("--gains", choices=("default", "tuned"), default="default",
+                        help="the laws' gains: their defaults, or their tuned sets for this built-in scenario "
+                             "(baselines/reference/tuned/; docs/controllers.md, 'Tuned gains')")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON (a file path)")
     parser.add_argument("--video", metavar="DIR", type=Path,
                         help="also write one video per episode into DIR (MP4, or GIF without imageio-ffmpeg; "
@@ -256,6 +259,12 @@ class _Evaluated:
     name: str
     overrides: dict[str, Any]
     run: Any = None  # a SavedRun or ExportedActors, or None for a reference policy (``name``)
+    policy_kwargs: dict[str, Any] | None = None  # a reference law's make_policies arguments (``gains``)
+
+    @property
+    def row(self) -> str:
+        """Its row in the table and the JSON: a law with tuned gains is another row than with its defaults."""
+        return f"{self.name} (tuned)" if (self.policy_kwargs or {}).get("gains") == "tuned" else self.name
 
     def source(self) -> PolicySource:
         """What :func:`evaluate_policy` runs: the reference's name, or the run's policies (a fresh model read,
@@ -302,13 +311,21 @@ class ExportedActors:
         return self.actors.policy_factory()
 
 
-def _policies(policy: str, parser: argparse.ArgumentParser, overrides: dict[str, Any]) -> list[_Evaluated]:
+def _policies(policy: str, parser: argparse.ArgumentParser, overrides: dict[str, Any], gains: str = "default"
+              ) -> list[_Evaluated]:
     """The policies ``--policy`` names, each with the scenario overrides it is evaluated with: a run's
-    policy also with the env settings of its action convention (``SavedRun.env_overrides``)."""
+    policy also with the env settings of its action convention (``SavedRun.env_overrides``); ``gains``
+    (``--gains``): the laws' defaults or their tuned sets."""
+    def law(name: str) -> _Evaluated:
+        tuned = gains == "tuned" and name in REFERENCE_CONTROLLERS
+        return _Evaluated(name, overrides, policy_kwargs={"gains": "tuned"} if tuned else None)
+
     if policy == "all":
-        return [_Evaluated(name, overrides) for name in POLICIES]
+        return [law(name) for name in POLICIES]
     if policy in POLICIES:
-        return [_Evaluated(policy, overrides)]
+        return [law(policy)]
+    if gains != "default":
+        parser.error("--gains: applies to the reference laws, not to a run's policy")
     if not Path(policy).is_dir():
         parser.error(f"--policy: unknown policy {policy!r}; available: {list(POLICIES)}, 'all', a train.py "
                      "run folder (holding config.json and model/) or a BenchMARL export folder (actor.json)")
@@ -340,7 +357,7 @@ def _check_policies(scenario: Any, evaluated: Sequence[_Evaluated]) -> None:
             for policy in group:
                 source = policy.source()
                 if isinstance(source, str):
-                    make_policies(source, env)
+                    make_policies(source, env, **(policy.policy_kwargs or {}))
                 else:
                     source(env)
 
@@ -365,7 +382,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
         if problem:
             parser.error(f"--video: {problem}")
     try:
-        evaluated = _policies(args.policy, parser, parse_key_values(args.set))
+        evaluated = _policies(args.policy, parser, parse_key_values(args.set), args.gains)
         run = evaluated[0].run
         if args.scenario is not None:
             scenario = scenario_name = args.scenario
@@ -395,10 +412,11 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
 
     quiet = args.quiet
     # A run's row is "learned", as in its comparison.json; the table shows its label.
-    results = {"learned" if policy.run is not None else policy.name: evaluate_policy(
-        scenario, policy.source(), args.episodes, args.seed, args.tolerance, policy.overrides, video_dir=args.video,
-        on_episode=None if quiet else progress, on_round=None if quiet else round_started, name=policy.name,
-        video_name=policy.video_name) for policy in evaluated}
+    results = {"learned" if policy.run is not None else policy.row: evaluate_policy(
+        scenario, policy.source(), args.episodes, args.seed, args.tolerance, policy.overrides,
+        policy_kwargs=policy.policy_kwargs, video_dir=args.video, on_episode=None if quiet else progress,
+        on_round=None if quiet else round_started, name=policy.row, video_name=policy.video_name)
+        for policy in evaluated}
     print(format_table({run.label if run is not None else key: value for key, value in results.items()}))
     if args.video is not None:
         count = len(evaluated) * args.episodes

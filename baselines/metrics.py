@@ -8,6 +8,11 @@ one per agent. :func:`run_episode` rolls one seeded episode and returns :class:`
 success and settling time come from :func:`settle`: the formation error (RMS over edges of ``|e_k|``)
 below :func:`formation_tolerance` from the settling time to the end of the episode, held at least
 :data:`DEFAULT_HOLD_SECONDS`, with no physics fault.
+
+Precision is judged in metres of edge length (:func:`edge_length_errors`: ``| |z_k| - d_k |`` for distance
+formations, ``|z_k - z*_k|`` for displacement ones): the time to the :data:`PRECISION_TOLERANCE` band (every
+edge within 1 mm, by the same :func:`settle`), the steady-state error over the last
+:data:`STEADY_STATE_SECONDS` (RMS and worst edge) and the smoothness of the torques (mean ``|dtau| / dt``).
 """
 
 from __future__ import annotations
@@ -34,6 +39,20 @@ class Policy(Protocol):
 
 
 DEFAULT_HOLD_SECONDS = 1.0  # s: the formation must be held at least this long before the episode ends
+PRECISION_TOLERANCE = 1e-3  # m: the precision band: every edge's length error below it (settling_time_1mm)
+STEADY_STATE_SECONDS = 1.0  # s: the steady-state errors are taken over the episode's last this many seconds
+
+
+def edge_length_errors(formation: Any, edge_errors: np.ndarray) -> np.ndarray:
+    """Each edge's length error in metres from its edge errors ``e_k`` (..., E) m^2 or (..., E, dim) m of a
+    :class:`~ee_formation_env.formation.Formation` (or anything with a ``formation``): ``| |z_k| - d_k |`` for
+    distance formations (``|z_k| = sqrt(e_k + d_k^2)``), ``|z_k - z*_k|`` for displacement ones. (..., E)."""
+    formation = getattr(formation, "formation", formation)
+    errors = np.asarray(edge_errors, dtype=np.float64)
+    if formation.kind == "distance":
+        lengths = np.linalg.norm(formation.desired_vectors, axis=1)
+        return np.abs(np.sqrt(np.maximum(errors + lengths**2, 0.0)) - lengths)
+    return np.linalg.norm(errors, axis=-1)
 
 
 def settle(errors: Sequence[float] | np.ndarray, tolerance: float, dt: float,
@@ -102,6 +121,12 @@ class EpisodeMetrics:
     mean_return: float  # mean over agents of the summed reward
     sim_time: float  # s
     physics_fault: str = ""  # "" or why the env ended the episode (its physics_fault_reason)
+    # Precision and effort (module docstring): every edge's length error in metres, the torques' rate of change.
+    success_1mm: bool = False  # :func:`settle` of the worst edge's length error in the PRECISION_TOLERANCE band
+    settling_time_1mm: float = math.nan  # s, time after which every edge stays within 1 mm; nan if never
+    steady_rms_edge_error: float = math.nan  # m, RMS over edges and steps of the last STEADY_STATE_SECONDS
+    steady_worst_edge_error: float = math.nan  # m, largest edge length error over the last STEADY_STATE_SECONDS
+    torque_rate: float = math.nan  # N m/s, mean over steps (from the second) and joints of |tau_t - tau_t-1| / dt
     trajectory: dict[str, np.ndarray] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
@@ -182,8 +207,11 @@ class _EpisodeHooks:
         return {key: np.asarray(values) for key, values in self.series.items()} if self.record else None
 
 
-SUMMARY_FIELDS = ("final_formation_error", "settling_time", "control_energy", "peak_torque", "saturation_fraction",
+SUMMARY_FIELDS = ("final_formation_error", "settling_time", "settling_time_1mm", "steady_rms_edge_error",
+                  "steady_worst_edge_error", "control_energy", "torque_rate", "peak_torque", "saturation_fraction",
                   "min_singularity_margin", "contact_steps", "centroid_drift", "mean_return")
+#: Fields averaged over the episodes that reached them only (nan elsewhere): settling times.
+_OVER_SUCCESSES = ("settling_time", "settling_time_1mm")
 
 
 def summarize(episodes: Sequence[EpisodeMetrics]) -> dict[str, Any]:
@@ -194,15 +222,17 @@ def summarize(episodes: Sequence[EpisodeMetrics]) -> dict[str, Any]:
             reasons[episode.physics_fault] = reasons.get(episode.physics_fault, 0) + 1
     summary: dict[str, Any] = {"episodes": len(episodes),
                                "success_rate": float(np.mean([e.success for e in episodes])),
+                               "success_rate_1mm": float(np.mean([e.success_1mm for e in episodes])),
                                "physics_faults": int(sum(reasons.values())),
                                "physics_fault_reasons": reasons}
     for name in SUMMARY_FIELDS:
         values = np.array([getattr(e, name) for e in episodes], dtype=np.float64)
-        if name == "settling_time":
+        if name in _OVER_SUCCESSES:
             values = values[np.isfinite(values)]
         summary[name] = float(values.mean()) if len(values) else math.nan
         summary[f"{name}_std"] = float(values.std()) if len(values) else math.nan
     summary["min_singularity_margin"] = float(min(e.min_singularity_margin for e in episodes))  # worst case
+    summary["steady_worst_edge_error_max"] = float(max(e.steady_worst_edge_error for e in episodes))  # worst case
     return summary
 
 
@@ -234,8 +264,19 @@ METRIC_COLUMNS: tuple[MetricColumn, ...] = (
                  "of |e_k|, e_k = |z_k|² − d_k² (m², distance formations) or z_k − z*_k (m, displacement)", "{:.2e}"),
     MetricColumn("settling_time", "settle", "s", "time after which the formation error stays within the tolerance; "
                  "mean over successful episodes only (n/a: none succeeded)", "{:.2f}"),
+    MetricColumn("success_rate_1mm", "1 mm", "%", "share of episodes in which every edge's length error (| |z_k| − "
+                 "d_k | distance, |z_k − z*_k| displacement) fell below 1 mm and stayed below to the end, for at least "
+                 "1 s", "{:.0%}"),
+    MetricColumn("settling_time_1mm", "settle 1 mm", "s", "time after which every edge's length error stays below "
+                 "1 mm; mean over the episodes that reached it (n/a: none)", "{:.2f}"),
+    MetricColumn("steady_rms_edge_error", "steady rms", "m", "RMS of the edges' length errors over the last second "
+                 "of the episode", "{:.1e}"),
+    MetricColumn("steady_worst_edge_error", "steady worst", "m", "largest edge length error over the last second of "
+                 "the episode", "{:.1e}"),
     MetricColumn("control_energy", "energy", "N² m² s", "sum over arms of the integral of |τ|² dt, τ the applied "
                  "joint torques", "{:.3g}"),
+    MetricColumn("torque_rate", "torque rate", "N m/s", "smoothness: mean over steps and joints of |τ_t − τ_t−1| / "
+                 "dt (the first step's jump from rest left out)", "{:.3g}"),
     MetricColumn("peak_torque", "peak", "N m", "largest |τ| of any joint at any step", "{:.3g}"),
     MetricColumn("saturation_fraction", "saturated", "%", "share of (step, joint) actions clipped at the torque "
                  "limit", "{:.1%}"),
@@ -309,17 +350,21 @@ def metric_definitions(markdown: bool = False) -> str:
 # ------------------------------------------------------------------------------------------ batched episodes
 class EvaluationVectorEnv(VectorFormationEnv):
     """The batched env (:class:`ee_formation_env.vector.VectorFormationEnv`) as :func:`run_episodes` steps it:
-    the same copies, plus ``ended_end_effectors`` (K, N, 3): each copy's end-effector positions
-    just before its last autoreset (SAME_STEP autoreset replaces an ended copy's state at once, and the
-    centroid drift needs its final one)."""
+    the same copies, plus ``ended_end_effectors`` (K, N, 3) and ``ended_edge_errors`` (K, E) or (K, E, dim): each
+    copy's end-effector positions and edge errors just before its last autoreset (SAME_STEP autoreset replaces
+    an ended copy's state at once, and the centroid drift and the precision metrics need its final one)."""
 
     def __init__(self, scenario: Any, num_envs: int = 1, **overrides: Any):
         super().__init__(scenario, num_envs=num_envs, **overrides)
         self.ended_end_effectors = np.zeros((self.num_envs, self.task.n_agents, 3))
+        self.ended_edge_errors: np.ndarray | None = None
 
     def _reset_copies(self, rows: np.ndarray) -> None:
         if self._measurement is not None:
             self.ended_end_effectors[rows] = self._measurement.ee_world[rows]
+            if self.ended_edge_errors is None:
+                self.ended_edge_errors = np.zeros_like(self._measurement.edge_errors)
+            self.ended_edge_errors[rows] = self._measurement.edge_errors[rows]
         super()._reset_copies(rows)
 
 
@@ -405,7 +450,8 @@ def evaluation_env(scenario: Any, num_envs: int, **overrides: Any) -> Evaluation
 def run_episodes(scenario: Any, policy: PolicySource, seeds: Sequence[int],
                  position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
                  overrides: Mapping[str, Any] | None = None, policy_kwargs: Mapping[str, Any] | None = None,
-                 num_envs: int | None = None, env: EvaluationVectorEnv | None = None) -> list[EpisodeMetrics]:
+                 num_envs: int | None = None, env: EvaluationVectorEnv | None = None,
+                 stop_on_precision_hold: bool = False) -> list[EpisodeMetrics]:
     """The episodes ``reset(seed=s)`` for every ``s`` of ``seeds``, run together on the batched env: the
     :class:`EpisodeMetrics` of each, in the order of ``seeds``, equal field for field to what
     :func:`run_episode` gives for that seed (``tests/baselines/test_metrics_batched.py``).
@@ -422,6 +468,10 @@ replay it bit for bit).
     Each copy runs its episode to its end (termination or truncation); the SAME_STEP autoreset then starts
     it again, and what it does afterwards is ignored, while the other copies finish theirs. Recording,
     rendering and the hooks of :func:`run_episode` are not available here (use :func:`run_episode`).
+
+    ``stop_on_precision_hold``: a copy's episode ends once every edge has stayed within
+    :data:`PRECISION_TOLERANCE` for ``hold_seconds`` (the gain tuner's episodes: nothing after that changes its
+    time to the band); the metrics then cover the steps run.
     """
     seeds = [int(seed) for seed in seeds]
     unique = sorted(set(seeds))
@@ -440,7 +490,8 @@ replay it bit for bit).
         round_env = env if env is not None else evaluation_env(scenario, count, **dict(overrides or {}))
         try:
             teams = _BatchedTeams(round_env, [policy(round_env.copy_view(k)) for k in range(round_env.num_envs)])
-            results.update(zip(chunk, _run_round(round_env, teams, chunk, position_tolerance, hold_seconds)))
+            results.update(zip(chunk, _run_round(round_env, teams, chunk, position_tolerance, hold_seconds,
+                                                 stop_on_precision_hold=stop_on_precision_hold)))
         finally:
             if env is None:
                 round_env.close()
@@ -449,10 +500,12 @@ replay it bit for bit).
 
 def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Sequence[int],
                  position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
-                 overrides: Mapping[str, Any] | None = None, max_copies: int = 64) -> dict[str, list[EpisodeMetrics]]:
+                 overrides: Mapping[str, Any] | None = None, max_copies: int = 64,
+                 stop_on_precision_hold: bool = False) -> dict[str, list[EpisodeMetrics]]:
     """:func:`run_episodes` of several policies on the same ``seeds``, all (policy, seed) episodes as the copies
     of one batched env (``len(policies) x len(seeds)`` copies, in rounds of at most ``max_copies``; each copy
-    runs one episode from a fresh world): ``{name: [metrics per seed]}``."""
+    runs one episode from a fresh world): ``{name: [metrics per seed]}``. ``stop_on_precision_hold``: as for
+    :func:`run_episodes`."""
     seeds = [int(seed) for seed in seeds]
     unique = sorted(set(seeds))
     jobs = [(name, seed) for name in policies for seed in unique]
@@ -464,7 +517,8 @@ def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Seq
             sources = {name: _policy_source(policies[name]) for name in dict.fromkeys(name for name, _ in chunk)}
             teams = _BatchedTeams(env, [sources[name](env.copy_view(k)) for k, (name, _) in enumerate(chunk)])
             copy_seeds = [seed for _, seed in chunk]
-            results.update(zip(chunk, _run_round(env, teams, copy_seeds, position_tolerance, hold_seconds)))
+            results.update(zip(chunk, _run_round(env, teams, copy_seeds, position_tolerance, hold_seconds,
+                                                 stop_on_precision_hold=stop_on_precision_hold)))
     return {name: [results[(name, seed)] for seed in seeds] for name in policies}
 
 
@@ -477,7 +531,8 @@ def _policy_source(policy: PolicySource) -> Callable[[Any], Mapping[str, Policy]
 
 
 def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[int], position_tolerance: float,
-               hold_seconds: float, hooks: _EpisodeHooks | None = None) -> list[EpisodeMetrics]:
+               hold_seconds: float, hooks: _EpisodeHooks | None = None, stop_on_precision_hold: bool = False
+               ) -> list[EpisodeMetrics]:
     """The episode loop: one episode per seed (at most K of them) on the copies 0.. of ``env``, copy k reset with
     ``seeds[k]``; the copies beyond them run too (seeded after the last) and are ignored. ``env`` autoresets
     (an :class:`EvaluationVectorEnv`, which keeps each ended copy's final end-effectors) or, with one copy, does
@@ -493,6 +548,8 @@ def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[in
         hooks.after_reset(result.infos)
     dt = env.scenario.control_dt
     tolerances = [formation_tolerance(env.tasks[k], position_tolerance) for k in range(wanted)]
+    formations = [env.tasks[k].formation for k in range(wanted)]  # this episode's draws, before any autoreset
+    hold_steps = int(math.ceil(hold_seconds / dt - 1e-9))
     start = env.end_effector_positions()
     start_centroids = [start[k].mean(axis=0) for k in range(wanted)]
     joint_slices = env.joint_slices
@@ -501,6 +558,10 @@ def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[in
     active = np.zeros(K, dtype=bool)
     active[:wanted] = True
     errors: list[list[float]] = [[] for _ in range(wanted)]
+    length_errors: list[list[np.ndarray]] = [[] for _ in range(wanted)]  # (E,) m per step
+    within_steps = np.zeros(K, dtype=np.int64)  # steps since every edge last left the precision band
+    previous_torques: np.ndarray | None = None
+    rate_sums = np.zeros(K)
     energy, peak = np.zeros(K), np.zeros(K)
     clipped, entries, contact_steps = np.zeros(K, dtype=np.int64), np.zeros(K, dtype=np.int64), np.zeros(K, dtype=np.int64)
     returns = np.zeros((K, N))
@@ -532,24 +593,44 @@ def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[in
         contact_steps[rows] += (infos["contacts"][rows] > 0).any(axis=1)
         min_margin[rows] = np.minimum(min_margin[rows], infos["singularity_margin"][rows].min(axis=1))
         returns[rows] += result.rewards[rows]
+        if previous_torques is not None:
+            rate_sums[rows] += np.abs(torques[rows] - previous_torques[rows]).mean(axis=1) / dt
+        previous_torques = torques
         formation_error = infos["formation_error"]
         fault_flags, reasons = infos["physics_fault"], infos["physics_fault_reason"]
         ended = result.terminations | result.truncations
         steps += 1
         if hooks is not None and hooks.after_step(steps, actions, result):
             ended = np.ones(K, dtype=bool)  # the one copy stops here
+        edge_errors = env.edge_errors()
+        if env.autoreset and ended[rows].any():  # an ended copy's measurement is its next episode's start
+            done = rows[ended[rows]]
+            edge_errors[done] = env.ended_edge_errors[done]
         for k in rows:
             errors[k].append(float(formation_error[k]))
+            lengths = edge_length_errors(formations[k], edge_errors[k])
+            length_errors[k].append(lengths)
+            within_steps[k] = within_steps[k] + 1 if float(lengths.max()) < PRECISION_TOLERANCE else 0
             if fault_flags[k] and not faults[k]:
                 faults[k] = str(reasons[k])
+            if stop_on_precision_hold and within_steps[k] >= hold_steps and not ended[k]:
+                ended[k] = True  # held long enough: the copy's episode ends here (its state is this step's)
+                end_centroids[k] = env.end_effector_positions()[k].mean(axis=0)
+                active[k] = False
+                continue
             if ended[k]:
                 final = env.ended_end_effectors[k] if env.autoreset else env.end_effector_positions()[k]
                 end_centroids[k] = final.mean(axis=0)
                 active[k] = False
     metrics = []
+    steady_steps = max(1, int(round(STEADY_STATE_SECONDS / dt)))
     for k in range(wanted):
         series = np.asarray(errors[k])
         success, settling_time = settle(series, tolerances[k], dt, hold_seconds, faulted=bool(faults[k]))
+        lengths = np.asarray(length_errors[k])  # (steps, E) m
+        success_1mm, settling_time_1mm = settle(lengths.max(axis=1), PRECISION_TOLERANCE, dt, hold_seconds,
+                                                faulted=bool(faults[k]))
+        steady = lengths[-steady_steps:]
         metrics.append(EpisodeMetrics(
             success=success,
             final_formation_error=float(series[-1]),
@@ -563,6 +644,11 @@ def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[in
             mean_return=float(np.mean(list(returns[k]))),
             sim_time=len(series) * dt,
             physics_fault=faults[k],
+            success_1mm=success_1mm,
+            settling_time_1mm=settling_time_1mm,
+            steady_rms_edge_error=float(np.sqrt(np.mean(steady**2))),
+            steady_worst_edge_error=float(steady.max()),
+            torque_rate=float(rate_sums[k] / (len(series) - 1)) if len(series) > 1 else 0.0,
             trajectory=None if hooks is None else hooks.trajectory(),
         ))
     return metrics

@@ -42,6 +42,18 @@ HELD_OUT_SEED_OFFSET = 10_000
 #: A distribution's held-out draws (reset seeds).
 TEST_SEEDS: tuple[int, ...] = tuple(range(HELD_OUT_SEED_OFFSET, HELD_OUT_SEED_OFFSET + 50))
 TRAIN_SEEDS: tuple[int, ...] = tuple(range(50))  # a sample of its training draws (reset seeds)
+#: rad: the half-width of the joint noise of a fixed scenario's wide starts (:func:`wide_starts`), four times the
+#: built-ins' 0.05 rad and twice the 0.1 rad the from-scratch training modes draw.
+WIDE_START_NOISE = 0.2
+
+
+def wide_starts(name: str) -> dict[str, Any]:
+    """The fixed built-in ``name`` with starts drawn ±:data:`WIDE_START_NOISE` rad about its initial joint angles:
+    the same problem (``initial_q_noise`` changes no physics, so its gains, tuned ones included, stay valid) from
+    starts beyond the training distribution."""
+    scenario = builtin_scenario(name)
+    scenario.update(name=name, initial_q_noise=WIDE_START_NOISE)
+    return scenario
 
 
 def _with_shape(train: str, shape: list[list[float]]) -> Callable[[], dict[str, Any]]:

@@ -55,8 +55,8 @@ from studies.scoreboard_methods import (DEFAULT_EPISODES, DEFAULT_SEEDS, METHODS
                                         TRAIN_SET, BenchmarlRun, Board, Method, fill, run_cell, run_test_cell,
                                         team_places, train_argv, trained_policies)
 # METRICS and episode_values are read through this module by the study's users.
-from studies.scoreboard_rows import (METRICS, _place, episode_values, format_board, rows,  # noqa: F401
-                                     team_size_figure, write_outputs)
+from studies.scoreboard_rows import (METRICS, _place, episode_values, format_board, pareto_figure,  # noqa: F401
+                                     rows, team_size_figure, write_outputs)
 
 
 
@@ -147,6 +147,7 @@ def _smaller(row: dict[str, Any], committed: dict[str, Any]) -> bool:
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "scoreboard.md"
 DOCS_JSON = DOCS_PAGE.parent / "results" / "scoreboard.json"
 DOCS_FIGURE = DOCS_PAGE.parent / "figures" / "scoreboard_team_size.png"  # the team-size split's success vs N
+DOCS_PARETO = DOCS_PAGE.parent / "figures" / "scoreboard_pareto.png"  # per task: time to the 1 mm band vs energy
 DOCS_CELLS = DOCS_JSON.parent / "cells"  # the cells behind the rows --docs merged (archive_cells)
 
 
@@ -215,13 +216,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     board_cells = aggregated_cells(board)  # every cell ever completed here, not only this invocation's
     board_rows = rows([record for _, record in board_cells])
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
-    figures = [team_size_figure(board_rows, out / "team_size_success.png")]
+    figures = [team_size_figure(board_rows, out / "team_size_success.png"), pareto_figure(board_rows, out / "pareto.png")]
     if args.docs:  # merged into the committed board: its other rows' cells may be on another machine
         committed = json.loads(DOCS_JSON.read_text(encoding="utf-8"))["rows"] if DOCS_JSON.is_file() else []
         merged = merged_rows(committed, board_rows, args.replace_smaller)
         write_outputs(merged, DOCS_JSON, generated_page=DOCS_PAGE)
         archive_cells(board_cells, out / "cells", DOCS_CELLS)
-        figures.append(team_size_figure(merged, DOCS_FIGURE))
+        figures += [team_size_figure(merged, DOCS_FIGURE), pareto_figure(merged, DOCS_PARETO)]
     print(format_board(board_rows))
     written = ([out / "scoreboard.json", out / "scoreboard.md"]
                + ([DOCS_JSON, DOCS_PAGE, DOCS_CELLS] if args.docs else [])

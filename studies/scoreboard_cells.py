@@ -34,8 +34,9 @@ from typing import Any, Callable, Mapping
 
 import ee_formation_env
 
-#: The layout of a cell record: raised when aggregation reads a field differently.
-CELL_SCHEMA = 1
+#: The layout of a cell record: raised when aggregation reads a field differently (2: the precision metrics,
+#: and a protocol holding every board setting that decides a cell's numbers).
+CELL_SCHEMA = 2
 #: The fields every cell has (aggregation reads them).
 CELL_FIELDS = ("scenario", "method", "seed", "eval_seeds", "episode_seconds", "budget", "wall_seconds", "episodes")
 #: The packages whose files decide a cell's numbers, and the suffixes of those files (code, scenarios, robots).

@@ -16,7 +16,7 @@ from typing import Any, Callable, Iterator, Sequence
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
 from ee_formation_env.baselines.metrics import run_episodes
 from ee_formation_env.scenario import load_scenario
-from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios
+from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios, wide_starts
 from ee_formation_env.team_families import TEAM_FAMILIES, TEAM_FAMILY_SOURCES, team_scenario
 from studies.benchmarl_runs import ON_POLICY
 from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
@@ -53,6 +53,13 @@ class Method:
     #: A learned method whose run of the same scenario and seed this method's policy starts as a copy of
     #: (``--imitate RUN_DIR``): its cell is trained first, and its budget counts in this method's.
     teacher: str | None = None
+    #: A law's gains: None for its defaults, ``"tuned"`` for its tuned set (make_policies' ``gains``).
+    gains: str | None = None
+
+    @property
+    def policy_kwargs(self) -> dict[str, Any]:
+        """make_policies' keyword arguments of a law's cells."""
+        return {} if self.gains is None else {"gains": self.gains}
 
     @property
     def learned(self) -> bool:
@@ -60,11 +67,12 @@ class Method:
 
     @property
     def kind(self) -> str:
-        """``"law"`` (a reference controller), ``"residual"`` (a learned correction on a law) or ``"from scratch"``
-        (every other learned method): the groups the board's headline compares. An SB3 method's mode is its
-        ``--mode`` flag (the board trains with ``--recipe none``, so residual without one)."""
+        """``"law"`` (a reference controller at its default gains), ``"tuned law"`` (at its tuned gains),
+        ``"residual"`` (a learned correction on a law: a hybrid) or ``"from scratch"`` (every other learned method):
+        the groups the board's headline compares. An SB3 method's mode is its ``--mode`` flag (the board trains
+        with ``--recipe none``, so residual without one)."""
         if not self.learned:
-            return "law"
+            return "tuned law" if self.gains == "tuned" else "law"
         if self.benchmarl is not None:
             mode = self.benchmarl.mode
         else:
@@ -88,6 +96,13 @@ class Method:
 
             if importlib.util.find_spec("benchmarl") is None:
                 return "needs the torchrl extra (benchmarl)"
+        if self.gains == "tuned":
+            from ee_formation_env.baselines.reference.tuned import load_tuned
+
+            try:
+                load_tuned(scenario, self.reference)
+            except ValueError as error:
+                return str(error)
         if self.needs_invariant_arms and not self._invariant_arms(scenario):
             return "its features need arms whose first joint turns about their base z axis"
         return None
@@ -110,6 +125,8 @@ class Method:
 #: settings of train.py's torque preset, studies.benchmarl_runs.SETTINGS).
 METHODS: dict[str, Method] = {
     **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
+    # Each law at its strongest: its tuned gains (baselines/reference/tuned/, python -m studies.tune_gains).
+    **{f"{name}-tuned": Method(f"{name}-tuned", reference=name, gains="tuned") for name in REFERENCE_CONTROLLERS},
     "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
     "residual-ppo-log-error": Method("residual-ppo-log-error", train_flags=(
         "--mode", "residual", "--obs-features", "log-error")),
@@ -223,10 +240,19 @@ class Board:
     test_sets: bool = True  # also evaluate on each scenario's test set (scenario_sets)
     accept_stale: bool = False  # aggregate cells of another code version as they are (each reported)
 
+    #: Fields that choose which cells run or where, or how a cached one is treated, never a cell's numbers; every
+    #: other field (and any added later) is part of each cell's key (:meth:`protocol`).
+    NOT_IN_CELL_KEY = frozenset({"out", "scenarios", "methods", "seeds", "eval_workers", "test_sets", "accept_stale"})
+
     def protocol(self, method: Method) -> dict[str, Any]:
         """What the study sets for a cell of ``method`` (recorded in it; studies.scoreboard_cells): the
-        method's definition, the BenchMARL learning settings it names, and the flags every learned method gets."""
-        protocol: dict[str, Any] = {"method": dataclasses.asdict(method)}
+        method's definition (its gains, flags or BenchMARL run), the BenchMARL learning settings it names, and
+        every board setting that decides a cell's numbers (all fields but :attr:`NOT_IN_CELL_KEY`: episodes,
+        episode length, the flags every learned method gets such as ``--quick``'s). A cached cell computed under
+        another protocol is recomputed."""
+        settings = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
+                    if field.name not in self.NOT_IN_CELL_KEY}
+        protocol: dict[str, Any] = {"method": dataclasses.asdict(method), "board": settings}
         if method.benchmarl is not None:
             from studies.benchmarl_runs import PROJECT_SETTINGS, SETTINGS
 
@@ -240,8 +266,6 @@ class Board:
                     protocol["benchmarl_settings"] = "the project's YAML files (unread: needs the torchrl extra)"
                 else:
                     protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode, run.model)
-        if method.learned:
-            protocol["extra_train_flags"] = list(self.extra_train_flags)
         if method.teacher is not None:  # a changed teacher is another starting policy
             protocol["teacher"] = self.protocol(METHODS[method.teacher])
         return protocol
@@ -298,7 +322,8 @@ def run_cell(board: Board, scenario: str, method: Method, seed: int | None) -> d
             else:  # nothing saved to evaluate
                 episodes, budget, outcome = [], {}, {"failed": str(fault)}
     else:
-        metrics = run_episodes(scenario, method.reference, seeds, overrides=overrides)
+        metrics = run_episodes(scenario, method.reference, seeds, overrides=overrides,
+                               policy_kwargs=method.policy_kwargs)
         episodes, budget = [m.as_dict() for m in metrics], {"agent_steps": 0}
     return {"scenario": scenario, "method": method.name, **split, "seed": seed, "eval_seeds": seeds,
             "episode_seconds": seconds, "budget": budget, "wall_seconds": time.time() - started,
@@ -406,7 +431,8 @@ def run_test_cell(board: Board, scenario: str, method: Method, seed: int | None,
     elif method.learned:
         metrics = _saved_run_metrics(run_dir, method, test_scenario, seeds, seconds)
     else:
-        metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds})
+        metrics = run_episodes(test_scenario, method.reference, seeds, overrides={"episode_seconds": seconds},
+                               policy_kwargs=method.policy_kwargs)
     episodes = [{k: v for k, v in m.as_dict().items() if k != "trajectory"} for m in metrics]
     return {**record, "wall_seconds": time.time() - started, "episodes": episodes}
 
@@ -477,12 +503,14 @@ def evaluation_cells(board: Board, scenario: str, method: Method) -> list[Evalua
     the test scenarios, a distribution's train set, and, for a method that serves any team
     (:attr:`Method.serves_any_team`), each team size of the scenario's family (with the test sets)."""
     cells = []
-    if board.test_sets:
+    if board.test_sets and method.gains != "tuned":  # tuned gains hold for the problem they were tuned on
         cells += [EvaluationCell(test, f"test {test}", "test", test, data, None)
                   for test, data in held_out_scenarios(scenario).items()]
+    if board.test_sets and scenario not in DISTRIBUTIONS:  # the same problem from starts beyond training's
+        cells.append(EvaluationCell(WIDE_STARTS, "wide starts", "wide", scenario, wide_starts(scenario), None))
     if scenario in DISTRIBUTIONS:  # the train set: the draws at TRAIN_SEEDS
         cells.append(EvaluationCell(TRAIN_SET, "train set", "train", scenario, scenario, tuple(board.train_seeds())))
-    if board.test_sets and method.serves_any_team:
+    if board.test_sets and method.serves_any_team and method.gains != "tuned":
         for name in team_places(scenario):
             family, n = name.rsplit("_", 1)
             cells.append(EvaluationCell(name, f"team {name}", "team", name, team_scenario(family, int(n)),
@@ -524,3 +552,4 @@ def training_cells(board: Board, progress: Callable[[str], None] = print
 
 
 TRAIN_SET = "train-set"  # a distribution's train-set cells' folder (beside its test scenarios')
+WIDE_STARTS = "wide-starts"  # a fixed scenario's wide-start cells' folder

@@ -17,24 +17,36 @@ from typing import Any, Sequence
 import numpy as np
 
 from ee_formation_env.baselines.metrics import fault_kinds
-from ee_formation_env.scenario_sets import DISTRIBUTIONS
+from ee_formation_env.baselines.verdict import ENERGY_RATIO, episode_values as verdict_values, judge
+from ee_formation_env.scenario import load_scenario
+from ee_formation_env.scenario_sets import DISTRIBUTIONS, WIDE_START_NOISE
 from studies.bootstrap import aggregate
 
 #: The board's metrics, one value per evaluation episode: (key, title, unit, meaning, format).
 METRICS: tuple[tuple[str, str, str, str, str], ...] = (
     ("success", "success", "%", "the episode settled and held the formation (metrics' definition)", "{:.0%}"),
     ("settling_time_or_limit", "settle", "s", "settling time, or the episode length when it did not settle", "{:.2f}"),
+    ("settling_time_1mm_or_limit", "to 1 mm", "s", "time after which every edge stays within 1 mm of its length, or "
+     "the episode length when it never does", "{:.2f}"),
+    ("steady_worst_edge_error", "steady worst", "m", "largest edge length error over the episode's last second",
+     "{:.1e}"),
     ("final_formation_error", "final err", "m² or m", "formation error at the last step", "{:.2e}"),
     ("physics_fault", "faulted", "%", "episodes the env ended with a physics fault", "{:.0%}"),
     ("contact_steps", "contacts", "steps", "env steps with a contact between arms", "{:.1f}"),
+    ("control_energy", "energy", "N² m² s", "sum over arms of the integral of |τ|² dt", "{:,.0f}"),
+    ("torque_rate", "torque rate", "N m/s", "mean |τ_t − τ_t−1| / dt over steps and joints", "{:,.0f}"),
+    ("min_singularity_margin", "min sigma", "m", "smallest Jacobian singular value in the episode", "{:.2g}"),
     ("mean_return", "return", "", "episode return, mean over agents", "{:,.0f}"),
 )
+#: The metrics cells computed before the precision metrics existed do not have (their rows say so).
+PRECISION_METRICS = ("settling_time_1mm_or_limit", "steady_worst_edge_error", "torque_rate")
 
 
 def episode_values(episode: dict[str, Any], episode_seconds: float) -> dict[str, float]:
-    """The board's metrics of one episode (an ``EpisodeMetrics.as_dict()``)."""
+    """The board's metrics of one episode (an ``EpisodeMetrics.as_dict()``); an episode recorded before the
+    precision metrics existed has no :data:`PRECISION_METRICS`."""
     settling = episode["settling_time"]
-    return {
+    values = {
         "success": float(bool(episode["success"])),
         "settling_time_or_limit": float(settling) if episode["success"] and math.isfinite(settling) else episode_seconds,
         "final_formation_error": float(episode["final_formation_error"]),
@@ -42,6 +54,14 @@ def episode_values(episode: dict[str, Any], episode_seconds: float) -> dict[str,
         "contact_steps": float(episode["contact_steps"]),
         "mean_return": float(episode["mean_return"]),
     }
+    for key in ("control_energy", "min_singularity_margin"):  # every EpisodeMetrics record has them
+        if key in episode:
+            values[key] = float(episode[key])
+    if "settling_time_1mm" in episode:
+        precise = verdict_values(episode, episode_seconds)
+        values.update(settling_time_1mm_or_limit=precise["settle_1mm"], steady_worst_edge_error=precise["steady_worst"],
+                      torque_rate=float(episode["torque_rate"]))
+    return values
 
 
 def _place(record: dict[str, Any]) -> tuple[str, str]:
@@ -87,7 +107,8 @@ def rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                 e["physics_fault"] for c in cells for e in c["episodes"] if e["physics_fault"]))],
             "failures": failures,
             **({"stopped": stopped} if stopped else {}),
-            "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS},
+            "metrics": {key: aggregate([[v[key] for v in run] for run in values]) for key, *_ in METRICS
+                        if all(key in v for run in values for v in run)},
             # the code versions of its cells (studies.scoreboard_cells): one, unless stale cells were accepted
             "code": [dict(code) for code in {json.dumps(c.get("code"), sort_keys=True): c.get("code")
                                              for c in cells if c.get("code")}.values()],
@@ -113,6 +134,11 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
         if scenario in DISTRIBUTIONS:
             seeds = first["eval_seeds"]
             title = f"{scenario}, {split} set (its draws at the {len(seeds)} reset seeds {seeds[0]}-{seeds[-1]})"
+        elif split == "wide":
+            seeds = first["eval_seeds"]
+            title = (f"{scenario}, wide starts (±{WIDE_START_NOISE} rad about the initial joint angles, at the "
+                     f"{len(seeds)} reset seeds {seeds[0]}-{seeds[-1]}; policies trained on the ±"
+                     f"{load_scenario(scenario).initial_q_noise} rad starts, evaluated here unchanged)")
         elif split == "team":
             seeds = first["eval_seeds"]
             title = (f"{scenario} (team size {team_size(scenario)}: policies trained on {place[0]}, evaluated here "
@@ -129,7 +155,8 @@ def format_board(board_rows: Sequence[dict[str, Any]]) -> str:
                 lines.append(f"| {row['method']} | {', '.join(map(str, row['seeds']))} | - | " +
                              " | ".join(["training failed"] * len(METRICS)) + f" | {row['wall_seconds']:,.0f} |")
                 continue
-            cells = [_interval(spec, row["metrics"][key]) for key, _, _, _, spec in METRICS]
+            cells = [_interval(spec, row["metrics"][key]) if key in row["metrics"] else "old metrics"
+                     for key, _, _, _, spec in METRICS]
             seeds = ", ".join(map(str, row["seeds"])) or "-"
             steps = row["budget"]["agent_steps_per_seed"]  # differ where a wall-clock cap stopped a run
             budget = f"{max(steps):,}" if min(steps) == max(steps) else f"{min(steps):,}-{max(steps):,}"
@@ -155,81 +182,166 @@ HEADLINE_MIN_SEEDS = 3
 #: The training seeds of a headline claim: the headline counts the tasks whose best learned row has as many.
 HEADLINE_CLAIM_SEEDS = 5
 #: The headline's columns: (metric key, title) of :data:`METRICS`.
-HEADLINE_METRICS = (("success", "success (%)"), ("settling_time_or_limit", "settle (s)"),
-                    ("contact_steps", "contacts (steps)"))
+HEADLINE_METRICS = (("success", "success (%)"), ("settling_time_or_limit", "settle 1 cm (s)"),
+                    ("settling_time_1mm_or_limit", "to 1 mm (s)"), ("steady_worst_edge_error", "steady worst (m)"),
+                    ("contact_steps", "contacts (steps)"), ("control_energy", "energy (N² m² s)"))
+#: The headline's kinds of row, in its order, with how each is shown.
+HEADLINE_KINDS = (("law", "law, default gains"), ("tuned law", "law, tuned gains"), ("from scratch", "learned"),
+                  ("residual", "hybrid: law + learned residual"))
+#: The board's metric keys behind each value the verdict rule reads (ee_formation_env.baselines.verdict).
+VERDICT_KEYS = {"success": "success", "settle_1mm": "settling_time_1mm_or_limit",
+                "steady_worst": "steady_worst_edge_error", "contacts": "contact_steps", "energy": "control_energy",
+                "min_sigma": "min_singularity_margin", "return": "mean_return"}
 
 
-def _headline_tasks(board_rows: Sequence[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+def _headline_tasks(board_rows: Sequence[dict[str, Any]], wide: bool = False) -> dict[str, list[dict[str, Any]]]:
     """Task -> its rows with metrics, in board order: a fixed scenario's training-scenario rows, a distribution's
-    test-set rows (its held-out draws); test scenarios and team sizes (transfer) are not tasks here."""
+    test-set rows (its held-out draws); test scenarios and team sizes (transfer) are not tasks here. ``wide``: the
+    fixed scenarios' wide-start rows instead (split ``wide``)."""
     tasks: dict[str, list[dict[str, Any]]] = {}
     for row in board_rows:
         trained_on, scenario = _place(row)
-        wanted = "test" if scenario in DISTRIBUTIONS else "train"
+        wanted = "wide" if wide else ("test" if scenario in DISTRIBUTIONS else "train")
         if row["split"] == wanted and trained_on == scenario and row["metrics"]:
             tasks.setdefault(scenario, []).append(row)
     return tasks
 
 
+def precise(row: dict[str, Any]) -> bool:
+    """Whether the row was measured with the precision metrics (cells from before them were not)."""
+    return all(key in row["metrics"] for key in PRECISION_METRICS)
+
+
 def _best(rows_of_kind: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
-    """The row of the highest mean success, then the shortest mean settling time."""
-    key = lambda row: (-row["metrics"]["success"]["mean"], row["metrics"]["settling_time_or_limit"]["mean"])  # noqa: E731
+    """The row of the highest mean success, then the fastest to the 1 mm band (rows measured before that metric
+    existed come after the others at equal success, by their 1 cm settling)."""
+    def key(row: dict[str, Any]) -> tuple[float, int, float]:
+        metrics = row["metrics"]
+        if precise(row):
+            return -metrics["success"]["mean"], 0, metrics["settling_time_1mm_or_limit"]["mean"]
+        return -metrics["success"]["mean"], 1, metrics["settling_time_or_limit"]["mean"]
     return min(rows_of_kind, key=key, default=None)
 
 
-def beats(learned: dict[str, Any], law: dict[str, Any]) -> list[str]:
-    """Why the learned row does not beat the law's (empty: it does): it must succeed at least as often, settle
-    faster with disjoint 95 % intervals and have no more contact steps per episode."""
-    mine, theirs = learned["metrics"], law["metrics"]
-    reasons = []
-    if mine["success"]["mean"] < theirs["success"]["mean"]:
-        reasons.append("lower success")
-    if mine["settling_time_or_limit"]["mean"] >= theirs["settling_time_or_limit"]["mean"]:
-        reasons.append("slower")
-    elif mine["settling_time_or_limit"]["ci_high"] >= theirs["settling_time_or_limit"]["ci_low"]:
-        reasons.append("settling intervals overlap")
-    if mine["contact_steps"]["mean"] > theirs["contact_steps"]["mean"]:
-        reasons.append("more contacts")
-    return reasons
+def beats(candidate: dict[str, Any], law: dict[str, Any]) -> list[str]:
+    """Why the candidate row does not beat the law's (empty: it does), by the rule of
+    :mod:`ee_formation_env.baselines.verdict` (success no lower, faster to the 1 mm band with disjoint 95 %
+    intervals, steady worst edge within 1 mm, no more contacts, energy at most 1.5x), each loss named; a row
+    measured before the precision metrics existed is not judged, and says so with what it has."""
+    if not (precise(candidate) and precise(law)):
+        return ["not judged: measured under the old metrics (no 1 mm band, no steady-state error)"] + _old_trade_offs(
+            candidate, law)
+    verdict = judge(*({key: row["metrics"][board] for key, board in VERDICT_KEYS.items()}
+                      for row in (candidate, law)))
+    return [] if verdict.beats else verdict.losses + ([f"better: {', '.join(verdict.wins)}"] if verdict.wins else [])
 
 
-def headline_table(board_rows: Sequence[dict[str, Any]]) -> str:
-    """Markdown: per task, the best law, the best learned method from scratch and the best residual (learned rows
-    of at least :data:`HEADLINE_MIN_SEEDS` seeds; the best: highest success, then shortest settling), and whether
-    each learned one beats the law (:func:`beats`); then the count of tasks a learned method wins."""
+def _old_trade_offs(candidate: dict[str, Any], law: dict[str, Any]) -> list[str]:
+    """The metrics an old row has, compared both ways: success, 1 cm settling, contacts, energy."""
+    mine, theirs = candidate["metrics"], law["metrics"]
+    items = []
+    for key, name, spec in (("success", "success", "{:.0%}"), ("settling_time_or_limit", "settle 1 cm", "{:.2f} s"),
+                            ("contact_steps", "contacts", "{:.1f}"), ("control_energy", "energy", "{:,.0f}")):
+        if key not in mine or key not in theirs:
+            continue
+        a, b = mine[key]["mean"], theirs[key]["mean"]
+        if a == b:
+            continue
+        better = a > b if key == "success" else a < b
+        items.append(f"{name} {spec.format(a)} vs {spec.format(b)} ({'better' if better else 'worse'})")
+    if "control_energy" in mine and "control_energy" in theirs and \
+            mine["control_energy"]["mean"] > ENERGY_RATIO * theirs["control_energy"]["mean"]:
+        items.append(f"energy over {ENERGY_RATIO}x the law's")
+    return items
+
+
+def headline_table(board_rows: Sequence[dict[str, Any]], wide: bool = False) -> str:
+    """Markdown: per task, the best law at its default gains, the best law at its tuned gains, the best learned
+    method from scratch and the best hybrid (a learned residual on a law) (learned rows of at least
+    :data:`HEADLINE_MIN_SEEDS` seeds; the best: highest success, then fastest to the 1 mm band), and whether
+    each learned one beats the best tuned law (:func:`beats`; the best default-gain law where no law is tuned);
+    then the count of tasks each learned kind wins. ``wide``: the same on the fixed scenarios' wide starts."""
     from studies.scoreboard_methods import METHODS  # the methods' kinds; rows of retired methods are left out
 
     lines = ["| task | kind | method | seeds | " + " | ".join(title for _, title in HEADLINE_METRICS) +
-             " | beats the best law |", "|---|---|---|---:|" + "---:|" * len(HEADLINE_METRICS) + "---|"]
+             " | beats the best tuned law |", "|---|---|---|---:|" + "---:|" * len(HEADLINE_METRICS) + "---|"]
     formats = {key: spec for key, *_, spec in METRICS}
-    won, claims, tasks = [], [], _headline_tasks(board_rows)
+    won: dict[str, list[str]] = {"from scratch": [], "residual": []}
+    claims, old, untuned, tasks = [], 0, [], _headline_tasks(board_rows, wide)
     for task, task_rows in tasks.items():
         kinds = {kind: [row for row in task_rows if row["method"] in METHODS and METHODS[row["method"]].kind == kind
-                        and (kind == "law" or len(row["seeds"]) >= HEADLINE_MIN_SEEDS)]
-                 for kind in ("law", "from scratch", "residual")}
-        law = _best(kinds["law"])
+                        and (kind in ("law", "tuned law") or len(row["seeds"]) >= HEADLINE_MIN_SEEDS)]
+                 for kind, _ in HEADLINE_KINDS}
+        law = _best(kinds["tuned law"])
+        if law is None:
+            law = _best(kinds["law"])
+            untuned.append(task)
         name = f"{task} (test draws)" if task in DISTRIBUTIONS else task
-        for kind, rows_of_kind in kinds.items():
-            row = _best(rows_of_kind)
+        for kind, shown in HEADLINE_KINDS:
+            row = _best(kinds[kind])
             if row is None:
                 continue
-            cells = [_interval(formats[key], row["metrics"][key]) for key, _ in HEADLINE_METRICS]
+            cells = [_interval(formats[key], row["metrics"][key]) if key in row["metrics"] else "old metrics"
+                     for key, _ in HEADLINE_METRICS]
             verdict = ""
-            if kind != "law" and law is not None:
+            if kind in won and law is not None:
                 reasons = beats(row, law)
-                verdict = "no: " + ", ".join(reasons) if reasons else "**yes**"
-                if not reasons and task not in won:
-                    won.append(task)
-            lines.append(f"| {name} | {kind} | {row['method']} | {len(row['seeds']) or '-'} | " + " | ".join(cells) +
+                verdict = "no: " + "; ".join(reasons) if reasons else "**yes**"
+                old += not precise(row)
+                if not reasons and task not in won[kind]:
+                    won[kind].append(task)
+            lines.append(f"| {name} | {shown} | {row['method']} | {len(row['seeds']) or '-'} | " + " | ".join(cells) +
                          f" | {verdict} |")
             name = ""
         best_learned = _best(kinds["from scratch"] + kinds["residual"])
         if best_learned is not None and len(best_learned["seeds"]) >= HEADLINE_CLAIM_SEEDS:
             claims.append(task)
-    lines += ["", f"A learned method beats the best law on {len(won)} of {len(tasks)} tasks"
-              + (f" ({', '.join(won)})" if won else "") + f"; the best learned row has {HEADLINE_CLAIM_SEEDS} "
-              f"seeds or more on {len(claims)} of {len(tasks)}."]
+
+    def wins(kind: str) -> str:
+        return f"{len(won[kind])} of {len(tasks)} tasks" + (f" ({', '.join(won[kind])})" if won[kind] else "")
+
+    lines += ["", f"A learned method from scratch beats the best tuned law on {wins('from scratch')}; a hybrid "
+              f"(a learned residual on a law) on {wins('residual')}. {old} learned rows were measured before the "
+              "precision metrics existed and are not judged"
+              + (f"; no law is tuned yet on {', '.join(untuned)} (judged against the default gains)" if untuned else "")
+              + f". The best learned row has {HEADLINE_CLAIM_SEEDS} seeds or more on {len(claims)} of {len(tasks)} "
+              "tasks."]
     return "\n".join(lines) + "\n"
+
+
+def pareto_figure(board_rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
+    """Per task (one panel each), every row measured with the precision metrics as a point: time to the 1 mm
+    band against energy (means with 95 % intervals), marked by kind; None when no row has those metrics."""
+    from studies._common import save_figure
+    from studies.scoreboard_methods import METHODS
+
+    tasks = {task: [row for row in rows_ if precise(row)] for task, rows_ in _headline_tasks(board_rows).items()}
+    tasks = {task: rows_ for task, rows_ in tasks.items() if rows_}
+    if not tasks:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    columns = min(3, len(tasks))
+    figure, axes = plt.subplots(math.ceil(len(tasks) / columns), columns, figsize=(4.6 * columns,
+                                3.6 * math.ceil(len(tasks) / columns)), squeeze=False)
+    markers = {"law": "s", "tuned law": "D", "from scratch": "o", "residual": "^"}
+    for axis, (task, task_rows) in zip(axes.flat, tasks.items()):
+        for row in task_rows:
+            kind = METHODS[row["method"]].kind if row["method"] in METHODS else "from scratch"
+            x, y = row["metrics"]["control_energy"], row["metrics"]["settling_time_1mm_or_limit"]
+            axis.errorbar(x["mean"], y["mean"], xerr=[[x["mean"] - x["ci_low"]], [x["ci_high"] - x["mean"]]],
+                          yerr=[[y["mean"] - y["ci_low"]], [y["ci_high"] - y["mean"]]], marker=markers[kind],
+                          capsize=2, label=row["method"])
+        axis.set(title=task, xlabel="energy (N² m² s)", ylabel="time to the 1 mm band (s)", xscale="log")
+        axis.legend(fontsize=6)
+    for axis in list(axes.flat)[len(tasks):]:
+        axis.axis("off")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return save_figure(figure, path)
 
 
 def team_size(scenario: str) -> int:
@@ -322,7 +434,8 @@ def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdow
         markdown_path.write_text(table, encoding="utf-8")
     if generated_page is not None:
         text = generated_page.read_text(encoding="utf-8")
-        for block, content in (("scoreboard", table), ("headline", headline_table(board_rows))):
+        for block, content in (("scoreboard", table), ("headline", headline_table(board_rows)),
+                               ("headline-wide", headline_table(board_rows, wide=True))):
             text = _filled_block(text, block, content, generated_page)
         generated_page.write_text(text, encoding="utf-8")
 

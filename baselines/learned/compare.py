@@ -2,7 +2,12 @@
 
 Each policy runs ``eval_episodes`` episodes (seeds from :data:`~ee_formation_env.baselines.learned.training_env.EVAL_SEED_OFFSET`),
 each scored by :func:`ee_formation_env.baselines.metrics.run_episode` exactly as ``ee-formation evaluate`` scores
-it; the tables and the figure show the same summary.
+it; the tables and the figure show the same summary. On a built-in scenario with tuned gains
+(:mod:`ee_formation_env.baselines.reference.tuned`) each law also runs with them (rows ``<law> (tuned)``), and the
+learned policy is judged against the best tuned law, else against the laws' defaults (``comparison.json``'s
+``reference_gains`` says which), by the rule of :mod:`ee_formation_env.baselines.verdict`: its shortfalls
+(success, precision, singularity, return, effort, contacts, speed) are each named in the console and in
+``comparison.json``.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from ee_formation_env.worker_processes import ignore_interrupts, interrupts_bloc
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
 from ee_formation_env.baselines.learned.policy import SavedRun, saved_scenario
 from ee_formation_env.baselines.metrics import format_table, run_policies, summarize
+from ee_formation_env.baselines.verdict import best_law, estimates, shortfalls
 
 REFERENCE_CURVE_EPISODES = 4  # episodes per reference policy for the learning curve's reference lines
 
@@ -44,11 +50,12 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     """
     overrides = {} if args.eval_seconds is None else {"episode_seconds": args.eval_seconds}
     seeds = [EVAL_SEED_OFFSET + k for k in range(args.eval_episodes)]
-    names = ["learned", *baselines.POLICIES]
+    scenario = ee_formation_env.load_scenario(saved_scenario(config))
+    tuned = tuned_laws(scenario, overrides)
+    names = ["learned", *baselines.POLICIES, *(tuned_row(law) for law in tuned)]
     episodes: dict[tuple[str, int], Any] = {}
     results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
     results_dir.mkdir(parents=True, exist_ok=True)
-    scenario = ee_formation_env.load_scenario(saved_scenario(config))
     setup = (scenario, overrides, str(run_dir), config)
     bar = _evaluation_progress(len(names) * len(seeds), args.no_progress)
 
@@ -80,9 +87,14 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         results[name] = summarize(runs)
         results[name]["per_episode"] = [e.as_dict() for e in runs]
     label = SavedRun(run_dir, config).label
-    shortfall = learned_shortfall(results)
+    episode_seconds = scenario.episode_seconds if args.eval_seconds is None else args.eval_seconds
+    judged = judged_laws(results, tuned)
+    found, best = learned_shortfalls(results, judged, episode_seconds)
+    shortfall = "; ".join(item["message"] for item in found) or None
     comparison = {"scenario": config["scenario"], "seeds": seeds, "learned_label": label, "results": results,
-                  "shortfall": shortfall}
+                  "reference_gains": "tuned" if tuned else "default", "best_law": best,
+                  "shortfall": None if shortfall is None else f"against {best!r}: the learned policy {shortfall}",
+                  "shortfalls": found}
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
     (results_dir / "comparison.md").write_text(
         f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
@@ -92,34 +104,50 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     temporary.write_text(json.dumps(comparison, indent=2, default=float))
     os.replace(temporary, results_dir / "comparison.json")
     print(table)
-    if shortfall:
-        print(f"warning: {shortfall}", flush=True)
+    gains = "tuned gains" if tuned else "default gains (no tuned gains for this scenario)"
+    print(f"judged against the best law with {gains}: {best}", flush=True)
+    for item in found:
+        print(f"warning: {item['metric']}: the learned policy {item['message']} (threshold: {item['threshold']})",
+              flush=True)
     return comparison
 
 
-def learned_shortfall(results: dict[str, Any]) -> str | None:
-    """One line saying how the learned policy is worse than the best reference policy, or None when it is not.
+def tuned_row(law: str) -> str:
+    """A law's row with its tuned gains."""
+    return f"{law} (tuned)"
 
-    The best reference has the highest success rate, then the shortest mean settling time (over its successes).
-    The learned policy is worse when its success rate is lower, or equal with a longer settling time."""
-    learned = results["learned"]
-    references = [name for name in results if name != "learned"]
-    if not references:
-        return None
 
-    def settling(summary: dict[str, Any]) -> float:
-        value = summary["settling_time"]
-        return value if np.isfinite(value) else np.inf
+def tuned_laws(scenario: Any, overrides: dict[str, Any]) -> list[str]:
+    """The laws with tuned gains for ``scenario`` (a built-in with its own physics and a tuned file), else []."""
+    from ee_formation_env.baselines.reference.tuned import tuned_path
 
-    best = min(references, key=lambda name: (-results[name]["success_rate"], settling(results[name])))
-    reference = results[best]
-    if learned["success_rate"] < reference["success_rate"]:
-        return (f"the learned policy succeeds in {learned['success_rate']:.0%} of the episodes, the best reference "
-                f"{best!r} in {reference['success_rate']:.0%}")
-    if learned["success_rate"] == reference["success_rate"] and settling(learned) > settling(reference):
-        return (f"the learned policy settles in {settling(learned):.2f} s on average, the best reference {best!r} in "
-                f"{settling(reference):.2f} s (both succeed in {learned['success_rate']:.0%} of the episodes)")
-    return None
+    if not tuned_path(scenario.name).is_file():
+        return []
+    laws = []
+    with ee_formation_env.parallel_env(scenario, **overrides) as env:
+        for law in baselines.MODEL_BASED_POLICIES:
+            try:
+                baselines.make_policies(law, env, gains="tuned")
+            except ValueError:
+                continue
+            laws.append(law)
+    return laws
+
+
+def judged_laws(results: dict[str, Any], tuned: list[str]) -> list[str]:
+    """The rows the learned policy is judged against: the tuned laws where there are any, else the defaults."""
+    return [tuned_row(law) for law in tuned] if tuned else [n for n in baselines.MODEL_BASED_POLICIES if n in results]
+
+
+def learned_shortfalls(results: dict[str, Any], laws: list[str], episode_seconds: float
+                       ) -> tuple[list[dict[str, Any]], str | None]:
+    """The learned policy's shortfalls against the best of ``laws`` (:mod:`ee_formation_env.baselines.verdict`),
+    and that law's row name."""
+    per = {name: estimates(results[name]["per_episode"], episode_seconds) for name in ["learned", *laws]}
+    best = best_law({name: per[name] for name in laws})
+    if best is None:
+        return [], None
+    return shortfalls(per["learned"], per[best]), best
 
 
 def _evaluate_in_workers(workers: int, setup: tuple, names: list[str], seeds: list[int],
@@ -183,13 +211,21 @@ def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any
     reference laws' raw torque: the same scenario and seeds, each policy in its own convention)."""
     run = SavedRun(_EVALUATION["run_dir"], _EVALUATION["config"])
     learned_overrides = run.env_overrides()
-    sources: dict[str, Any] = {name: run.policy_source() if name == "learned" else name for name in names}
+    sources: dict[str, Any] = {name: run.policy_source() if name == "learned" else _law_source(name) for name in names}
     scenario, overrides = _EVALUATION["scenario"], _EVALUATION["overrides"]
     if not learned_overrides or "learned" not in sources:
         return run_policies(scenario, sources, seeds, overrides=overrides)
     learned = run_policies(scenario, {"learned": sources.pop("learned")}, seeds,
                            overrides={**overrides, **learned_overrides})
     return {**learned, **(run_policies(scenario, sources, seeds, overrides=overrides) if sources else {})}
+
+
+def _law_source(name: str) -> Any:
+    """A reference row's policies: the law's name, or for ``<law> (tuned)`` its tuned gains."""
+    for law in baselines.MODEL_BASED_POLICIES:
+        if name == tuned_row(law):
+            return lambda copy_env, law=law: baselines.make_policies(law, copy_env, gains="tuned")
+    return name
 
 
 def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EPISODES) -> dict[str, float]:
