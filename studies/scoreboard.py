@@ -52,8 +52,8 @@ from ee_formation_env.scenario_sets import held_out_scenarios
 from studies.scoreboard_cells import read_cell, stale_reason
 # The methods and cells, read through this module by the study's users.
 from studies.scoreboard_methods import (DEFAULT_EPISODES, DEFAULT_SEEDS, METHODS, QUICK_FLAGS, QUICK_MINUTES,  # noqa: F401
-                                        TRAIN_SET, BenchmarlRun, Board, Method, fill, run_cell, run_test_cell,
-                                        team_places, train_argv, trained_policies)
+                                        TRAIN_SET, BenchmarlRun, Board, Method, cell_problem, fill, run_cell,
+                                        run_test_cell, team_places, train_argv, trained_policies)
 # METRICS and episode_values are read through this module by the study's users.
 from studies.scoreboard_rows import (METRICS, _place, episode_values, format_board, pareto_figure,  # noqa: F401
                                      rows, team_size_figure, write_outputs)
@@ -86,6 +86,10 @@ def aggregated_cells(board: Board, progress: Callable[[str], None] = print) -> l
             progress(f"left out {path}: {problem}; rerun its scenario and method to recompute it")
             continue
         if _place(record) not in places or record["method"] not in METHODS:
+            continue
+        problem = cell_problem(board, path, record)
+        if problem:
+            progress(f"left out {path}: {problem}; rerun its scenario and method to recompute it")
             continue
         stale = stale_reason(record, board.protocol(METHODS[record["method"]]))
         if stale and not board.accept_stale:
@@ -195,6 +199,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--docs: not with --quick (a smoke test is not a result)")
     if args.replace_smaller and not args.docs:
         parser.error("--replace-smaller: only with --docs (it decides what replaces a committed row)")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out: {args.out} is a file, not a folder")
     out = args.out or (Path(tempfile.mkdtemp(prefix="scoreboard-")) if args.quick else Path("results/scoreboard"))
     board = Board(out=out, scenarios=tuple(args.scenarios), methods=tuple(args.methods), seeds=tuple(args.seeds),
                   episodes=args.episodes, episode_seconds=0.3 if args.quick else None,
@@ -213,6 +219,14 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"model is saved in {stopped.run_dir}. The same command resumes the board: finished cells are kept, "
               "and this cell continues from its newest checkpoint.", file=sys.stderr)
         return stopped.exit_code
+    except KeyboardInterrupt:  # Ctrl-C while a cell was evaluated: nothing of it was written
+        print("scoreboard: interrupted; the cells finished so far are kept, and the same command resumes the board",
+              file=sys.stderr)
+        return 130
+    except OSError as error:  # a file-system fault writing a cell: one line naming the file
+        print(f"scoreboard: could not write {getattr(error, 'filename', None) or 'a cell'}: "
+              f"{error.strerror or error}", file=sys.stderr)
+        return 1
     board_cells = aggregated_cells(board)  # every cell ever completed here, not only this invocation's
     board_rows = rows([record for _, record in board_cells])
     write_outputs(board_rows, out / "scoreboard.json", out / "scoreboard.md")
@@ -234,4 +248,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    try:
+        raise SystemExit(main())
+    except ValueError as error:  # a refusal (--docs would replace a larger row, ...): one line, as the CLI prints it
+        print(f"scoreboard: {error}", file=sys.stderr)
+        raise SystemExit(2) from None

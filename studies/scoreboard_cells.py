@@ -103,28 +103,50 @@ def stale_reason(record: Mapping[str, Any], protocol: Mapping[str, Any]) -> str 
     return None
 
 
+def record_digest(record: Mapping[str, Any]) -> str:
+    """SHA-256 of a cell record without its ``digest`` (canonical JSON): written into the cell, checked on every
+    read, so that an edited or damaged cell (a changed metric, seed or episode length) is never aggregated.
+    Integrity against accidents, not authenticity: anyone may re-sign an edit."""
+    body = {key: value for key, value in record.items() if key != "digest"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=float).encode()).hexdigest()
+
+
 def read_cell(path: Path) -> tuple[dict[str, Any] | None, str | None]:
-    """The cell record at ``path``, or None and why it cannot be used (it does not parse, or lacks a field)."""
+    """The cell record at ``path``, or None and why it cannot be used (it does not parse, lacks a field, or its
+    content does not match its digest; a cell of the current schema must carry one)."""
     try:
+        if Path(path).is_symlink() or not Path(path).is_file():
+            return None, "not a regular file"
         record = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        return None, f"unreadable ({str(error).splitlines()[0][:120]})"
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        return None, f"unreadable ({str(error).splitlines()[0][:120] if str(error) else type(error).__name__})"
     if not isinstance(record, dict):
         return None, f"not a cell record (a JSON {type(record).__name__})"
     missing = [field for field in CELL_FIELDS if field not in record]
     if missing or not isinstance(record.get("episodes"), list):
         return None, f"not a complete cell record (missing {missing or ['episodes as a list']})"
+    if not isinstance(record.get("eval_seeds"), list) or not all(
+            isinstance(seed, int) and not isinstance(seed, bool) for seed in record["eval_seeds"]):
+        return None, "eval_seeds: expected a list of integers"
+    if record.get("schema") == CELL_SCHEMA and record.get("digest") != record_digest(record):
+        return None, "its content does not match its digest (edited or damaged after it was written)"
     return record, None
 
 
 def write_cell(path: Path, record: Mapping[str, Any], protocol: Mapping[str, Any]) -> dict[str, Any]:
-    """Stamp ``record`` (schema, code version, protocol) and write it atomically: a complete file or none."""
+    """Stamp ``record`` (schema, code version, protocol, digest) and write it atomically: a complete file or
+    none."""
     stamped = {**record, "schema": CELL_SCHEMA, "code": code_version(), "protocol": _plain(protocol)}
+    stamped = json.loads(json.dumps(stamped, default=float))  # as it reads back (tuples as lists, NaN kept)
+    stamped["digest"] = record_digest(stamped)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(".partial")
     partial.write_text(json.dumps(stamped, indent=1, default=float), encoding="utf-8")
     partial.replace(path)
-    return json.loads(path.read_text(encoding="utf-8"))
+    record, problem = read_cell(path)
+    if record is None:
+        raise OSError(f"{path}: the cell written does not read back ({problem})")
+    return record
 
 
 def cached_record(path: Path, label: str, protocol: Mapping[str, Any], progress: Callable[[str], None],

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
+from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.baselines.metrics import run_episodes
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios, wide_starts
@@ -516,6 +517,44 @@ def evaluation_cells(board: Board, scenario: str, method: Method) -> list[Evalua
             cells.append(EvaluationCell(name, f"team {name}", "team", name, team_scenario(family, int(n)),
                                         tuple(board.team_seeds())))
     return cells
+
+
+def expected_cell(board: Board, record: dict[str, Any]) -> tuple[Path, list[int], float] | None:
+    """Where a cell record belongs under ``board.out`` and the evaluation seeds and episode length this board
+    gives it (from the same definitions :func:`fill` computes it by), or None when the board has no such cell."""
+    trained, method = record.get("trained_on", record["scenario"]), METHODS.get(record["method"])
+    if method is None or trained not in BUILTIN_SCENARIOS or not isinstance(record.get("seed"), (int, type(None))) \
+            or isinstance(record.get("seed"), bool):
+        return None
+    seed = record["seed"]
+    if "trained_on" not in record:
+        seconds = board.episode_seconds or load_scenario(trained).episode_seconds
+        return board.cell_path(trained, method, seed), board.eval_seeds(trained), seconds
+    for cell in evaluation_cells(board, trained, method):
+        if cell.split == record.get("split") and cell.name == record["scenario"]:
+            seconds = board.episode_seconds or load_scenario(cell.scenario).episode_seconds
+            seeds = board.eval_seeds() if cell.seeds is None else list(cell.seeds)
+            return board.cell_path(trained, method, seed, cell.key), seeds, seconds
+    return None
+
+
+def cell_problem(board: Board, path: Path, record: dict[str, Any]) -> str | None:
+    """Why the cell ``record`` read from ``path`` cannot be aggregated into ``board`` (None: it can): it is not at
+    its own path (a copy such as ``reference.old.json``), or its seeds, episode length or episode count are not
+    the ones this board gives it."""
+    expected = expected_cell(board, record)
+    if expected is None:
+        return "not a cell of this board (its scenario, method, split or seed)"
+    own_path, seeds, seconds = expected
+    if path.resolve() != own_path.resolve():
+        return f"not at its own path {own_path}"
+    if record["eval_seeds"] != seeds:
+        return f"evaluation seeds {str(record['eval_seeds'])[:80]} where this board uses {seeds[0]}-{seeds[-1]}"
+    if record["episode_seconds"] != seconds:
+        return f"episode_seconds {record['episode_seconds']!r} where this board uses {seconds}"
+    if not record.get("failed") and len(record["episodes"]) != len(seeds):
+        return f"{len(record['episodes'])} episodes for {len(seeds)} evaluation seeds"
+    return None
 
 
 def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str, Any]]:

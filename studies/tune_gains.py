@@ -7,7 +7,7 @@ Each trial is a point of :data:`~ee_formation_env.baselines.reference.tuned.SEAR
 reads, relative to its defaults), scored on ``--episodes`` tuning starts (``TUNING_SEEDS``; a distribution's
 training draws ``DISTRIBUTION_TUNING_SEEDS``; never an evaluation seed) by the episode loop of
 :mod:`ee_formation_env.baselines.metrics`, each episode stopped once every edge has held the 1 mm band for 1 s
-(a manoeuvre's runs to its end: the band must hold through the motion). The objective (:func:`objective_value`,
+(a manoeuvre's runs to :data:`MANOEUVRE_SETTLE_SECONDS` after its motion: the band must hold through it). The objective (:func:`objective_value`,
 lower is better) is the mean time to the 1 mm band, under constraints each worth a full horizon when broken:
 every episode a success at 1 cm and at 1 mm, no physics fault, no contact step, energy at most
 :data:`ENERGY_RATIO` times the default gains' on the same starts, saturation no higher than theirs (in seconds
@@ -48,7 +48,8 @@ ENERGY_RATIO = 1.5  # a tuned set may spend at most this multiple of the default
 DEFAULT_TRIALS = 60
 DEFAULT_EPISODES = 6  # tuning starts per trial
 MANOEUVRE_EPISODES = 3  # a manoeuvre's episodes run to their end (25-50 s): fewer starts per trial
-HORIZON_SECONDS = 12.0  # s: a trial's episodes end here at the latest (a manoeuvre's: its own length)
+HORIZON_SECONDS = 12.0  # s: a trial's episodes end here at the latest (a manoeuvre's: see below)
+MANOEUVRE_SETTLE_SECONDS = 5.0  # s: a manoeuvre's tuning episodes end this long after its motion
 RESULTS = Path(__file__).resolve().parent / "results" / "tuning"
 
 
@@ -87,8 +88,9 @@ def episode_settings(scenario: str) -> tuple[dict[str, Any], bool]:
     """(scenario overrides, stop on the precision hold) of a trial's episodes."""
     data = load_scenario(scenario)
     manoeuvre = data.manoeuvre is not None and data.manoeuvre.active
-    if manoeuvre:
-        return {"episode_seconds": data.episode_seconds}, False
+    if manoeuvre:  # the motion and MANOEUVRE_SETTLE_SECONDS after it: the band must hold through it
+        motion_end = data.manoeuvre.start + data.manoeuvre.duration
+        return {"episode_seconds": min(data.episode_seconds, motion_end + MANOEUVRE_SETTLE_SECONDS)}, False
     return {"episode_seconds": min(data.episode_seconds, HORIZON_SECONDS)}, True
 
 

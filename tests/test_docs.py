@@ -18,6 +18,7 @@ from ee_formation_env.baselines.learned.recipes import recipes_table
 
 import ee_formation_env
 from ee_formation_env.baselines.metrics import metric_definitions
+from ee_formation_env.baselines.reference.tuned import tuned_gains_table
 from ee_formation_env.scenario import Scenario, _default, scenario_keys_table
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,6 +54,7 @@ GENERATED = {
     "train_flags": ("training.md", lambda: TrainConfig.flags_table()),
     "recipes": ("training.md", lambda: recipes_table()),
     "metric_definitions": ("results.md", lambda: metric_definitions(markdown=True)),
+    "tuned_gains": ("controllers.md", lambda: tuned_gains_table()),
 }
 
 

@@ -196,6 +196,33 @@ def tuned_gains_source(env: Any, index: int, law: str) -> Any:
     return lambda: gains_from_point(env.task, index, tuned.point)
 
 
-__all__ = ["TUNED_SCHEMA", "TUNING_SEEDS", "DISTRIBUTION_TUNING_SEEDS", "UNSEEN_CHECK_SEEDS", "SEARCH_SPACE",
+def tuned_gains_table() -> str:
+    """Markdown: every committed tuned set beside its law's defaults, measured on the tuning starts (the files'
+    records): the time to the 1 mm band, the energy and the point (the docs' table, docs/controllers.md)."""
+    lines = ["| scenario | law | trials | default: to 1 mm (s) / energy | tuned: to 1 mm (s) / energy | K_P x | K_D x | "
+             "springs | K_R (steps) | K_I (1/s) | alpha x, Gamma x |", "|---|---|---:|---:|---:|---:|---:|---|---:|---:|---|"]
+
+    def band(figures: Mapping[str, Any]) -> str:
+        time = figures.get("settling_time_1mm", math.nan)
+        shown = "never" if not math.isfinite(time) else f"{time:.2f}"
+        return f"{shown} / {figures['energy']:,.0f}"
+
+    for path in sorted(TUNED_DIR.glob("*.json")):
+        data = read_tuned_file(path)
+        for law, entry in data["laws"].items():
+            point, same = entry["point"], entry.get("same_as")
+            tuned_figures = entry["best"] if entry.get("improved") else entry["default"]
+            springs = f"x {point['spring_scale']:.3g} of rule 2" if point["saturated"] else "unsaturated"
+            adaptive = (f"{point['alpha_scale']:.3g}, {point['adaptation_scale']:.3g}" if "alpha_scale" in point
+                        else "-")
+            verdict = "" if entry.get("improved") else " (no better set found: the defaults)"
+            ki = f"{point['ki']:.3g}" if "ki" in point else "-"
+            lines.append(f"| {data['scenario']} | {law}{f' (= {same})' if same else ''} | {entry['trials']} | "
+                         f"{band(entry['default'])} | {band(tuned_figures)}{verdict} | {point['kp_scale']:.3g} | "
+                         f"{point['kd_scale']:.3g} | {springs} | {point['rate_steps']:.2f} | {ki} | {adaptive} |")
+    return "\n".join(lines)
+
+
+__all__ = ["tuned_gains_table", "TUNED_SCHEMA", "TUNING_SEEDS", "DISTRIBUTION_TUNING_SEEDS", "UNSEEN_CHECK_SEEDS", "SEARCH_SPACE",
            "law_parameters", "gains_from_point", "load_tuned", "read_tuned_file", "check_point", "tuned_path",
            "tuned_gains_source", "scenario_digest", "HELD_OUT_SEED_OFFSET"]

@@ -180,7 +180,10 @@ def test_a_run_lost_before_its_first_checkpoint_trains_again(tmp_path, capsys):
 def _record(scenario, method, seed, settle, **place):
     episode = {"success": True, "settling_time": settle, "final_formation_error": 0.0, "physics_fault": 0,
                "contact_steps": 0, "mean_return": 1.0}
-    return {"scenario": scenario, "method": method, "seed": seed, "eval_seeds": [10_000], "episode_seconds": 5.0,
+    from ee_formation_env.scenario import load_scenario
+
+    seconds = load_scenario(scenario).episode_seconds  # what a board gives the cell (its scenario's own length)
+    return {"scenario": scenario, "method": method, "seed": seed, "eval_seeds": [10_000], "episode_seconds": seconds,
             "budget": {"agent_steps": 1}, "wall_seconds": 1.0, "episodes": [episode], **place}
 
 
@@ -414,9 +417,16 @@ def test_docs_archives_the_cells_behind_its_rows_and_a_row_gains_seeds_from_the_
     assert sorted(path.name for path in folder.iterdir()) == ["seed-0.json", "seed-1.json", "seed-2.json"]
 
 
+def _signed(record):
+    """``record`` with its digest, as the code that wrote it would have signed it."""
+    from studies.scoreboard_cells import record_digest
+
+    return json.dumps({**record, "digest": record_digest(record)})
+
+
 def _fabricate(path, **changes):
     """Rewrite the cell at ``path`` as if another version of the code had computed it."""
-    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
+    path.write_text(_signed({**json.loads(path.read_text()), **changes}))
 
 
 def test_a_cell_of_another_code_version_is_recomputed_or_accepted_and_reported_never_aggregated_silently(tmp_path,
@@ -447,7 +457,7 @@ def test_a_cell_of_another_code_version_is_recomputed_or_accepted_and_reported_n
     # Cells this invocation does not run are not recomputed: a stale one and a corrupt one are each left out in a line.
     stale = tmp_path / "cells" / "planar_square" / "approx_jacobian" / "reference.json"
     stale.parent.mkdir(parents=True)
-    stale.write_text(json.dumps({**json.loads(cell.read_text()), "method": "approx_jacobian", "code": other_code}))
+    stale.write_text(_signed({**json.loads(cell.read_text()), "method": "approx_jacobian", "code": other_code}))
     corrupt = tmp_path / "cells" / "planar_square" / "adaptive_jacobian" / "reference.json"
     corrupt.parent.mkdir(parents=True)
     corrupt.write_text(cell.read_text()[:-30])  # a write cut short
@@ -554,3 +564,58 @@ def test_a_teacher_comes_before_its_copies_in_board_order():
             teacher = scoreboard_methods.METHODS[method.teacher]
             assert teacher.learned and teacher.benchmarl is None and teacher.teacher is None
             assert names.index(method.teacher) < names.index(name)
+
+
+def test_only_intact_cells_at_their_own_path_with_this_boards_settings_are_aggregated(tmp_path, capsys):
+    argv = ["--quick", "--out", str(tmp_path), "--scenarios", "planar_square", "--methods", "gradient",
+            "--episodes", "1", "--no-test-sets"]
+    assert scoreboard.main(argv) == 0
+    capsys.readouterr()
+    cell = tmp_path / "cells" / "planar_square" / "gradient" / "reference.json"
+    good = json.loads(cell.read_text())
+    (cell.parent / "reference.old.json").write_text(cell.read_text())  # a backup copy: not a second run
+    approx = tmp_path / "cells" / "planar_square" / "approx_jacobian" / "reference.json"
+    approx.parent.mkdir(parents=True)
+    approx.write_text(json.dumps({**good, "method": "approx_jacobian"}))  # edited without its digest
+    adaptive = tmp_path / "cells" / "planar_square" / "adaptive_jacobian" / "reference.json"
+    adaptive.parent.mkdir(parents=True)
+    adaptive.write_text(_signed({**good, "method": "adaptive_jacobian", "episode_seconds": 9.0}))  # re-signed edit
+    assert scoreboard.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f"left out {cell.parent / 'reference.old.json'}: not at its own path {cell}" in out
+    assert f"left out {approx}: its content does not match its digest" in out
+    assert f"left out {adaptive}: episode_seconds 9.0 where this board uses 0.3" in out
+    assert [row["method"] for row in json.loads((tmp_path / "scoreboard.json").read_text())["rows"]] == ["gradient"]
+    # --episodes 2 after --episodes 1: the cached 1-episode cell is another protocol, recomputed, never reported
+    assert scoreboard.main([*argv[:-3], "--episodes", "2", "--no-test-sets"]) == 0
+    assert "stale   planar_square / gradient" in capsys.readouterr().out
+    (row,) = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
+    assert len(row["eval_seeds"]) == 2
+
+
+@pytest.mark.parametrize("change", [{"episodes": 2}, {"episode_seconds": 1.0}, {"extra_train_flags": ("--x",)}])
+def test_every_board_setting_that_decides_a_cells_numbers_is_in_its_key(change, tmp_path):
+    import dataclasses
+
+    board = scoreboard.Board(out=tmp_path, scenarios=("planar_square",), methods=("gradient",), seeds=(0,),
+                             episodes=1, episode_seconds=None)
+    method = scoreboard.METHODS["gradient"]
+    assert board.protocol(method) != dataclasses.replace(board, **change).protocol(method)
+    # where the cells are and which run is not part of it
+    assert board.protocol(method) == dataclasses.replace(board, out=tmp_path / "x", seeds=(1, 2)).protocol(method)
+    assert board.protocol(method) != board.protocol(scoreboard.METHODS["gradient-tuned"])
+
+
+def test_file_system_faults_and_a_file_as_out_are_one_line(tmp_path, capsys):
+    target = tmp_path / "a-file"
+    target.write_text("x")
+    with pytest.raises(SystemExit):
+        scoreboard.main(["--quick", "--out", str(target), "--scenarios", "planar_square", "--methods", "gradient"])
+    assert f"--out: {target} is a file, not a folder" in capsys.readouterr().err
+    cell = tmp_path / "out" / "cells" / "planar_square" / "gradient" / "reference.json"
+    cell.mkdir(parents=True)  # a folder where the cell's file goes
+    argv = ["--quick", "--out", str(tmp_path / "out"), "--scenarios", "planar_square", "--methods", "gradient",
+            "--episodes", "1", "--no-test-sets"]
+    assert scoreboard.main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("scoreboard: could not write") and "reference" in err[0]

@@ -71,7 +71,7 @@ def test_a_stale_cell_is_recomputed_unless_accepted_and_either_way_reported(tmp_
     path = tmp_path / "cell.json"
     cells.write_cell(path, _complete(wall_seconds=1.0), PROTOCOL)
     fabricated = {**json.loads(path.read_text()), "code": {"package": "0.0.1", "source": "0" * 16}}
-    path.write_text(json.dumps(fabricated))
+    path.write_text(json.dumps({**fabricated, "digest": cells.record_digest(fabricated)}))  # as that code signed it
     lines = []
     kept = cells.cached_cell(path, "cell", PROTOCOL, lambda: _complete(wall_seconds=2.0), lines.append,
                              accept_stale=True)
@@ -91,3 +91,21 @@ def test_a_run_is_current_only_if_this_code_marked_it_for_this_protocol(tmp_path
     cells.run_code_path(run_dir).write_text(json.dumps({"code": {"package": "0.0.1", "source": None},
                                                         "protocol": PROTOCOL}))
     assert not cells.run_is_current(run_dir, PROTOCOL)
+
+
+def test_an_edited_cell_is_refused_naming_why_and_a_written_cell_reads_back_intact(tmp_path):
+    path = tmp_path / "cell.json"
+    written = cells.write_cell(path, _complete(), PROTOCOL)
+    assert cells.read_cell(path) == (written, None)
+    for edit in ({"wall_seconds": 99.0}, {"eval_seeds": [10_001]}, {"episode_seconds": 2.5}):
+        path.write_text(json.dumps({**written, **edit}))
+        record, problem = cells.read_cell(path)
+        assert record is None and "does not match its digest" in problem
+    path.write_text(json.dumps({**written, "eval_seeds": ["10000"]}))
+    assert cells.read_cell(path) == (None, "eval_seeds: expected a list of integers")
+    folder = tmp_path / "folder.json"
+    folder.mkdir()
+    assert cells.read_cell(folder) == (None, "not a regular file")
+    link = tmp_path / "link.json"
+    link.symlink_to(path)
+    assert cells.read_cell(link) == (None, "not a regular file")
