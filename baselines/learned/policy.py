@@ -141,6 +141,7 @@ class SavedRun:
         if not (run_dir / MODEL_FOLDER / "obs_normalizer.json").is_file():
             raise ValueError(f"{what}: {run_dir} holds no final model ({MODEL_FOLDER}/): the run has not finished "
                              "(--resume continues it)")
+        verify_run_files(run_dir, config["backend"], what)
         modules, extras = BACKEND_MODULES[config["backend"]]
         require(modules, extras, f"{what} (a --backend {config['backend']} run)")
         try:
@@ -185,6 +186,26 @@ class SavedRun:
             return factory[0](env)
 
         return policies
+
+
+def verify_run_files(run_dir: Path, backend: str, what: str) -> None:
+    """Every path that reads a run (evaluate, --eval-only, --resume, --imitate, the board's cells) checks the
+    same files first: the run folder's marker (a folder the project wrote), ``config.json`` against the folder's
+    ``SHA256SUMS`` and the final model's files against the model's, each required; a fault is one ``ValueError``
+    starting with ``what`` and naming the file. Integrity against accidents (an edit, a truncated copy, a file
+    of another run), not authenticity: whoever edits a file can also rewrite its checksum."""
+    from ee_formation_env.baselines.learned.checkpoint import verify_checksums
+    from ee_formation_env.baselines.learned.run_folder import require_project_run
+
+    run_dir = Path(run_dir)
+    require_project_run(run_dir, what)
+    try:
+        verify_checksums(run_dir, ["config.json"], "restore the config.json the run wrote")
+        names = ("policy.json", "policy.pt") if backend == "sb3" else ("rllib_module.json", "rllib_module.pt")
+        verify_checksums(run_dir / MODEL_FOLDER, (*names, "obs_normalizer.json"),
+                         "the model is damaged: `--resume RUN` trains it again from the newest intact checkpoint")
+    except ValueError as error:
+        raise ValueError(f"{what}: {error}") from None
 
 
 def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[str, Any]:

@@ -177,6 +177,11 @@ def _validated_scenario(config: TrainConfig) -> tuple[Any, TeamPadding | None]:
     run = reference_run(config.imitate or "none")
     if run is not None:
         check_reference_run(run, config, scenario)
+        if config.out:  # before anything is removed: --overwrite of the reference would lose both runs
+            reference, out = run.run_dir.resolve(), Path(config.out).resolve()
+            if reference == out or reference in out.parents or out in reference.parents:
+                raise ValueError(f"--imitate: {run.run_dir} is --out {config.out} or holds it (or is inside it): "
+                                 "the reference run would be removed before it is read; choose another --out")
     if config.policy_network == "set":  # one robot and layout, slots kept by the features: refused here
         if padding is not None:
             raise ValueError(f"--policy-network: set shares one network over agents of one robot and layout; "

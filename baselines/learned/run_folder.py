@@ -32,6 +32,14 @@ def is_project_run(run_dir: Path) -> bool:
     return (Path(run_dir) / MARKER).is_file()
 
 
+def require_project_run(run_dir: Path, what: str) -> None:
+    """``ValueError`` starting with ``what`` unless ``run_dir`` holds the project's marker: every path that reads a
+    run refuses a folder whose files cannot be checked, in these words."""
+    if not is_project_run(run_dir):
+        raise ValueError(f"{what}: {run_dir} has no {MARKER}: not a run folder train.py wrote (or its marker was "
+                         "removed), so its files cannot be checked")
+
+
 def check_out(run_dir: Path, overwrite: bool) -> None:
     """Refuse ``--out run_dir`` (a ``ValueError`` naming ``--out`` and why) unless it is free to train into: it
     does not exist, or it is an empty folder, or, with ``overwrite``, a run folder the project wrote that no live
@@ -118,7 +126,7 @@ def created_run_folder(run_dir: Path, overwrite: bool, version: str) -> Iterator
 def _clear(run_dir: Path) -> None:
     """Remove everything in ``run_dir`` but its lock (held by this process)."""
     for entry in run_dir.iterdir():
-        if entry.name == LOCK_NAME:
+        if entry.name == LOCK_NAME and not entry.is_symlink():  # a link named as the lock is never the lock
             continue
         if entry.is_dir() and not entry.is_symlink():
             shutil.rmtree(entry)

@@ -11,9 +11,11 @@ exclusively, a file left by a holder that was killed has to be removed by hand, 
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import socket
+import stat
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -41,12 +43,12 @@ def lock_holder(run_dir: Path) -> dict | None:
     """Who holds the lock of ``run_dir`` now, ``{"pid": ..., "host": ...}``, or None if nobody does (no lock
     file, or a stale one). Nothing is changed."""
     path = Path(run_dir) / LOCK_NAME
-    if not path.is_file():
+    if path.is_symlink() or not path.is_file():
         return None
     if fcntl is None:
         return _read_holder(path) or {}
     try:
-        descriptor = os.open(path, os.O_RDONLY)
+        descriptor = os.open(path, os.O_RDONLY | _NO_FOLLOW)
     except OSError:
         return None
     try:
@@ -76,17 +78,37 @@ def run_lock(run_dir: Path, flag: str) -> Iterator[None]:
         _release(path, descriptor)
 
 
+#: The lock is never opened through a link: a link named as the lock would have its target truncated.
+_NO_FOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
+def _open_lock(path: Path, flags: int, flag: str) -> int:
+    """Open the lock file ``path`` without following a link; ``ValueError`` naming ``flag`` unless it is a
+    regular file."""
+    try:
+        descriptor = os.open(path, flags | _NO_FOLLOW, 0o644)
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise ValueError(f"{flag}: {path} is a link, not a lock file: nothing was written through it; remove "
+                             "it (a run folder's lock is a regular file)") from None
+        raise
+    if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+        os.close(descriptor)
+        raise ValueError(f"{flag}: {path} is not a regular file: remove it (a run folder's lock is one)")
+    return descriptor
+
+
 def _acquire(path: Path, run_dir: Path, flag: str) -> int:
     me = {"pid": os.getpid(), "host": socket.gethostname()}
     if fcntl is None:
         try:
-            descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o644)
+            descriptor = _open_lock(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, flag)
         except FileExistsError:
             raise RunLocked(flag, run_dir, _read_holder(path) or {}) from None
         _write_holder(descriptor, me)
         return descriptor
     while True:
-        descriptor = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        descriptor = _open_lock(path, os.O_CREAT | os.O_RDWR, flag)
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -129,6 +151,8 @@ def _write_holder(descriptor: int, holder: dict) -> None:
 
 def _read_holder(path: Path) -> dict | None:
     try:
+        if path.is_symlink():
+            return None
         holder = json.loads(path.read_text(encoding="utf-8") or "null")
     except (OSError, ValueError):
         return None

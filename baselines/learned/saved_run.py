@@ -4,8 +4,8 @@
 refused) and then key by key (:meth:`~ee_formation_env.baselines.learned.config.TrainConfig.from_saved`);
 checkpoints against their own ``SHA256SUMS`` (:func:`~ee_formation_env.baselines.learned.checkpoint.verify_checksums`),
 the newest intact one chosen when a newer one is damaged (:func:`newest_intact_checkpoint`, said in one line).
-Runs written before checksums existed (no marker in their folder) are read unchecked. Every fault is one
-``ValueError`` naming the file and the fix.
+A folder without the project's marker or its checksums is refused: every run the project writes has both.
+Every fault is one ``ValueError`` naming the file and the fix.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from ee_formation_env.baselines.learned.checkpoint import (CHECKSUMS, TRAINING_S
                                                            verify_checksums, write_checksums, write_json)
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
-from ee_formation_env.baselines.learned.run_folder import is_project_run
+from ee_formation_env.baselines.learned.run_folder import require_project_run
 
 CONFIG = "config.json"
 
@@ -41,8 +41,9 @@ def load_saved_config(run_dir: Path, flag: str) -> tuple[dict[str, Any], TrainCo
     path = run_dir / CONFIG
     if not path.is_file():
         raise ValueError(f"{flag}: {path} not found")
+    require_project_run(run_dir, flag)
     verify_checksums(run_dir, [CONFIG], "restore the config.json the run wrote (to change the budget, give "
-                     "--resume RUN --total-timesteps N instead of editing it)", required=is_project_run(run_dir))
+                     "--resume RUN --total-timesteps N instead of editing it)")
     saved = read_json(path, str(path))
     return saved, TrainConfig.from_saved(saved, str(path))
 
@@ -52,7 +53,7 @@ def newest_intact_checkpoint(run_dir: Path) -> tuple[int, Path] | None:
     (agent steps, folder), or None if it has none. A newer one that is damaged (a file whose sha256 differs, a
     file or ``state.json`` missing) is passed over, said in one line on stderr."""
     run_dir = Path(run_dir)
-    required = is_project_run(run_dir)
+    required = True  # every run folder the project writes has checksums
     candidates = list(checkpoints(run_dir))
     if (run_dir / MODEL_FOLDER / "state.json").is_file():
         candidates.append(run_dir / MODEL_FOLDER)
@@ -93,8 +94,7 @@ def verify_model(run_dir: Path, backend: str) -> None:
     run_dir = Path(run_dir)
     names = (("policy.json", "policy.pt") if backend == "sb3" else ("rllib_module.json", "rllib_module.pt"))
     verify_checksums(run_dir / MODEL_FOLDER, (*names, "obs_normalizer.json"),
-                     "the model is damaged: `--resume RUN` trains it again from the newest intact checkpoint",
-                     required=is_project_run(run_dir))
+                     "the model is damaged: `--resume RUN` trains it again from the newest intact checkpoint")
 
 
 def model_from_checkpoint(run_dir: Path, checkpoint: Path) -> None:

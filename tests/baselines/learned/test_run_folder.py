@@ -263,3 +263,24 @@ def test_the_lock_is_released_on_every_way_out(tmp_path):
             with run_lock(run_dir, "--out"):  # a second holder, even in the same process
                 pass
     assert not (run_dir / LOCK_NAME).exists()
+
+
+def test_a_lock_that_is_a_link_is_refused_and_nothing_is_written_through_it(tmp_path, trained_run, capsys):
+    outside = tmp_path / "outside.txt"
+    outside.write_text("precious")
+    run_dir = tmp_path / "run"
+    shutil.copytree(trained_run, run_dir)
+    (run_dir / LOCK_NAME).symlink_to(outside)
+    with pytest.raises(ValueError, match="is a link, not a lock file"):
+        with run_lock(run_dir, "--resume"):
+            pass
+    assert lock_holder(run_dir) is None
+    # --overwrite of the finished run: refused, the target untouched, the folder kept
+    assert train_command(["--out", str(run_dir), "--overwrite", *TINY]) != 0
+    assert "is a link, not a lock file" in _one_error_line(capsys)
+    assert outside.read_text() == "precious" and (run_dir / "config.json").is_file()
+    (run_dir / LOCK_NAME).unlink()
+    (run_dir / LOCK_NAME).mkdir()  # a folder where the lock goes
+    with pytest.raises(ValueError, match="not a regular file|Is a directory|cannot lock"):
+        with run_lock(run_dir, "--resume"):
+            pass

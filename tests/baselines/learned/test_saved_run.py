@@ -54,12 +54,11 @@ def _edit_json(path: Path, edit) -> None:
     path.write_text(json.dumps(data))
 
 
-def _as_if_written_before_checksums(run_dir: Path) -> None:
-    """Drop the marker and every SHA256SUMS: a run folder as the project wrote them before both existed, whose
-    files are read unchecked, so that the checks behind the checksums are reached."""
-    (run_dir / MARKER).unlink()
-    for sums in run_dir.rglob(checkpoint.CHECKSUMS):
-        sums.unlink()
+def _resign(folder: Path) -> None:
+    """Rewrite ``folder``'s SHA256SUMS over its files as they are now, so that the checks behind the checksums
+    are reached."""
+    checkpoint.write_checksums(folder, sorted(p.name for p in folder.iterdir()
+                                              if p.is_file() and p.name != checkpoint.CHECKSUMS))
 
 
 # ------------------------------------------------------------------------------------------ checksums
@@ -185,8 +184,8 @@ def test_normalization_statistics_of_another_shape_or_missing_are_refused_not_br
 
 
 def test_an_evaluated_normalizer_of_another_length_is_refused_naming_it(copy, capsys):
-    _as_if_written_before_checksums(copy)
     _edit_json(copy / "model" / "obs_normalizer.json", lambda n: n.update(mean=[0.0], var=[1.0]))
+    _resign(copy / "model")  # past the checksums: the check behind them
     assert train_command(["--eval-only", str(copy), *EVAL_FAST]) == 2
     line = _one_error_line(capsys)
     assert f"{copy / 'model' / 'obs_normalizer.json'}: mean and var have shape (1,), the policy's observation" in line
@@ -271,3 +270,75 @@ def test_resume_with_a_larger_budget_extends_a_finished_run_and_compares_it_agai
                                        "or raised")
     assert train_command(["--resume", str(copy), *EVAL_FAST]) == 2
     assert "--total-timesteps N (more than that) extends it" in _one_error_line(capsys)
+
+
+# ------------------------------------------------------------------------------------------ every load path
+def _edit_config(run_dir: Path) -> None:
+    _edit_json(run_dir / "config.json", lambda c: c.update(total_timesteps=c["total_timesteps"] + 1))
+
+
+def _truncate_model(run_dir: Path) -> None:
+    path = run_dir / "model" / "policy.pt"
+    path.write_bytes(path.read_bytes()[:100])
+
+
+def _unmark(run_dir: Path) -> None:
+    (run_dir / MARKER).unlink()
+    for sums in run_dir.rglob(checkpoint.CHECKSUMS):
+        sums.unlink()
+
+
+CORRUPTIONS = {"edited config.json": (_edit_config, "config.json: damaged"),
+               "truncated model": (_truncate_model, "policy.pt: damaged"),
+               "marker and checksums removed": (_unmark, "not a run folder train.py wrote")}
+
+
+def _evaluate(run_dir: Path, tmp_path: Path, capsys) -> str:
+    from ee_formation_env.baselines.evaluate import main
+
+    with pytest.raises(SystemExit):
+        main(["--policy", str(run_dir), "--episodes", "1", "--set", "episode_seconds=0.2"])
+    return capsys.readouterr().err
+
+
+def _eval_only(run_dir: Path, tmp_path: Path, capsys) -> str:
+    assert train_command(["--eval-only", str(run_dir), *EVAL_FAST]) == 2
+    return capsys.readouterr().err
+
+
+def _exit_code(argv: list[str]) -> int:
+    """train.py's exit code: its return value, or the parser's exit for a flag refused while parsing."""
+    try:
+        return train_command(argv)
+    except SystemExit as stopped:
+        return stopped.code
+
+
+def _imitate(run_dir: Path, tmp_path: Path, capsys) -> str:
+    assert _exit_code(["--imitate", str(run_dir), "--out", str(tmp_path / "copy"), *TINY]) == 2
+    assert not (tmp_path / "copy").exists()
+    return capsys.readouterr().err
+
+
+def _board_cell(run_dir: Path, tmp_path: Path, capsys) -> str:
+    from studies.scoreboard_methods import METHODS, _saved_run_metrics
+
+    with pytest.raises(ValueError) as refused:
+        _saved_run_metrics(run_dir, METHODS["torque-ppo"], "planar_square", [10_000], 0.2)
+    return str(refused.value)
+
+
+@pytest.mark.parametrize("corruption", sorted(CORRUPTIONS))
+@pytest.mark.parametrize("load", [_evaluate, _eval_only, _imitate, _board_cell], ids=lambda f: f.__name__[1:])
+def test_every_path_that_reads_a_run_refuses_every_corruption_alike(copy, tmp_path, capsys, load, corruption):
+    corrupt, says = CORRUPTIONS[corruption]
+    corrupt(copy)
+    capsys.readouterr()
+    assert says in load(copy, tmp_path, capsys)
+
+
+def test_imitate_refuses_its_own_out_before_anything_is_removed(copy, capsys):
+    assert _exit_code(["--imitate", str(copy), "--out", str(copy), "--overwrite", *TINY]) == 2
+    assert "--imitate:" in capsys.readouterr().err and (copy / "model" / "policy.pt").is_file()
+    assert _exit_code(["--imitate", str(copy), "--out", str(copy / "inner"), *TINY]) == 2
+    assert "holds it" in capsys.readouterr().err and not (copy / "inner").exists()
