@@ -91,7 +91,7 @@ def aggregated_cells(board: Board, progress: Callable[[str], None] = print) -> l
         if problem:
             progress(f"left out {path}: {problem}; rerun its scenario and method to recompute it")
             continue
-        stale = stale_reason(record, board.protocol(METHODS[record["method"]]))
+        stale = stale_reason(record, board.protocol(METHODS[record["method"]], _place(record)[0]))
         if stale and not board.accept_stale:
             progress(f"left out {path}: {stale}; rerun its scenario and method to recompute it, or "
                      "--accept-stale-cells to aggregate it")

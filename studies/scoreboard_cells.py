@@ -10,9 +10,12 @@ with
   ``baselines`` and ``assets``, i.e. the env, the physics, the robots, the built-in scenarios, the reference
   laws, the metrics and the training code, and ``studies/benchmarl_runs.py``, which trains the BenchMARL
   methods). Any edit to those files, a comment included, makes a new version: the hash cannot tell which
-  edits change a number, and a board that mixes code silently is worse than one recomputed;
-- ``protocol``: what the study itself sets for the cell (the method's definition: its ``train.py`` flags or
-  BenchMARL run and learning settings, and the flags every learned method gets, such as ``--quick``'s), so that
+  edits change a number, and a board that mixes code silently is worse than one recomputed. The laws' tuned
+  gains (``baselines/reference/tuned/``) are left out of the hash: each enters the protocol of the cells that run
+  with it;
+- ``protocol``: what the study itself sets for the cell (the method's definition: its gains, ``train.py`` flags
+  or BenchMARL run and learning settings; every board setting that decides a cell's numbers: episodes, episode
+  length, the flags every learned method gets, such as ``--quick``'s; a tuned law's tuned entry), so that
   redefining a method in ``studies/scoreboard_methods.py`` recomputes its cells while editing that file's tables or
   prose does not.
 
@@ -42,6 +45,9 @@ CELL_FIELDS = ("scenario", "method", "seed", "eval_seeds", "episode_seconds", "b
 #: The packages whose files decide a cell's numbers, and the suffixes of those files (code, scenarios, robots).
 SOURCE_PACKAGES = ("ee_formation_env", "ee_formation_env.baselines", "ee_formation_env.assets")
 SOURCE_SUFFIXES = (".py", ".yaml", ".yml", ".json", ".urdf", ".xml", ".obj", ".stl", ".dae")
+#: Data the code hash leaves out: the laws' tuned gains, which enter the key of the cells that use them instead
+#: (``Board.protocol``), so that tuning one scenario does not make every other cell stale.
+EXCLUDED_DATA = ("ee_formation_env.baselines/reference/tuned/",)
 #: Study files that train a board method (beside the package): the BenchMARL runs.
 STUDY_SOURCES = (Path(__file__).resolve().parent / "benchmarl_runs.py",)
 
@@ -61,9 +67,11 @@ def source_files() -> list[tuple[str, Path]] | None:
     for package, root in roots.items():
         nested = [other for other in roots.values() if other != root and root in other.parents]
         for path in root.rglob("*"):
+            name = f"{package}/{path.relative_to(root).as_posix()}"
             if (path.is_file() and path.suffix in SOURCE_SUFFIXES and "__pycache__" not in path.parts
-                    and not any(folder in path.parents for folder in nested)):
-                files.append((f"{package}/{path.relative_to(root).as_posix()}", path))
+                    and not any(folder in path.parents for folder in nested)
+                    and not name.startswith(EXCLUDED_DATA)):
+                files.append((name, path))
     files += [(f"studies/{path.name}", path) for path in STUDY_SOURCES if path.is_file()]
     return sorted(files)
 

@@ -138,7 +138,7 @@ def cell_groups(board: Board, progress: Callable[[str], None] = print) -> list[C
         training = cell(None, label)
         cells = [training, *(cell(evaluation.key, f"{label} -> {evaluation.label}")
                              for evaluation in evaluation_cells(board, scenario, method))]
-        protocol = board.protocol(method)
+        protocol = board.protocol(method, scenario)
         cached = {c: cached_record(board.out / c.path, c.label, protocol, progress, board.accept_stale)
                   for c in cells}
         missing = tuple(c for c in cells if cached[c] is None)
@@ -337,7 +337,7 @@ def _write_result(board: Board, group: CellGroup, ref: Any, driver_code: dict[st
                  f"{_describe(result['code'])}, the driver runs {_describe(driver_code)}; its cells are not written")
         return False
     allowed = {group.training.path: group.training, **{cell.path: cell for cell in group.missing}}
-    protocol = board.protocol(METHODS[group.method])
+    protocol = board.protocol(METHODS[group.method], group.scenario)
     for path, record in result["cells"]:
         write_cell(board.out / allowed[path].path, record, protocol)
         progress(f"done    {allowed[path].label} (node {result['node'][:12]}, attempt {result['attempt']})")

@@ -245,12 +245,13 @@ class Board:
     #: other field (and any added later) is part of each cell's key (:meth:`protocol`).
     NOT_IN_CELL_KEY = frozenset({"out", "scenarios", "methods", "seeds", "eval_workers", "test_sets", "accept_stale"})
 
-    def protocol(self, method: Method) -> dict[str, Any]:
+    def protocol(self, method: Method, scenario: str | None = None) -> dict[str, Any]:
         """What the study sets for a cell of ``method`` (recorded in it; studies.scoreboard_cells): the
         method's definition (its gains, flags or BenchMARL run), the BenchMARL learning settings it names, and
         every board setting that decides a cell's numbers (all fields but :attr:`NOT_IN_CELL_KEY`: episodes,
-        episode length, the flags every learned method gets such as ``--quick``'s). A cached cell computed under
-        another protocol is recomputed."""
+        episode length, the flags every learned method gets such as ``--quick``'s) and, for a law with tuned gains
+        on ``scenario`` (its training scenario), the tuned entry it runs with (a retuned law recomputes its cells
+        and no other's). A cached cell computed under another protocol is recomputed."""
         settings = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
                     if field.name not in self.NOT_IN_CELL_KEY}
         protocol: dict[str, Any] = {"method": dataclasses.asdict(method), "board": settings}
@@ -269,6 +270,13 @@ class Board:
                     protocol["benchmarl_settings"] = config_files(run.algorithm, run.mode, run.model)
         if method.teacher is not None:  # a changed teacher is another starting policy
             protocol["teacher"] = self.protocol(METHODS[method.teacher])
+        if method.gains == "tuned" and scenario is not None:
+            from ee_formation_env.baselines.reference.tuned import load_tuned
+
+            try:
+                protocol["tuned"] = load_tuned(scenario, method.reference).record
+            except ValueError as error:
+                protocol["tuned"] = f"unavailable: {error}"
         return protocol
 
     def cell_path(self, scenario: str, method: Method, seed: int | None, test: str | None = None) -> Path:
@@ -564,7 +572,7 @@ def fill(board: Board, progress: Callable[[str], None] = print) -> list[dict[str
     for scenario, method, seed, label in training_cells(board, progress):
 
         def cached(path: Path, label: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-            return cached_cell(path, label, board.protocol(method), compute, progress, board.accept_stale)
+            return cached_cell(path, label, board.protocol(method, scenario), compute, progress, board.accept_stale)
 
         trained = cached(board.cell_path(scenario, method, seed), label,
                          lambda: run_cell(board, scenario, method, seed))
