@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 import json
 import math
 import re
@@ -326,6 +327,9 @@ def _policies(policy: str, parser: argparse.ArgumentParser, overrides: dict[str,
         return [law(policy)]
     if gains != "default":
         parser.error("--gains: applies to the reference laws, not to a run's policy")
+    if not Path(policy).is_dir() and (os.sep in policy or "/" in policy or Path(policy).exists()):
+        parser.error(f"--policy: {policy!r}: no such folder (a train.py run folder or a BenchMARL export folder)"
+                     if not Path(policy).exists() else f"--policy: {policy!r} is a file, not a run folder")
     if not Path(policy).is_dir():
         parser.error(f"--policy: unknown policy {policy!r}; available: {list(POLICIES)}, 'all', a train.py "
                      "run folder (holding config.json and model/) or a BenchMARL export folder (actor.json)")

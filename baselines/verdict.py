@@ -153,8 +153,8 @@ def shortfalls(candidate: Mapping[str, Mapping[str, float]], law: Mapping[str, M
             f"{mine['min_sigma']:.2g} m of a singularity (smallest Jacobian singular value), the law "
             f"{theirs['min_sigma']:.2g} m")
     if mine["return"] < law["return"]["ci_low"]:
-        add("return", "mean >= the law's lower 95 % bound", f"returns {mine['return']:,.0f} per agent, below the "
-            f"law's {theirs['return']:,.0f} (95 % interval from {law['return']['ci_low']:,.0f})")
+        add("return", "mean >= the law's lower 95 % bound", f"returns {mine['return']:,.4g} per agent, below the "
+            f"law's {theirs['return']:,.4g} (95 % interval from {law['return']['ci_low']:,.4g})")
     if mine["energy"] > ENERGY_RATIO * theirs["energy"]:
         add("energy", f"<= {ENERGY_RATIO}x the law's", f"spends {_ratio(mine['energy'], theirs['energy'])} the "
             "law's energy")

@@ -278,9 +278,13 @@ def load_scenario(scenario: str | os.PathLike | Mapping[str, Any] | Scenario = "
             name = _name(data.pop("name", path.stem))
             base_dir = path.resolve().parent
         else:
+            import difflib
+
+            close = difflib.get_close_matches(text, list(BUILTIN_SCENARIOS), n=1)
             raise ValueError(
                 f"scenario: {excerpt(text)} is neither a built-in scenario {sorted(BUILTIN_SCENARIOS)} "
                 "nor a .yaml/.yml/.json file" + (" (it is a directory)" if Path(text).is_dir() else "")
+                + (f"; did you mean {close[0]!r}?" if close else "")
             )
     else:
         raise TypeError(f"scenario: expected a name, a path or a dict, got {type(scenario).__name__}")

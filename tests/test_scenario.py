@@ -334,3 +334,12 @@ def test_a_key_far_from_every_allowed_one_gets_no_guess():
     with pytest.raises(ValueError) as info:
         load_scenario(scenario_dict(zzzzzz=1))
     assert "did you mean" not in str(info.value) and "allowed: [" in str(info.value)
+
+
+def test_a_misspelt_builtin_name_gets_a_did_you_mean():
+    import pytest
+
+    import ee_formation_env
+
+    with pytest.raises(ValueError, match="did you mean 'planar_square'"):
+        ee_formation_env.load_scenario("planar_sqare")

@@ -55,6 +55,23 @@ def _preset_text(name: str) -> str:
     return ", ".join(f"{mode}: {getattr(preset, name)}" for mode, preset in PRESETS.items())
 
 
+def agent_steps(text: str) -> int:
+    """A budget as written on the command line: an integer, or an integer-valued ``1e5``, ``600k``, ``5M``
+    (``argparse``'s ``ValueError`` for anything else, which names the flag)."""
+    import math
+
+    cleaned = str(text).strip().replace("_", "")
+    scale = {"k": 1_000, "m": 1_000_000}.get(cleaned[-1:].lower(), 1)
+    number = float(cleaned[:-1] if scale != 1 else cleaned)
+    value = number * scale
+    if not math.isfinite(value) or value != int(value):
+        raise ValueError(f"not a whole number of agent steps: {text!r}")
+    return int(value)
+
+
+agent_steps.__name__ = "agent steps"  # argparse names the type in its message
+
+
 def _flag(help: str, default: Any = None, **argparse_kwargs: Any) -> Any:
     """A field that is also a command-line flag: its help and any argparse keywords travel in its metadata."""
     return field(default=default, metadata={"help": help, **argparse_kwargs})
@@ -103,8 +120,8 @@ class TrainConfig:
                                     type=int)
     algo: str = _flag("learning algorithm", "ppo", choices=("ppo", "sac"))
     backend: str = _flag("training library", "sb3", choices=("sb3", "rllib"))
-    total_timesteps: int | None = _flag(f"agent steps (all agents count); default {_preset_text('total_timesteps')}",
-                                        type=int)
+    total_timesteps: int | None = _flag(f"agent steps (all agents count; 400000, 4e5, 400k and 5M alike); default "
+                                        f"{_preset_text('total_timesteps')}", type=agent_steps)
     n_envs: int | None = _flag(f"parallel envs (each with all its agents; default {_preset_text('n_envs')})", type=int)
     n_steps: int | None = _flag("ppo: steps per env slot per update (an update learns from n_steps x n_envs x agents "
                                 "agent steps: 4,096 with either mode's defaults on 4 agents; default "

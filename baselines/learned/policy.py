@@ -141,9 +141,9 @@ class SavedRun:
         if not (run_dir / MODEL_FOLDER / "obs_normalizer.json").is_file():
             raise ValueError(f"{what}: {run_dir} holds no final model ({MODEL_FOLDER}/): the run has not finished "
                              "(--resume continues it)")
-        verify_run_files(run_dir, config["backend"], what)
         modules, extras = BACKEND_MODULES[config["backend"]]
         require(modules, extras, f"{what} (a --backend {config['backend']} run)")
+        verify_run_files(run_dir, config["backend"], what)
         try:
             TrainingOptions.from_saved(config)
         except (TypeError, ValueError) as error:

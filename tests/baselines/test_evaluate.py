@@ -345,3 +345,9 @@ def test_gains_tuned_evaluates_each_law_with_its_tuned_set_as_its_own_row(capsys
     with pytest.raises(SystemExit):
         main(["--policy", str(tmp_path), "--gains", "tuned", *SHORT])
     assert "--gains: applies to the reference laws" in capsys.readouterr().err
+
+
+def test_a_missing_run_folder_is_named_as_such_not_as_an_unknown_policy(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--policy", str(tmp_path / "runs" / "missing"), *SHORT])
+    assert "no such folder" in capsys.readouterr().err

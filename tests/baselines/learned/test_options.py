@@ -60,3 +60,20 @@ def test_the_training_page_shows_the_generated_options_table():
     assert match, "docs/training.md has no generated block 'training_task_options'"
     assert match.group(1).strip() == TrainingOptions.options_table(), (
         "docs/training.md: paste this table:\n" + TrainingOptions.options_table())
+
+
+@pytest.mark.parametrize("written, steps", [("400000", 400_000), ("1e5", 100_000), ("600k", 600_000), ("5M", 5_000_000),
+                                            ("4_000", 4_000)])
+def test_budgets_are_read_as_the_docs_write_them(written, steps):
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    assert TrainConfig.from_args(["--total-timesteps", written]).total_timesteps == steps
+
+
+@pytest.mark.parametrize("written", ["1.5", "1e-3", "5x", "inf"])
+def test_a_budget_that_is_not_a_whole_number_of_steps_is_refused_naming_the_flag(written, capsys):
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--total-timesteps", written])
+    assert "argument --total-timesteps: invalid agent steps value" in capsys.readouterr().err
