@@ -450,7 +450,7 @@ def _saved_value_fits(spec: Any, value: Any) -> bool:
     boolean flag's bool; ``None`` where the field's default is ``None``)."""
     if value is None:
         return spec.name in TrainConfig.NULLABLE_SAVED_FIELDS
-    kind = spec.metadata.get("type")
+    kind = _saved_type(spec)
     if spec.name == "scenario":
         return isinstance(value, (str, dict))
     if spec.metadata.get("action") in ("store_true", argparse.BooleanOptionalAction):
@@ -464,8 +464,15 @@ def _saved_value_fits(spec: Any, value: Any) -> bool:
     return isinstance(value, str)
 
 
-def _expected(spec: Any) -> str:
+def _saved_type(spec: Any) -> Any:
+    """The type a field's saved value has: its flag's ``type`` (an integer for a budget read by
+    :func:`agent_steps`)."""
     kind = spec.metadata.get("type")
+    return int if kind is agent_steps else kind
+
+
+def _expected(spec: Any) -> str:
+    kind = _saved_type(spec)
     if spec.metadata.get("action") in ("store_true", argparse.BooleanOptionalAction):
         what = "true or false"
     elif kind in (int, float):
