@@ -205,7 +205,11 @@ def tuned_gains_table() -> str:
     def band(figures: Mapping[str, Any]) -> str:
         time = figures.get("settling_time_1mm", math.nan)
         shown = "never" if not math.isfinite(time) else f"{time:.2f}"
-        return f"{shown} / {figures['energy']:,.0f}"
+        broken = [name for name, ok in (("1 cm success", figures["success"] == 1.0),
+                                        ("1 mm band", figures["success_1mm"] == 1.0),
+                                        ("faults", figures["faults"] == 0), ("contacts", figures["contact_steps"] == 0))
+                  if not ok]
+        return f"{shown} / {figures['energy']:,.0f}" + (f" (misses: {', '.join(broken)})" if broken else "")
 
     for path in sorted(TUNED_DIR.glob("*.json")):
         data = read_tuned_file(path)
