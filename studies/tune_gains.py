@@ -262,6 +262,37 @@ def best_so_far_figure(scenario: str, histories: dict[str, list[dict[str, Any]]]
     return path
 
 
+def unseen_check(scenario: str, laws: Sequence[str], episodes: int = 50) -> list[dict[str, Any]]:
+    """Each law at its defaults and at its tuned gains on ``episodes`` of the unseen-check seeds
+    (``UNSEEN_CHECK_SEEDS``: never tuned or evaluated on), full episodes: one summary row each."""
+    from ee_formation_env.baselines.metrics import summarize
+    from ee_formation_env.baselines.reference.tuned import UNSEEN_CHECK_SEEDS
+
+    rows = []
+    for law in laws:
+        for gains in ("default", "tuned"):
+            metrics = run_episodes(scenario, law, list(UNSEEN_CHECK_SEEDS[:episodes]),
+                                   policy_kwargs={} if gains == "default" else {"gains": "tuned"})
+            summary = summarize(metrics)
+            rows.append({"scenario": scenario, "law": law, "gains": gains, "episodes": len(metrics),
+                         "settling_time_max": float(np.nanmax([m.settling_time for m in metrics])),
+                         **{key: summary[key] for key in ("success_rate", "success_rate_1mm", "settling_time",
+                                                         "settling_time_1mm", "steady_worst_edge_error_max",
+                                                         "control_energy", "contact_steps", "physics_faults")}})
+    return rows
+
+
+def unseen_table(rows: Sequence[dict[str, Any]]) -> str:
+    lines = ["| scenario | law | gains | success | 1 mm | settle 1 cm (s), mean / max | to 1 mm (s) | worst edge (m) "
+             "| energy | contacts |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['scenario']} | {r['law']} | {r['gains']} | {r['success_rate']:.0%} | "
+                     f"{r['success_rate_1mm']:.0%} | {r['settling_time']:.2f} / {r['settling_time_max']:.2f} | "
+                     f"{r['settling_time_1mm']:.2f} | {r['steady_worst_edge_error_max']:.1e} | "
+                     f"{r['control_energy']:,.0f} | {r['contact_steps']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m studies.tune_gains", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", action="append", choices=BUILTIN_SCENARIOS,
@@ -272,7 +303,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=None,
                         help=f"tuning starts per trial ({DEFAULT_EPISODES}; a manoeuvre's {MANOEUVRE_EPISODES})")
     parser.add_argument("--sampler-seed", type=int, default=0, help="the TPE sampler's seed (0)")
+    parser.add_argument("--check-unseen", action="store_true",
+                        help="tune nothing: run each law at its defaults and its tuned gains on the 50 unseen-check "
+                             "seeds (full episodes) and print the table")
     args = parser.parse_args(argv)
+    if args.check_unseen:
+        rows = [row for scenario in args.scenario or BUILTIN_SCENARIOS
+                for row in unseen_check(scenario, args.law or list(REFERENCE_CONTROLLERS))]
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        (RESULTS / "unseen_check.json").write_text(json.dumps(rows, indent=1, default=float), encoding="utf-8")
+        print(unseen_table(rows))
+        return 0
     if args.trials < 1:
         parser.error("--trials: expected at least 1")
     if args.episodes is not None and not 1 <= args.episodes <= len(TUNING_SEEDS):
