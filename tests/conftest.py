@@ -225,3 +225,25 @@ def lockstep(make_env, closer) -> Callable[..., int]:
         return ends
 
     return run
+
+
+#: A tuned point of law I (baselines/reference/tuned.py): twice the default K_P, the rest the defaults'.
+TUNED_POINT = {"kp_scale": 2.0, "kd_scale": 1.0, "saturated": False, "spring_scale": 1.0, "rate_steps": 0.0}
+
+
+def write_tuned_file(folder: Path, scenario: str = "planar_square", laws: dict[str, Any] | None = None,
+                     **changes: Any) -> Path:
+    """A tuned-gains file of built-in ``scenario`` in ``folder`` (monkeypatched as ``tuned.TUNED_DIR``): ``laws``
+    (default: ``gradient`` at :data:`TUNED_POINT`, improved), the file's other fields replaced by ``changes``."""
+    import json
+
+    from ee_formation_env.baselines.reference import tuned
+
+    data = {"schema": tuned.TUNED_SCHEMA, "scenario": scenario,
+            "scenario_digest": tuned.scenario_digest(builtin_scenario(scenario)),
+            "laws": laws if laws is not None else {"gradient": {"point": dict(TUNED_POINT), "improved": True}},
+            **changes}
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    path = Path(folder) / f"{scenario}.json"
+    path.write_text(json.dumps(data))
+    return path

@@ -326,15 +326,11 @@ def test_a_benchmarl_export_without_the_torchrl_extra_names_the_extra(tmp_path):
 
 
 def test_gains_tuned_evaluates_each_law_with_its_tuned_set_as_its_own_row(capsys, tmp_path, monkeypatch):
+    from conftest import write_tuned_file
     from ee_formation_env.baselines.reference import tuned
-    from ee_formation_env.builtin import builtin_scenario
 
     monkeypatch.setattr(tuned, "TUNED_DIR", tmp_path)
-    point = {"kp_scale": 2.0, "kd_scale": 1.0, "saturated": False, "spring_scale": 1.0, "rate_steps": 0.0}
-    (tmp_path / "planar_square.json").write_text(json.dumps({
-        "schema": tuned.TUNED_SCHEMA, "scenario": "planar_square",
-        "scenario_digest": tuned.scenario_digest(builtin_scenario("planar_square")),
-        "laws": {"gradient": {"point": point}}}))
+    write_tuned_file(tmp_path)
     assert main(["--scenario", "planar_square", "--policy", "gradient", "--gains", "tuned", *SHORT,
                  "--json", str(tmp_path / "r.json")]) == 0
     assert list(_table_rows(capsys.readouterr().out)) == ["gradient (tuned)"]

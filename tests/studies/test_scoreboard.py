@@ -622,8 +622,8 @@ def test_file_system_faults_and_a_file_as_out_are_one_line(tmp_path, capsys):
 
 
 def test_a_tuned_file_enters_the_key_of_its_laws_tuned_cells_only(tmp_path, monkeypatch):
+    from conftest import TUNED_POINT, write_tuned_file
     from ee_formation_env.baselines.reference import tuned
-    from ee_formation_env.builtin import builtin_scenario
     from studies import scoreboard_cells
 
     monkeypatch.setattr(tuned, "TUNED_DIR", tmp_path / "tuned")
@@ -632,14 +632,9 @@ def test_a_tuned_file_enters_the_key_of_its_laws_tuned_cells_only(tmp_path, monk
     method = scoreboard.METHODS["gradient-tuned"]
     before = board.protocol(method, "planar_square")
     assert "unavailable" in before["tuned"]
-    (tmp_path / "tuned").mkdir()
-    point = {"kp_scale": 2.0, "kd_scale": 1.0, "saturated": False, "spring_scale": 1.0, "rate_steps": 0.0}
-    (tmp_path / "tuned" / "planar_square.json").write_text(json.dumps({
-        "schema": tuned.TUNED_SCHEMA, "scenario": "planar_square",
-        "scenario_digest": tuned.scenario_digest(builtin_scenario("planar_square")),
-        "laws": {"gradient": {"point": point, "improved": True}}}))
+    write_tuned_file(tmp_path / "tuned")
     after = board.protocol(method, "planar_square")
-    assert after["tuned"]["point"] == point and after != before
+    assert after["tuned"]["point"] == TUNED_POINT and after != before
     assert board.protocol(scoreboard.METHODS["gradient"], "planar_square") == board.protocol(
         scoreboard.METHODS["gradient"], "planar_square")
     assert not any("reference/tuned/" in name for name, _ in scoreboard_cells.source_files())

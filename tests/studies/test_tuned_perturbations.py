@@ -3,21 +3,15 @@ the defaults and the tuned set on the same seeds, and every loss of success is l
 
 from __future__ import annotations
 
-import json
+from conftest import write_tuned_file
 
 from ee_formation_env.baselines.reference import tuned
-from ee_formation_env.builtin import builtin_scenario
 from studies import tuned_perturbations
 
 
 def test_quick_run_compares_each_tuned_law_with_its_defaults_and_lists_losses(tmp_path, monkeypatch):
     monkeypatch.setattr(tuned, "TUNED_DIR", tmp_path / "tuned")
-    (tmp_path / "tuned").mkdir()
-    point = {"kp_scale": 2.0, "kd_scale": 1.0, "saturated": False, "spring_scale": 1.0, "rate_steps": 0.0}
-    (tmp_path / "tuned" / "planar_square.json").write_text(json.dumps({
-        "schema": tuned.TUNED_SCHEMA, "scenario": "planar_square",
-        "scenario_digest": tuned.scenario_digest(builtin_scenario("planar_square")),
-        "laws": {"gradient": {"point": point, "improved": True}}}))
+    write_tuned_file(tmp_path / "tuned")
     records = tuned_perturbations.main(["--quick", "--out", str(tmp_path / "out")])
     assert [(r["scenario"], r["law"], r["knob"]) for r in records] == [("planar_square", "gradient", "noise")]
     assert {"default", "tuned"} <= set(records[0])

@@ -16,6 +16,7 @@ from ee_formation_env.baselines.reference.gains import default_gains
 from ee_formation_env.builtin import builtin_scenario
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET, TEST_SEEDS, TRAIN_SEEDS
 from studies.scoreboard_methods import DEFAULT_EPISODES
+from conftest import write_tuned_file
 from studies.tune_gains import default_point, gravity_loads_joints
 
 
@@ -51,13 +52,8 @@ def test_the_point_of_the_default_gains_gives_the_default_gains(scenario, law):
 
 def _write(folder, scenario="planar_square", **changes):
     point = {"kp_scale": 2.0, "kd_scale": 0.5, "saturated": True, "spring_scale": 3.0, "rate_steps": 1.0}
-    data = {"schema": tuned.TUNED_SCHEMA, "scenario": scenario,
-            "scenario_digest": tuned.scenario_digest(builtin_scenario(scenario)),
-            "laws": {"gradient": {"point": point}}}
-    data.update(changes)
-    path = folder / f"{scenario}.json"
-    path.write_text(json.dumps(data))
-    return path
+    laws = changes.pop("laws", {"gradient": {"point": point}})
+    return write_tuned_file(folder, scenario, laws, **changes)
 
 
 def test_tuned_gains_are_the_files_point_on_the_env_and_opt_in(tmp_path, monkeypatch):
