@@ -47,7 +47,7 @@ from ee_formation_env.task import build_task
 ENERGY_RATIO = 1.5  # a tuned set may spend at most this multiple of the default gains' energy
 DEFAULT_TRIALS = 60
 DEFAULT_EPISODES = 6  # tuning starts per trial
-MANOEUVRE_EPISODES = 3  # a manoeuvre's episodes run to their end (25-50 s): fewer starts per trial
+MANOEUVRE_EPISODES = 2  # a manoeuvre's episodes run through its motion (30 s): fewer starts per trial
 HORIZON_SECONDS = 12.0  # s: a trial's episodes end here at the latest (a manoeuvre's: see below)
 MANOEUVRE_SETTLE_SECONDS = 5.0  # s: a manoeuvre's tuning episodes end this long after its motion
 RESULTS = Path(__file__).resolve().parent / "results" / "tuning"
