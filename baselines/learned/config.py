@@ -166,7 +166,7 @@ class TrainConfig:
                                "agent steps done, may be given beside it)", metavar="RUN_DIR")
     eval_only: str | None = _flag("evaluate a saved run only (its saved scenario; results in RUN_DIR/evaluations/)",
                                   metavar="RUN_DIR")
-    eval_episodes: int = _flag("held-out episodes per policy in the comparison (20: enough for its 95 % intervals)", 20,
+    eval_episodes: int = _flag("held-out episodes per policy in the comparison (20: enough for its 95-percent intervals)", 20,
                                type=int)
     eval_workers: int = _flag("processes for the evaluation episodes (0 = run them in this process)", 2, type=int)
     eval_seconds: float | None = _flag("episode length for the comparison, s (default: the scenario's)", type=float)

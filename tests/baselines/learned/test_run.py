@@ -45,7 +45,7 @@ def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
     assert config["mode"] == mode and config["algo"] == algo and config["scenario_data"]["arms"]
     assert config["obs_features"] == PRESETS[mode].obs_features  # what the evaluation applies again
     comparison = _comparison(run_dir)
-    assert set(comparison["results"]) == {"learned", *baselines.POLICIES}
+    assert {"learned", *baselines.POLICIES} <= set(comparison["results"])  # and each law's tuned row where it has one
     for summary in comparison["results"].values():
         assert METRIC_FIELDS <= set(summary)
         assert summary["episodes"] == 2
