@@ -23,8 +23,8 @@ from studies.benchmarl_runs import ON_POLICY
 from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
 
 
-#: The frame budget of the on-policy BenchMARL methods from scratch (``*-project``): 5M agent steps of a 4-arm
-#: team, SB3's ``torque-ppo`` budget (5M or 30 minutes), about 16 minutes on 2 cores.
+#: The frame budget of the on-policy BenchMARL methods from scratch (``*-project``): 5M agent steps of a 4-arm team,
+#: SB3's ``torque-ppo`` budget (5M or 30 minutes), about 16 minutes on 2 cores.
 PROJECT_FRAMES = 1_250_000
 
 
@@ -223,7 +223,6 @@ DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
 DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
 TEAM_EPISODES = 20  # test draws per team size of the team-size split (the team-size study's)
 QUICK_FLAGS = ("--total-timesteps", "64", "--n-envs", "1", "--n-steps", "16", "--n-workers", "0")
-
 # ------------------------------------------------------------------------------------------ cells
 @dataclass(frozen=True)
 class Board:
@@ -528,13 +527,11 @@ def evaluation_cells(board: Board, scenario: str, method: Method) -> list[Evalua
 
 
 def expected_cell(board: Board, record: dict[str, Any]) -> tuple[Path, list[int], float] | None:
-    """Where a cell record belongs under ``board.out`` and the evaluation seeds and episode length this board
-    gives it (from the same definitions :func:`fill` computes it by), or None when the board has no such cell."""
-    trained, method = record.get("trained_on", record["scenario"]), METHODS.get(record["method"])
-    if method is None or trained not in BUILTIN_SCENARIOS or not isinstance(record.get("seed"), (int, type(None))) \
-            or isinstance(record.get("seed"), bool):
+    """Where a cell record belongs under ``board.out``, its evaluation seeds and episode length on this board
+    (the definitions :func:`fill` computes by); None when the board has no such cell."""
+    trained, method, seed = record.get("trained_on", record["scenario"]), METHODS.get(record["method"]), record["seed"]
+    if method is None or trained not in BUILTIN_SCENARIOS or isinstance(seed, bool) or not isinstance(seed, (int, type(None))):
         return None
-    seed = record["seed"]
     if "trained_on" not in record:
         seconds = board.episode_seconds or load_scenario(trained).episode_seconds
         return board.cell_path(trained, method, seed), board.eval_seeds(trained), seconds

@@ -63,7 +63,7 @@ def _quick_board(out, **fields):
 def test_a_group_is_a_training_cell_and_its_test_cells_and_only_missing_cells_are_computed(tmp_path):
     """Without Ray: the groups the driver would submit, and what a task returns for one."""
     board = _quick_board(tmp_path)
-    tests = list(held_out_scenarios("planar_square"))
+    tests = [*held_out_scenarios("planar_square"), "wide-starts"]  # the test scenarios, then the wide starts
     (group,) = scoreboard_cluster.cell_groups(board, progress=lambda line: None)
     assert group.label == "planar_square / gradient" and group.trained is None
     assert [cell.path for cell in group.missing] == [
