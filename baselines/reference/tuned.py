@@ -34,14 +34,13 @@ import numpy as np
 
 from ee_formation_env.baselines.reference.controllers import Gains
 from ee_formation_env.baselines.reference.gains import default_gains, derive_gains, reference_stiffness
-from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
 TUNED_SCHEMA = 1
 TUNED_DIR = Path(__file__).resolve().parent / "tuned"
 
 #: Reset seeds of the tuner's episodes on a fixed scenario (its starts); never an evaluation seed.
 TUNING_SEEDS: tuple[int, ...] = tuple(range(90_000, 90_100))
-#: Reset seeds of the tuner's episodes on a distribution: training draws (below HELD_OUT_SEED_OFFSET).
+#: Reset seeds of the tuner's episodes on a distribution: training draws (below the held-out seeds, 10000).
 DISTRIBUTION_TUNING_SEEDS: tuple[int, ...] = tuple(range(5_000, 5_100))
 #: Seeds no tuning or board evaluation looks at: the check that a tuned set holds on unseen starts.
 UNSEEN_CHECK_SEEDS: tuple[int, ...] = tuple(range(70_000, 70_050))
@@ -229,4 +228,4 @@ def tuned_gains_table() -> str:
 
 __all__ = ["tuned_gains_table", "TUNED_SCHEMA", "TUNING_SEEDS", "DISTRIBUTION_TUNING_SEEDS", "UNSEEN_CHECK_SEEDS", "SEARCH_SPACE",
            "law_parameters", "gains_from_point", "load_tuned", "read_tuned_file", "check_point", "tuned_path",
-           "tuned_gains_source", "scenario_digest", "HELD_OUT_SEED_OFFSET"]
+           "tuned_gains_source", "scenario_digest"]
