@@ -113,7 +113,7 @@ def test_the_scoreboard_runs_a_benchmarl_method_with_its_test_split(tmp_path, ca
             "--seeds", "0", "--episodes", "1"]
     assert scoreboard.main(argv) == 0
     rows = json.loads((tmp_path / "scoreboard.json").read_text())["rows"]
-    assert [row["split"] for row in rows] == ["train", "test", "test", "test", "test"]
+    assert [row["split"] for row in rows] == ["train", "wide", "test", "test", "test", "test"]
     assert all(row["method"] == "mappo-residual" and row["seeds"] == [0] and row["metrics"] for row in rows)
     assert (tmp_path / "runs" / "planar_square" / "mappo-residual" / "seed-0" / "policy" / "actor.pt").is_file()
     capsys.readouterr()

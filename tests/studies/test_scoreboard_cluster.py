@@ -259,7 +259,8 @@ def test_the_board_runs_on_a_cluster_and_a_lost_node_s_cell_is_retried(cluster, 
     assert sum(line.startswith(f"retry   {killed[0]}: attempt 2 on ") for line in lines) == 1
     tests = list(held_out_scenarios("planar_square"))
     groups = [f"planar_square / residual-ppo / seed {seed}" for seed in (0, 1)]  # one task on each node at first
-    labels = [label for group in groups for label in (group, *(f"{group} -> test {test}" for test in tests))]
+    labels = [label for group in groups
+              for label in (group, *(f"{group} -> test {test}" for test in tests), f"{group} -> wide starts")]
     done = [line.split(" (node ")[0][len("done    "):] for line in lines if line.startswith("done    ")]
     assert sorted(done) == sorted(labels)  # each cell exactly once
     cells = sorted((out / "cells").rglob("*"))
