@@ -242,6 +242,17 @@ def write_history(scenario: str, law: str, history: list[dict[str, Any]]) -> Pat
     return path
 
 
+def read_histories(scenario: str) -> dict[str, list[dict[str, Any]]]:
+    """Each law's tuning history of ``scenario`` as :func:`write_history` saved it (the laws tuned so far)."""
+    histories = {}
+    for law in REFERENCE_CONTROLLERS:
+        path = RESULTS / f"{scenario}-{law}.csv"
+        if path.is_file():
+            with path.open(newline="", encoding="utf-8") as handle:
+                histories[law] = [{"value": float(row["value"])} for row in csv.DictReader(handle)]
+    return histories
+
+
 def best_so_far_figure(scenario: str, histories: dict[str, list[dict[str, Any]]]) -> Path:
     import matplotlib
 
@@ -324,14 +335,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         manoeuvre = data.manoeuvre is not None and data.manoeuvre.active
         episodes = args.episodes or (MANOEUVRE_EPISODES if manoeuvre else DEFAULT_EPISODES)
         gravity = gravity_loads_joints(scenario)
-        records, histories = {}, {}
+        records: dict[str, dict[str, Any]] = {}
+        tuned_laws: list[str] = []
         for law in laws:
             if law == "approx_jacobian" and not gravity:
                 continue  # law II with K_I = 0 is law I here: tuned once, as gradient
             print(f"tuning {scenario} / {law}: {args.trials} trials x {episodes} episodes", flush=True)
             result = tune(scenario, law, args.trials, episodes, args.sampler_seed)
-            records[law], histories[law] = result["record"], result["history"]
+            records[law] = result["record"]
             write_history(scenario, law, result["history"])
+            print(f"wrote {write_tuned(scenario, {law: result['record']})}", flush=True)  # each law kept once tuned
+            tuned_laws.append(law)
         if "approx_jacobian" in laws and not gravity:
             source = records.get("gradient")
             if source is None:
@@ -340,12 +354,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 except (ValueError, KeyError):
                     source = None
             if source is not None:
-                records["approx_jacobian"] = {**source, "same_as": "gradient",
-                                              "why": "no joint carries gravity: law II with K_I = 0 is law I"}
-        if records:
-            print(f"wrote {write_tuned(scenario, records)}", flush=True)
-        if histories:
-            best_so_far_figure(scenario, histories)
+                same = {**source, "same_as": "gradient", "why": "no joint carries gravity: law II with K_I = 0 is law I"}
+                print(f"wrote {write_tuned(scenario, {'approx_jacobian': same})}", flush=True)
+        if tuned_laws:
+            best_so_far_figure(scenario, read_histories(scenario))
     return 0
 
 
