@@ -19,13 +19,7 @@ from ee_formation_env.baselines.metrics import run_episodes
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_sets import DISTRIBUTIONS, TEST_SEEDS, TRAIN_SEEDS, held_out_scenarios, wide_starts
 from ee_formation_env.team_families import TEAM_FAMILIES, TEAM_FAMILY_SOURCES, team_scenario
-from studies.benchmarl_runs import ON_POLICY
 from studies.scoreboard_cells import cached_cell, mark_run, run_is_current
-
-
-#: The frame budget of the on-policy BenchMARL methods from scratch (``*-project``): 5M agent steps of a 4-arm team,
-#: SB3's ``torque-ppo`` budget (5M or 30 minutes), about 16 minutes on 2 cores.
-PROJECT_FRAMES = 1_250_000
 
 
 @dataclass(frozen=True)
@@ -120,104 +114,67 @@ class Method:
         return True
 
 
-#: The board's methods: the paper's three laws, PPO in residual and torque mode at train.py's presets, residual
-#: PPO with the log-error features (``-contact``: and the contact penalty, shaping.py) and on the base-yaw-
-#: invariant ones (the generalization design; arms turning about base z only), and BenchMARL's MAPPO, IPPO and MASAC on the training task (``-sb3``: with the learning
-#: settings of train.py's torque preset, studies.benchmarl_runs.SETTINGS).
-METHODS: dict[str, Method] = {
-    **{name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS},
-    # Each law at its strongest: its tuned gains (baselines/reference/tuned/, python -m studies.tune_gains).
-    **{f"{name}-tuned": Method(f"{name}-tuned", reference=name, gains="tuned") for name in REFERENCE_CONTROLLERS},
-    "residual-ppo": Method("residual-ppo", train_flags=("--mode", "residual")),
-    "residual-ppo-log-error": Method("residual-ppo-log-error", train_flags=(
-        "--mode", "residual", "--obs-features", "log-error")),
-    "residual-ppo-log-error-contact": Method("residual-ppo-log-error-contact", train_flags=(
-        "--mode", "residual", "--obs-features", "log-error", "--contact-penalty", "1.0")),
-    "residual-ppo-invariant": Method("residual-ppo-invariant", train_flags=(
-        "--mode", "residual", "--obs-features", "invariant"), needs_invariant_arms=True),
-    # The correction on the law that settles fastest on the spatial tasks (Theorem 3.1), not on the default.
-    "residual-ppo-gradient": Method("residual-ppo-gradient", train_flags=(
-        "--mode", "residual", "--reference", "gradient")),
-    # The same with the gate squared: the correction fades faster than the law's pull near the goal.
-    "residual-ppo-gradient-gate2": Method("residual-ppo-gradient-gate2", train_flags=(
-        "--mode", "residual", "--reference", "gradient", "--residual-gate-power", "2")),
-    # The correction on gradient through the permutation-invariant set network (set_network.py): one policy for
-    # any team size. 8 s training episodes (random draws take the laws 3-4 s to settle) and the agent-step
-    # budget of the team-size study (docs/training.md, "Team-size transfer").
-    "residual-ppo-set": Method("residual-ppo-set", train_flags=(
-        "--mode", "residual", "--reference", "gradient", "--policy-network", "set", "--train-episode-seconds", "8",
-        "--total-timesteps", "1390000")),
-    # Torque mode from scratch: the preset's 5M agent steps or 30 min of training, whichever comes first.
-    "torque-ppo": Method("torque-ppo", train_flags=("--mode", "torque", "--max-train-seconds", "1800")),
-    # The same on the base-yaw-invariant features: torques mean the same in any base yaw, so a yawed team is
-    # the training team's problem (arms turning about their base z axis only).
-    "torque-ppo-invariant": Method("torque-ppo-invariant", train_flags=(
-        "--mode", "torque", "--obs-features", "invariant", "--max-train-seconds", "1800"), needs_invariant_arms=True),
-    "torque-ppo-contact": Method("torque-ppo-contact", train_flags=(
-        "--mode", "torque", "--max-train-seconds", "1800", "--contact-penalty", "1.0")),
-    # The gravity-compensated torque convention (docs/spaces.md, "Action conventions"), at the same budget.
-    "torque-gc-ppo": Method("torque-gc-ppo", train_flags=(
-        "--mode", "torque", "--gravity-compensation", "--max-train-seconds", "1800")),
-    # The same with gSDE's exploration (docs/training.md, "Flags"): noise that is a function of the state, held
-    # for 4 control steps, where white noise is integrated twice by the undamped joints. Its log std of -3.8 gives
-    # the white noise's initial size (std 0.135 per action at torque mode's log std of -2; measured on
-    # spatial_tetrahedron's [128, 128] network, where gSDE's std sums over the 128 features).
-    "torque-gc-gsde-ppo": Method("torque-gc-gsde-ppo", train_flags=(
-        "--mode", "torque", "--gravity-compensation", "--sde-sample-freq", "4", "--log-std-init", "-3.8",
-        "--max-train-seconds", "1800")),
-    # The velocity convention (docs/training.md, "Modes"): joint speeds through a damped loop with gravity
-    # compensation, from scratch, at the same budget.
-    "velocity-ppo": Method("velocity-ppo", train_flags=("--mode", "velocity", "--max-train-seconds", "1800")),
-    # The joint-position convention (docs/training.md, "Modes"): joint target angles about the initial
-    # configuration, held by a PD loop with gravity compensation, from scratch, at the same budget.
-    "position-ppo": Method("position-ppo", train_flags=("--mode", "position", "--max-train-seconds", "1800")),
-    # The same with the targets low-passed (a 0.05 s time constant), against the chatter of position-ppo.
-    "position-ppo-smooth": Method("position-ppo-smooth", train_flags=(
-        "--mode", "position", "--target-smoothing", "0.05", "--max-train-seconds", "1800")),
-    # The same with the training reward's log term reaching 0 at 10,000 success tolerances instead of the
-    # scenario's 100, for tasks whose starts lie beyond 100 (planar_random's: a median of 470).
-    "position-ppo-wide-reward": Method("position-ppo-wide-reward", train_flags=(
-        "--mode", "position", "--reward-error-ceiling", "10000", "--max-train-seconds", "1800")),
-    # The same reward in torque mode, the convention that learns every planar built-in with a fixed shape.
-    "torque-ppo-wide-reward": Method("torque-ppo-wide-reward", train_flags=(
-        "--mode", "torque", "--reward-error-ceiling", "10000", "--max-train-seconds", "1800")),
-    # For starts far from the formation: that reward and targets over the whole turn (joint reach pi rad), since
-    # a draw of planar_random needs its joints turned by 1.6-7 rad to reach its shape (the law's final postures).
-    "position-ppo-far": Method("position-ppo-far", train_flags=(
-        "--mode", "position", "--reward-error-ceiling", "10000", "--joint-reach", "3.14159",
-        "--max-train-seconds", "1800")),
-    # On a manoeuvre: the training reward's tracking term (each end-effector near its place in the moving
-    # reference, reward.py) and training episodes that hold the whole motion (the built-ins': a 5 s hold, 20 s out
-    # and back), where position-ppo's reward, the shape's, holds in any orientation and asks nothing of the motion.
-    "position-ppo-tracking": Method("position-ppo-tracking", train_flags=(
-        "--mode", "position", "--reward-tracking", "1.0", "--train-episode-seconds", "30",
-        "--max-train-seconds", "1800")),
-    # The gravity-compensated torque convention learned through a copy: position-ppo's run of the same seed (the
-    # joint-position convention, learned from the reward; above it, as a teacher must be in board order) is the
-    # reference whose applied torques a torque policy copies (--imitate RUN_DIR: 3 DAgger rounds of 30 training
-    # episodes), then 1M agent steps of PPO in torque mode. Its budget counts the teacher's run, the
-    # demonstrations and the PPO steps (docs/training.md, "--mode torque").
-    "torque-gc-copy-ppo": Method("torque-gc-copy-ppo", train_flags=(
-        "--mode", "torque", "--gravity-compensation", "--imitation-episodes", "30", "--total-timesteps", "1000000",
-        "--max-train-seconds", "900"), teacher="position-ppo"),
-    # BenchMARL on the training task (studies.benchmarl_runs), at a wall-clock budget in minutes.
-    "mappo-torque": Method("mappo-torque", benchmarl=BenchmarlRun("mappo", "torque", 30.0)),
-    "mappo-torque-sb3": Method("mappo-torque-sb3", benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3")),
-    "mappo-torque-sb3-decay": Method("mappo-torque-sb3-decay",
-                                     benchmarl=BenchmarlRun("mappo", "torque", 30.0, "sb3-decay")),
-    "mappo-residual": Method("mappo-residual", benchmarl=BenchmarlRun("mappo", "residual", 10.0)),
-    "ippo-residual": Method("ippo-residual", benchmarl=BenchmarlRun("ippo", "residual", 10.0)),
-    "masac-residual": Method("masac-residual", benchmarl=BenchmarlRun("masac", "residual", 10.0)),
-    # MAPPO's correction through the project's masked Deepsets actor on the set observations: any team size.
-    "mappo-residual-set": Method("mappo-residual-set", benchmarl=BenchmarlRun("mappo", "residual", 10.0, "project",
-                                                                              model="deepsets")),
-    # From scratch with the project's BenchMARL configs (normalized observations, rewards and advantages, SB3's
-    # rollout): MAPPO and IPPO for PROJECT_FRAMES frames, MASAC (off-policy) for 30 minutes.
-    **{f"{algorithm}-{mode}-project": Method(f"{algorithm}-{mode}-project", benchmarl=(
-        BenchmarlRun(algorithm, mode, None, "project", frames=PROJECT_FRAMES) if algorithm in ON_POLICY
-        else BenchmarlRun(algorithm, mode, 30.0, "project")))
-       for mode in ("torque", "velocity", "position") for algorithm in ("mappo", "ippo", "masac")},
-}
+#: The learned methods' definitions (data, one entry per method): :func:`load_methods` reads them.
+METHODS_FILE = Path(__file__).with_name("board_methods.yaml")
+_ENTRY_KEYS = {"about", "train_flags", "needs_invariant_arms", "teacher", "benchmarl"}
+
+
+def load_methods(path: Path = METHODS_FILE) -> dict[str, Method]:
+    """The board's methods in board order: each reference law at its default gains (``<law>``) and at its tuned
+    ones (``<law>-tuned``), then the learned methods of ``path`` (a YAML mapping name -> entry; the file's header
+    documents the keys). An entry that is not a valid method is one ``ValueError`` naming the file, the method
+    and the key: an unknown key, a value of the wrong type, a BenchMARL run with a field it lacks, a teacher
+    that is not an earlier learned method, a method with neither flags nor a BenchMARL run."""
+    import yaml
+
+    methods = {name: Method(name, reference=name) for name in REFERENCE_CONTROLLERS}
+    methods.update({f"{name}-tuned": Method(f"{name}-tuned", reference=name, gains="tuned")
+                    for name in REFERENCE_CONTROLLERS})
+    try:
+        entries = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as error:
+        raise ValueError(f"{path}: cannot read the board's methods: {error}") from None
+    if not isinstance(entries, dict):
+        raise ValueError(f"{path}: expected a mapping of method name -> definition")
+    run_fields = {spec.name for spec in dataclasses.fields(BenchmarlRun)}
+    for name, entry in entries.items():
+        where = f"{path}: method {name!r}"
+        if not isinstance(name, str) or name in methods:
+            raise ValueError(f"{where}: a name that is not a string, or one given twice (the laws' names included)")
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where}: expected a mapping of {sorted(_ENTRY_KEYS)}, got {entry!r}")
+        if set(entry) - _ENTRY_KEYS:
+            unknown = sorted(set(entry) - _ENTRY_KEYS)
+            raise ValueError(f"{where}: unknown key(s) {unknown}; expected {sorted(_ENTRY_KEYS)}")
+        if not isinstance(entry.get("about"), str) or not entry["about"].strip():
+            raise ValueError(f"{where}: about: expected a sentence saying what the method is")
+        flags = entry.get("train_flags", [])
+        if not isinstance(flags, list) or not all(isinstance(flag, str) for flag in flags):
+            raise ValueError(f"{where}: train_flags: expected a list of strings (train.py's flags, numbers quoted)")
+        benchmarl = entry.get("benchmarl")
+        if benchmarl is not None:
+            required = {"algorithm", "mode", "minutes"}
+            if not isinstance(benchmarl, dict) or set(benchmarl) - run_fields or not required <= set(benchmarl):
+                raise ValueError(f"{where}: benchmarl: expected algorithm, mode and minutes, and only fields of "
+                                 f"{sorted(run_fields)}; got {benchmarl!r}")
+            benchmarl = BenchmarlRun(**benchmarl)
+        if bool(flags) == (benchmarl is not None):
+            raise ValueError(f"{where}: expected train_flags (a train.py method) or benchmarl (a BenchMARL one), "
+                             "exactly one of them")
+        teacher = entry.get("teacher")
+        if teacher is not None and (teacher not in methods or not methods[teacher].learned):
+            raise ValueError(f"{where}: teacher: {teacher!r} is not a learned method defined before it")
+        invariant = entry.get("needs_invariant_arms", False)
+        if not isinstance(invariant, bool):
+            raise ValueError(f"{where}: needs_invariant_arms: expected true or false, got {invariant!r}")
+        methods[name] = Method(name, train_flags=tuple(flags), needs_invariant_arms=invariant, benchmarl=benchmarl,
+                               teacher=teacher)
+    return methods
+
+
+#: The board's methods (:func:`load_methods`): the paper's three laws at their default and tuned gains, then the
+#: learned methods of :data:`METHODS_FILE`.
+METHODS: dict[str, Method] = load_methods()
 QUICK_MINUTES = 0.05  # --quick: the BenchMARL methods' wall-clock budget
 DEFAULT_SEEDS = (0, 1, 2)  # training seeds of a learned method
 DEFAULT_EPISODES = 10  # held-out evaluation episodes per cell
