@@ -1,6 +1,6 @@
 """The laws' tuned gains under the perturbations of the robustness and sensing studies, beside their defaults.
 
-    python -m studies.tuned_perturbations [--out results/tuned_perturbations] [--quick]
+    python -m studies.tuned_perturbations [--out results/tuned_perturbations] [--scenario S] [--quick]
 
 A tuned set is fast on the problem it was tuned on; this checks that it keeps its success where the defaults
 are known to (or not to) hold. Each built-in with tuned gains of :data:`SCENARIOS` runs every tuned law and the
@@ -53,9 +53,11 @@ def tuned_laws(scenario: str) -> list[str]:
             if load_tuned(scenario, law).record.get("improved")]
 
 
-def run(quick: bool = False) -> list[dict[str, Any]]:
+def run(quick: bool = False, scenarios: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Every case of ``scenarios`` (default: all of :data:`SCENARIOS`) for each law tuned there."""
     records = []
-    for scenario, kind in SCENARIOS.items():
+    for scenario in scenarios or SCENARIOS:
+        kind = SCENARIOS[scenario]
         data = load_scenario(scenario)
         seconds = QUICK_SECONDS if quick else min(data.episode_seconds, EPISODE_SECONDS)
         cases = perturbations(kind, data.n_agents)[:1 if quick else None]
@@ -98,8 +100,10 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(prog="python -m studies.tuned_perturbations", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("results/tuned_perturbations"), help="output folder")
     parser.add_argument("--quick", action="store_true", help="one case per family, one seed, 2 s episodes (tests)")
+    parser.add_argument("--scenario", action="append", choices=list(SCENARIOS),
+                        help="a scenario of the study (repeatable; default: all)")
     args = parser.parse_args(argv)
-    records = run(args.quick)
+    records = run(args.quick, args.scenario)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "perturbations.json").write_text(json.dumps(records, indent=1), encoding="utf-8")
     (args.out / "perturbations.md").write_text(table(records), encoding="utf-8")

@@ -21,3 +21,12 @@ def test_quick_run_compares_each_tuned_law_with_its_defaults_and_lists_losses(tm
              "tuned": {**records[0]["tuned"], "success": 0.5}}]
     assert tuned_perturbations.losses(lost) == lost
     assert "loses success in 1 of 1 cases: planar_square / gradient / noise 0.002" in tuned_perturbations.table(lost)
+
+
+def test_scenario_selects_the_cases_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(tuned, "TUNED_DIR", tmp_path / "tuned")
+    write_tuned_file(tmp_path / "tuned")
+    write_tuned_file(tmp_path / "tuned", "planar_square_displacement")
+    records = tuned_perturbations.main(["--quick", "--out", str(tmp_path / "out"), "--scenario",
+                                        "planar_square_displacement"])
+    assert [(r["scenario"], r["law"]) for r in records] == [("planar_square_displacement", "gradient")]
