@@ -16,7 +16,7 @@ same team size and the same episode, bit for bit, whatever ran before. The episo
 
 **Array API** (:class:`TeamVectorEnv`, for batched learners): :meth:`~TeamVectorEnv.step_arrays` takes (K,
 Nmax * n) or (K, Nmax, n) actions (every arm of a family has the same n joints); an absent agent's entries
-must be finite and are ignored. It returns a :class:`~ee_formation_env.vector.BatchedStep` padded to Nmax
+are ignored, whatever they hold (NaN too); a live agent's must be finite (else a ``ValueError`` naming it). It returns a :class:`~ee_formation_env.vector.BatchedStep` padded to Nmax
 agents: observations (K, Nmax * O) with zeros for absent agents, rewards (K, Nmax) with 0 for them, the
 per-agent infos padded with zeros on the agent axis, ``applied_torque`` (K, Nmax * n), plus ``agent_mask``
 (K, Nmax) bool (the agents whose rewards and infos the step reports) and ``team_size`` (K,).
@@ -48,7 +48,7 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from ee_formation_env.actions import ActionCheck, numeric_action_array
+from ee_formation_env.actions import ActionCheck
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.infos import PER_AGENT_INFO
 from ee_formation_env.inputs import MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
@@ -169,6 +169,7 @@ class TeamVectorEnv:
         self.joint_slices = [slice(i * n, (i + 1) * n) for i in range(self.max_agents)]
         self.observation_slices = [slice(i * self.observation_size, (i + 1) * self.observation_size)
                                    for i in range(self.max_agents)]
+        self.actions_check = ActionCheck(self.possible_agents, self.joint_slices)
         self.np_randoms = [seeding.np_random(None)[0] for _ in range(K)]
         self.team_size = np.full(K, self.max_agents, dtype=np.int64)  # each copy's current N
         self.episode_seeds = np.zeros(K, dtype=np.int64)  # the seed each copy's size-N env was last reset with
@@ -219,10 +220,10 @@ class TeamVectorEnv:
 
     def step_arrays(self, actions: Any) -> BatchedStep:
         """One step of every copy from (K, Nmax * n) or (K, Nmax, n) actions (absent agents' entries ignored);
-        checked (numeric, finite, shape) before any copy moves."""
+        checked (numeric, shape, the live agents' finite) before any copy moves."""
         check_steppable(self.connected, self._needs_reset, self._ended)
-        K, N, n = self.num_envs, self.max_agents, self.n_joints_per_arm
-        flat = numeric_action_array(actions, [(K, N * n), (K, N, n), (K * N, n)], (K, N * n), rows_per_copy=N)
+        K, n = self.num_envs, self.n_joints_per_arm
+        flat = self.actions_check.flat_array(actions, K, live=self.agent_mask)
         steps = []
         for k in range(K):
             size = int(self.team_size[k])

@@ -307,16 +307,22 @@ def test_more_arms_than_the_cap_are_refused_before_any_arm_is_parsed():
         load_scenario(scenario_dict(arms=arms))
 
 
-def test_a_dict_nested_20000_deep_is_a_value_error_about_nesting_not_a_recursion_error():
+def test_a_dict_nested_20000_deep_is_a_value_error_about_nesting_naming_the_key_not_a_recursion_error():
     from ee_formation_env.inputs import MAX_NESTING_DEPTH
 
     nested: list = []
     for _ in range(20_000):
         nested = [nested]
-    with pytest.raises(ValueError, match=rf"^scenario: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+    with pytest.raises(ValueError, match=rf"^scenario: arms: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
         load_scenario(scenario_dict(arms=nested))
-    with pytest.raises(ValueError, match=rf"^overrides: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+    with pytest.raises(ValueError, match=rf"^scenario: shape: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+        load_scenario(scenario_dict(shape=nested))
+    with pytest.raises(ValueError, match=rf"^overrides: gravity: lists and dicts nest more than {MAX_NESTING_DEPTH} "):
         load_scenario("planar_square", gravity=nested)
+    deep_arm = scenario_dict()
+    deep_arm["arms"][1]["initial_q"] = nested
+    with pytest.raises(ValueError, match=r"^scenario: arms\[1\]\.initial_q: lists and dicts nest more than"):
+        load_scenario(deep_arm)
 
 
 @pytest.mark.parametrize("data, hint", [

@@ -200,3 +200,19 @@ def test_bad_actions_are_refused_naming_the_field_before_any_copy_moves():
     with pytest.raises(ValueError, match=r"^actions: expected finite values"):
         vector.step_arrays(np.full((1, 3, 2), np.inf))
     env.close()
+
+
+def test_non_finite_actions_name_the_agent_and_an_absent_agent_s_padded_slot_is_ignored():
+    vector = ee_formation_env.team_vector_env("planar_team", num_envs=1, team_sizes=[3, 4])
+    seed = next(s for s in range(100) if vector.reset_arrays(seed=s) and vector.team_size[0] == 3)
+    actions = np.zeros((1, 4, 2))
+    actions[0, 1] = np.nan  # a live agent
+    with pytest.raises(ValueError, match=r"^actions: expected finite values, got non-finite values in copies \[0\] "
+                                         r"\(copy 0, agent 'arm_1': \[nan, nan\]\)"):
+        vector.step_arrays(actions)
+    padded = np.zeros((1, 4, 2))
+    padded[0, 3] = np.nan  # arm_3 is absent from a team of 3: its slot is ignored, as documented
+    stepped = vector.step_arrays(padded)
+    vector.reset_arrays(seed=seed)
+    assert np.array_equal(stepped.observations, vector.step_arrays(np.zeros((1, 4, 2))).observations)
+    vector.close()
