@@ -349,3 +349,14 @@ def test_a_misspelt_builtin_name_gets_a_did_you_mean():
 
     with pytest.raises(ValueError, match="did you mean 'planar_square'"):
         ee_formation_env.load_scenario("planar_sqare")
+
+
+def test_neighbour_slots_beyond_the_most_neighbours_any_scenario_has_are_refused_before_allocating():
+    from ee_formation_env.inputs import MAX_ARMS, MAX_NEIGHBOUR_SLOTS
+
+    assert MAX_NEIGHBOUR_SLOTS == MAX_ARMS - 1
+    assert load_scenario("planar_square", neighbour_slots=MAX_NEIGHBOUR_SLOTS).neighbour_slots == MAX_NEIGHBOUR_SLOTS
+    for slots in (MAX_NEIGHBOUR_SLOTS + 1, 10**9, 0):
+        with pytest.raises(ValueError, match=rf"^neighbour_slots: expected null or an integer from 1 to "
+                                             rf"{MAX_NEIGHBOUR_SLOTS} \(neighbour slots per agent.*got {slots}$"):
+            load_scenario("planar_square", neighbour_slots=slots)
