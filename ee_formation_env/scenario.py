@@ -104,8 +104,8 @@ class Scenario:
     torque_limits: Any = _key(None, "``null`` = each URDF joint's effort; a number for every joint; a list "
                                     "per joint (same for every arm); or a list of such lists, one per arm", "N m")
     gravity: tuple[float, float, float] = _key((0.0, 0.0, -9.81), "world gravity vector", "m/s^2")
-    initial_q_noise: float = _key(0.05, "half-width of the uniform noise added to each ``initial_q`` at reset; "
-                                        "0 turns randomization off", "rad")
+    initial_q_noise: float = _key(0.05, "half-width of the uniform noise added to each ``initial_q`` at reset, "
+                                        "at most 2 pi (a full turn); 0 turns randomization off", "rad")
     arm_collisions: bool = _key(True, "simulate contacts between arms (contacts are always reported)")
     terminate_on_contact: bool = _key(False, "end the episode when two arms touch")
     gravity_compensation: bool = _key(False, "the env adds each arm's own gravity torque g(q) to the torque of "
@@ -374,6 +374,9 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["gravity"] = tuple(gravity.tolist())
     noise = data.get("initial_q_noise", _default("initial_q_noise"))
     kwargs["initial_q_noise"] = _non_negative("initial_q_noise", noise)
+    if kwargs["initial_q_noise"] > 2 * math.pi:
+        raise ValueError(f"initial_q_noise: expected at most 2 pi rad (a full turn of a joint; the noise is clipped to "
+                         f"the joint limits), got {kwargs['initial_q_noise']:g} rad")
     for flag in ("arm_collisions", "terminate_on_contact", "gravity_compensation"):
         value = data.get(flag, _default(flag))
         if not isinstance(value, bool):

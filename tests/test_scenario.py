@@ -360,3 +360,10 @@ def test_neighbour_slots_beyond_the_most_neighbours_any_scenario_has_are_refused
         with pytest.raises(ValueError, match=rf"^neighbour_slots: expected null or an integer from 1 to "
                                              rf"{MAX_NEIGHBOUR_SLOTS} \(neighbour slots per agent.*got {slots}$"):
             load_scenario("planar_square", neighbour_slots=slots)
+
+
+def test_initial_q_noise_beyond_a_full_turn_is_refused_naming_the_key_instead_of_overflowing_the_draw():
+    assert load_scenario("planar_square", initial_q_noise=2 * math.pi).initial_q_noise == 2 * math.pi
+    for noise in (2 * math.pi + 0.01, 1e308):
+        with pytest.raises(ValueError, match=r"^initial_q_noise: expected at most 2 pi rad \(a full turn of a joint"):
+            load_scenario("planar_square", initial_q_noise=noise)
