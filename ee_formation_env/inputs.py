@@ -29,6 +29,7 @@ from __future__ import annotations
 import difflib
 import os
 import reprlib
+import sys
 import warnings
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -80,6 +81,19 @@ def excerpt(value: Any, limit: int = MAX_EXCERPT_CHARS) -> str:
 def is_real_number(value: Any) -> bool:
     """Whether ``value`` is an int or float (Python or numpy), not a bool."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` that attributes a warning, warned by the function calling this, to the first caller
+    outside this package: the user's line that built the env or scenario, however deep inside the package the
+    warning is raised."""
+    level, frame = 1, sys._getframe(1)
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE_DIR):
+        level, frame = level + 1, frame.f_back
+    return level
 
 
 def check_seed(seed: Any) -> int | None:

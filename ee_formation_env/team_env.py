@@ -41,6 +41,7 @@ validated before any episode. ``render_mode`` ``"rgb_array"`` (one copy) renders
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Sequence
 
 import gymnasium
@@ -51,9 +52,11 @@ from pettingzoo import ParallelEnv
 from ee_formation_env.actions import ActionCheck
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.infos import PER_AGENT_INFO
-from ee_formation_env.inputs import MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
+from ee_formation_env.inputs import (MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows,
+                                     user_stacklevel)
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.team_families import TEAM_FAMILIES, check_team_size, team_scenario
+from ee_formation_env.validation import RigidityWarning
 from ee_formation_env.vector import AutoresetMode, BatchedStep
 
 __all__ = ["TeamVectorEnv", "TeamParallelEnv", "check_team_sizes", "largest_degree"]
@@ -145,12 +148,20 @@ class TeamVectorEnv:
         # Every size's scenario is checked (format and keys) before any PyBullet client starts.
         self._scenarios = {size: load_scenario(d, **self._overrides) for size, d in data.items()}
         self._envs: list[dict[int, FormationEnv]] = [{} for _ in range(K)]
+        self._warned_rigidity = False  # copy 0's builds below warn it once, for every size (_warn_once)
+        warned: list[int] = []  # the sizes whose graph is rigid but not minimally rigid
+        others: list[warnings.WarningMessage] = []
         try:
             for size in sizes:  # validates every size (geometry, first draw); their spaces make the union
-                self._env(0, size)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", RigidityWarning)
+                    self._env(0, size)
+                warned += [size] if any(issubclass(w.category, RigidityWarning) for w in caught) else []
+                others += [w for w in caught if not issubclass(w.category, RigidityWarning)]
         except BaseException:
             self.close()
             raise
+        self._warn_once(warned, others)
         first = [self._envs[0][size] for size in sizes]
         largest = self._envs[0][self.max_agents]
         self.scenario = largest.scenario  # the largest team's (its arms name TorchRL's groups)
@@ -268,9 +279,24 @@ class TeamVectorEnv:
         """Copy ``k``'s env of team size ``size``, built on first use."""
         env = self._envs[k].get(size)
         if env is None:
-            env = FormationEnv(self._scenarios[size], render_mode=self.render_mode)
+            with warnings.catch_warnings():
+                if self._warned_rigidity:  # said once, at construction: not again for a copy's later build
+                    warnings.simplefilter("ignore", RigidityWarning)
+                env = FormationEnv(self._scenarios[size], render_mode=self.render_mode)
             self._envs[k][size] = env
         return env
+
+    def _warn_once(self, warned: Sequence[int], others: Sequence[warnings.WarningMessage]) -> None:
+        """One rigidity warning for the team sizes ``warned`` (their builds' own, one per size, held back),
+        attributed to the user's line that built the team env; ``others``, the builds' other warnings, as they
+        were."""
+        for w in others:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+        if warned:
+            warnings.warn(f"edges: the {self.family} graphs at team sizes {list(warned)} are infinitesimally rigid but "
+                          "not minimally rigid; the paper's convergence proof assumes minimal rigidity",
+                          RigidityWarning, stacklevel=user_stacklevel())
+        self._warned_rigidity = True
 
     def _reset_copy(self, k: int) -> None:
         generator = self.np_randoms[k]

@@ -14,7 +14,8 @@ Checks, each failure a ``ValueError`` naming the problem:
 - ``initial_q`` has one entry per joint and lies within the joint limits;
 - planar (``dim = 2``) scenarios use arms that move in their base x-y plane, with yaw-only bases;
 - the graph is connected; for distance formations it is infinitesimally rigid at the shape (a
-  ``UserWarning`` says when it is rigid but not minimally rigid, the paper's assumption);
+  :class:`RigidityWarning`, a ``UserWarning``, says when it is rigid but not minimally rigid, the paper's
+  assumption);
 - the shape is reachable: some placement of it (translations, and for distance formations rotations and
   reflections) puts every vertex inside its arm's sampled workspace;
 - no initial configuration is at a kinematic singularity;
@@ -34,11 +35,16 @@ import numpy as np
 from typing import Any, Sequence
 
 from ee_formation_env.formation import FormationGraph, check_rigidity
-from ee_formation_env.inputs import excerpt
+from ee_formation_env.inputs import excerpt, user_stacklevel
 from ee_formation_env.kinematics import SerialChain, rpy_to_matrix, singularity_margins
 from ee_formation_env.robots import PYBULLET_DATA_ROBOTS, ROBOTS
 from ee_formation_env.scenario import ArmConfig, Scenario
 from ee_formation_env.workspace import workspace
+
+
+class RigidityWarning(UserWarning):
+    """A distance formation's graph is rigid but not minimally rigid (the paper's assumption); warned once per
+    build, attributed to the user's line that built the env or scenario."""
 
 
 def _candidate_rotations(dim: int, allow_rotation: bool) -> list[np.ndarray]:
@@ -130,7 +136,7 @@ def check_task(scenario: Scenario, models: Sequence[SerialChain], initial_q: Seq
             warnings.warn(
                 f"edges: the graph is infinitesimally rigid but not minimally rigid ({report.n_edges} edges, "
                 f"{report.required_rank} suffice); the paper's convergence proof assumes minimal rigidity",
-                UserWarning, stacklevel=4,
+                RigidityWarning, stacklevel=user_stacklevel(),
             )
 
     translation = float(np.linalg.norm(scenario.manoeuvre.translation)) if scenario.manoeuvre.active else 0.0

@@ -336,3 +336,21 @@ def test_the_singular_start_suggestion_is_itself_accepted_for_every_registry_rob
     pose = nonsingular_pose(model, np.zeros(model.n_joints), dim, threshold)
     assert pose is not None and float(singularity_margins(model.jacobian(np.array(pose))[None], dim)[0]) >= threshold
     assert np.all(np.array(pose) >= model.lower) and np.all(np.array(pose) <= model.upper)
+
+
+def test_the_rigidity_warning_is_warned_once_per_build_at_the_user_s_line(closer):
+    from ee_formation_env.validation import RigidityWarning
+
+    data = scenario_dict(edges=[[0, 1], [1, 2], [2, 3], [3, 0], [0, 2], [1, 3]])  # K4: 6 edges, 5 suffice
+    builds = [lambda: closer(ee_formation_env.parallel_env(data)),
+              lambda: closer(ee_formation_env.vector_env(data, num_envs=2)),
+              lambda: ee_formation_env.validate_scenario(data),
+              lambda: build_task(load_scenario(data))]
+    for build in builds:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            build()
+        rigidity = [w for w in caught if issubclass(w.category, RigidityWarning)]
+        assert len(rigidity) == 1 and issubclass(rigidity[0].category, UserWarning)
+        assert rigidity[0].filename == __file__, rigidity[0].filename
+        assert "rigid but not minimally rigid (6 edges, 5 suffice)" in str(rigidity[0].message)
