@@ -158,10 +158,10 @@ class TeamVectorEnv:
                     self._env(0, size)
                 warned += [size] if any(issubclass(w.category, RigidityWarning) for w in caught) else []
                 others += [w for w in caught if not issubclass(w.category, RigidityWarning)]
+            self._warn_once(warned, others)  # inside: a filter that turns the warning into an error closes the clients
         except BaseException:
             self.close()
             raise
-        self._warn_once(warned, others)
         first = [self._envs[0][size] for size in sizes]
         largest = self._envs[0][self.max_agents]
         self.scenario = largest.scenario  # the largest team's (its arms name TorchRL's groups)
