@@ -9,7 +9,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ee_formation_env.inputs import excerpt, numeric_action
+from ee_formation_env.inputs import excerpt, numeric_action, numeric_array
 
 
 class ActionCheck:
@@ -37,8 +37,10 @@ class ActionCheck:
         lead = () if copies is None else (copies,)
         parts = [actions[agent] for agent in self.agents]
         normalized = None
-        # The common case in one call: numpy arrays of the right shapes; anything else gets the detailed check.
-        if all(getattr(part, "shape", None) == (*lead, *self.shapes[agent]) for agent, part in zip(self.agents, parts)):
+        # The common case in one call: numpy arrays of the right shapes; anything else (lists, tensors) gets the
+        # detailed check, which converts them one by one and names the agent of a failure.
+        if all(isinstance(part, np.ndarray) and part.shape == (*lead, *self.shapes[agent])
+               for agent, part in zip(self.agents, parts)):
             try:
                 normalized = np.concatenate(parts, axis=-1, dtype=np.float64)
             except (TypeError, ValueError):
@@ -56,12 +58,24 @@ class ActionCheck:
             raise ValueError(f"actions: unknown agent {excerpt(agent)}; expected one of {self.agents}")
         self._checked(agent, action, ())
 
-    def flat_array(self, actions: Any, copies: int) -> np.ndarray:
+    def flat_array(self, actions: Any, copies: int, live: np.ndarray | None = None) -> np.ndarray:
         """A fresh float64 (K, T) copy of the array API's actions: (K, T), or, when every arm has n joints,
-        (K * N, n) or (K, N, n); a ``ValueError`` starting ``actions:`` otherwise."""
+        (K * N, n) or (K, N, n); a ``ValueError`` starting ``actions:`` otherwise, and for non-finite values,
+        naming their copies and the first such copy's first such agent. ``live`` (K, N) bool: the agents whose
+        entries count (a team env's absent agents': ignored whatever they hold, zeroed); None: every agent's."""
         K, T, n, N = copies, self.n_joints, self.uniform_joints, len(self.agents)
         shapes = [(K, T)] + ([(K * N, n), (K, N, n)] if n else [])
-        return numeric_action_array(actions, shapes, (K, T))  # always a copy: clipped in place
+        flat = numeric_action_array(actions, shapes, (K, T), check_finite=False)  # always a copy: clipped in place
+        if live is not None:
+            flat[~np.repeat(live, np.diff([*self.joint_starts, T]), axis=1)] = 0.0
+        finite = np.isfinite(flat)
+        if not finite.all():
+            bad = np.flatnonzero(~finite.all(axis=1))
+            k = bad[0]
+            agent, joints = next((a, j) for a, j in zip(self.agents, self.joint_slices) if not finite[k, j].all())
+            raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad.tolist()} "
+                             f"(copy {k}, agent {agent!r}: {flat[k, joints].tolist()})")
+        return flat
 
     def clip(self, normalized: np.ndarray) -> np.ndarray:
         """Clip checked (K, T) actions to [-1, 1] in place; the entries clipped per (copy, agent) (K, N)."""
@@ -87,12 +101,13 @@ class ActionCheck:
 
 
 def numeric_action_array(actions: Any, shapes: Sequence[tuple[int, ...]], flat_shape: tuple[int, int],
-                         rows_per_copy: int = 1) -> np.ndarray:
-    """A fresh float64 array of ``flat_shape`` from ``actions``, an array of one of ``shapes``; a ``ValueError``
-    starting ``actions:`` for anything else or for non-finite values, naming their copies (row // rows_per_copy
-    of the flat array)."""
+                         rows_per_copy: int = 1, check_finite: bool = True) -> np.ndarray:
+    """A fresh float64 array of ``flat_shape`` from ``actions``, an array (of any type
+    :func:`~ee_formation_env.inputs.numeric_array` converts) of one of ``shapes``; a ``ValueError`` starting
+    ``actions:`` for anything else or (``check_finite``) for non-finite values, naming their copies
+    (row // rows_per_copy of the flat array)."""
     try:
-        raw = np.asarray(actions)
+        raw = numeric_array(actions)
         if raw.dtype.kind not in "biuf":
             raise ValueError
     except (TypeError, ValueError):
@@ -101,7 +116,7 @@ def numeric_action_array(actions: Any, shapes: Sequence[tuple[int, ...]], flat_s
     if raw.shape not in shapes:
         raise ValueError(f"actions: expected shape {' or '.join(map(str, shapes))}, got {raw.shape}")
     flat = raw.reshape(flat_shape).astype(np.float64)
-    if not np.isfinite(flat).all():
+    if check_finite and not np.isfinite(flat).all():
         bad = sorted({int(row) // rows_per_copy for row in np.flatnonzero(~np.isfinite(flat).all(axis=1))})
         raise ValueError(f"actions: expected finite values, got non-finite values in copies {bad}")
     return flat

@@ -8,7 +8,9 @@ the input. The bounds are documented in ``docs/scenarios.md`` ("Limits"):
 - a YAML scenario expands to at most :data:`MAX_SCENARIO_NODES` nodes, counted on the composed document
   before anything is constructed (each use of an alias counts its anchor's nodes again), so that a few
   hundred bytes of nested aliases ("billion laughs") are refused without being expanded;
-- scenario data (a file's or a dict's) nests lists and dicts at most :data:`MAX_NESTING_DEPTH` deep;
+- scenario data (a file's or a dict's) nests lists and dicts at most :data:`MAX_NESTING_DEPTH` deep (the
+  refusal names the key where it does);
+- an integer in a scenario file has at most :data:`MAX_INTEGER_DIGITS` digits (refused naming the key);
 - a scenario has at most :data:`MAX_ARMS` arms (checked before any arm is parsed);
 - a key given twice in one YAML or JSON mapping is refused (naming the key, and for YAML its lines);
 - YAML files are read with the YAML 1.2 core schema (:mod:`ee_formation_env.scenario_file`): ``010`` is 10,
@@ -16,6 +18,7 @@ the input. The bounds are documented in ``docs/scenarios.md`` ("Limits"):
   boolean);
 - ``episode_seconds`` <= :data:`MAX_EPISODE_SECONDS`, ``physics_hz`` <= :data:`MAX_PHYSICS_HZ` and
   ``frame_skip`` <= :data:`MAX_FRAME_SKIP`, so that every derived count (``max_steps``) is a finite int;
+- ``neighbour_slots`` <= :data:`MAX_NEIGHBOUR_SLOTS`;
 - a batched env has at most :data:`MAX_NUM_ENVS` copies, and no more than the machine's physical memory holds
   at :data:`COPY_BYTES_ESTIMATE` bytes each (checked before the first PyBullet client connects);
 - a seed is ``None`` or an integer >= 0 (Python or numpy); booleans are not numbers anywhere.
@@ -26,8 +29,9 @@ from __future__ import annotations
 import difflib
 import os
 import reprlib
+import sys
 import warnings
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -43,6 +47,13 @@ MAX_NESTING_DEPTH = 32
 #: grows with the square of the count (500 arms take seconds, 2,000 tens of seconds); 64 arms, far more than a
 #: formation study needs, build in a fraction of a second.
 MAX_ARMS = 64
+#: Most neighbour slots per agent (``neighbour_slots``): an agent of the largest scenario has at most
+#: ``MAX_ARMS - 1`` neighbours, so more slots would only ever be empty (each slot is one row of every agent's
+#: observation, allocated per copy).
+MAX_NEIGHBOUR_SLOTS = MAX_ARMS - 1
+#: Most digits of an integer in a scenario file: Python's own bound on converting a decimal string to an int
+#: (``sys.get_int_max_str_digits``' default). No scenario number needs more than a few.
+MAX_INTEGER_DIGITS = 4300
 #: Most copies of a batched env: PyBullet holds at most 1024 clients per process (its MAX_PHYSICS_CLIENTS).
 MAX_NUM_ENVS = 1024
 #: Resident memory of one copy (one PyBullet client with a scenario's arms), bytes, for the estimate below.
@@ -70,6 +81,19 @@ def excerpt(value: Any, limit: int = MAX_EXCERPT_CHARS) -> str:
 def is_real_number(value: Any) -> bool:
     """Whether ``value`` is an int or float (Python or numpy), not a bool."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` that attributes a warning, warned by the function calling this, to the first caller
+    outside this package: the user's line that built the env or scenario, however deep inside the package the
+    warning is raised."""
+    level, frame = 1, sys._getframe(1)
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE_DIR):
+        level, frame = level + 1, frame.f_back
+    return level
 
 
 def check_seed(seed: Any) -> int | None:
@@ -118,29 +142,60 @@ def check_known_keys(where: str, keys: Iterable[Any], allowed: Iterable[str]) ->
     raise ValueError(f"{where}: unknown key(s) {excerpt(unknown)}{hint}; allowed: {allowed}")
 
 
+def field_path(components: Sequence[Any]) -> str:
+    """The scenario field that ``components`` (its keys and list indexes from the top) lead to, as an error
+    names it: ``shape``, ``arms[0].initial_q``: up to the last key (a run of list indexes below it is the
+    field's value), at most 4 components."""
+    keys = [k for k, part in enumerate(components) if not isinstance(part, int)]
+    shown = list(components[:min(keys[-1] + 1, 4)] if keys else components[:1])
+    text = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in shown).lstrip(".")
+    return text + ("..." if len(shown) < (keys[-1] + 1 if keys else 1) else "")
+
+
 def check_nesting(where: str, value: Any, limit: int = MAX_NESTING_DEPTH) -> None:
     """Refuse data whose lists/tuples/dicts nest more than ``limit`` deep (checked without recursion):
-    ``ValueError`` starting with ``where``."""
-    stack = [(value, 0)]
+    ``ValueError`` starting with ``where``, then the field it happens in (:func:`field_path`)."""
+    stack: list[tuple[Any, int, tuple[Any, ...]]] = [(value, 0, ())]
     while stack:
-        item, depth = stack.pop()
+        item, depth, path = stack.pop()
         if isinstance(item, Mapping):
-            children = list(item.values())
+            children = [(child, (*path, key if isinstance(key, (int, str)) else excerpt(key, 40)))
+                        for key, child in item.items()]
         elif isinstance(item, (list, tuple)):
-            children = list(item)
+            children = [(child, (*path, k)) for k, child in enumerate(item)]
         else:
             continue
         if depth + 1 > limit:
-            raise ValueError(f"{where}: lists and dicts nest more than {limit} levels deep (the scenario format "
-                             "needs 4)")
-        stack.extend((child, depth + 1) for child in children)
+            field = f"{field_path(path)}: " if path else ""
+            raise ValueError(f"{where}: {field}lists and dicts nest more than {limit} levels deep (the scenario "
+                             "format needs 4)")
+        stack.extend((child, depth + 1, child_path) for child, child_path in children)
+
+
+def numeric_array(value: Any) -> np.ndarray:
+    """``value`` as a numpy array without copying where it can: numpy arrays, lists, and any array type with
+    ``__array__`` (a torch tensor that requires grad is detached first, and a tensor on an accelerator copied to
+    the CPU: detected by their ``detach`` and ``cpu`` methods, so that torch is not imported here). Raises
+    ``TypeError``/``ValueError`` (also for a conversion that fails with another error) for the caller to name."""
+    if callable(getattr(value, "detach", None)) and callable(getattr(value, "cpu", None)):
+        try:
+            value = value.detach().cpu()
+        except Exception as error:  # noqa: BLE001 (any array library's failure is the caller's one-line refusal)
+            raise ValueError(str(error)) from None
+    try:
+        return np.asarray(value)
+    except (TypeError, ValueError):
+        raise
+    except Exception as error:  # noqa: BLE001 (e.g. a RuntimeError of an array library's __array__)
+        raise ValueError(str(error)) from None
 
 
 def numeric_action(agent: str, action: Any, shape: tuple[int, ...]) -> np.ndarray:
-    """``agent``'s action as a float64 array of ``shape``; ``ValueError`` naming the agent if it is not a numeric
-    (bool, int or float; not string, object or complex) array of that shape."""
+    """``agent``'s action as a float64 array of ``shape`` (of any array type :func:`numeric_array` converts);
+    ``ValueError`` naming the agent if it is not a numeric (bool, int or float; not string, object or complex)
+    array of that shape."""
     try:
-        raw = np.asarray(action)
+        raw = numeric_array(action)
         if raw.dtype.kind not in "biuf":
             raise ValueError
         array = raw.astype(np.float64)

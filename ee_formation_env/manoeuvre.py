@@ -2,16 +2,24 @@
 
 Scenario key ``manoeuvre`` = ``{"start": t0, "duration": T, "translation": A, "rotation": r, "axis": u}``:
 
-- ``start`` t0 (s, default 5): the hold time before the motion starts;
-- ``duration`` T (s, default 20): the length of the motion, at least :data:`MIN_DURATION_CONTROL_STEPS`
-  control periods (``frame_skip / physics_hz`` s each), so that the arms are commanded along it rather than
-  shown a jump (an episode shorter than t0 + T ends during it);
-- ``translation`` A (m, ``dim`` numbers, default zeros): the out-and-back displacement amplitude; |A| is at
-  most twice the shortest arm's reach (the diameter of its workspace: no end-effector can follow farther),
-  checked with the robots' models (:func:`ee_formation_env.validation.check_task`);
+- ``start`` t0 (s, default 5, at most :data:`~ee_formation_env.inputs.MAX_EPISODE_SECONDS`): the hold time
+  before the motion starts;
+- ``duration`` T (s, default 20, at most :data:`~ee_formation_env.inputs.MAX_EPISODE_SECONDS`): the length of the
+  motion, at least :data:`MIN_DURATION_CONTROL_STEPS` control periods (``frame_skip / physics_hz`` s each), so
+  that the arms are commanded along it rather than shown a jump (an episode shorter than t0 + T ends during it);
+- ``translation`` A (m, ``dim`` numbers, default zeros): the out-and-back displacement amplitude; the peak speed
+  ``pi |A| / T`` is at most :data:`MAX_REFERENCE_SPEED` m/s, and |A| at most twice the shortest arm's reach (the
+  diameter of its workspace: no end-effector can follow farther), checked with the robots' models
+  (:func:`ee_formation_env.validation.check_task`);
 - ``rotation`` r (rad, default 0): the amplitude of the out-and-back turn about the centroid; distance
-  formations only (a displacement formation's shape is fixed in the world's orientation);
+  formations only (a displacement formation's shape is fixed in the world's orientation); at the peak turn rate
+  ``pi |r| / T`` the reference turns at most half a turn (pi rad) per control period, i.e. ``|r| <= T /
+  control_dt``: the reference is sampled once per control period, and a turn of more than half a revolution
+  between two samples reads as one the other way;
 - ``axis`` u (``dim`` 3 only; world frame, default [0, 0, 1]): the turn's axis (normalized).
+
+Each bound is refused at parse time naming its key, so that every number the reference produces (positions,
+speeds, turn rates, the observation bounds) is finite.
 
 Profile: ``s(t) = (1 - cos(2 pi (t - t0) / T)) / 2`` for t0 <= t <= t0 + T, 0 otherwise (out and back, at rest
 at both ends). Reference centroid ``c*(t) = c0 + s(t) A``, with c0 the centroid of the end-effectors at the motion's
@@ -40,7 +48,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ee_formation_env.inputs import check_known_keys, excerpt
+from ee_formation_env.inputs import MAX_EPISODE_SECONDS, check_known_keys, excerpt
 
 MANOEUVRE_KEYS = ("start", "duration", "translation", "rotation", "axis")
 DEFAULT_START_SECONDS = 5.0
@@ -48,6 +56,9 @@ DEFAULT_DURATION_SECONDS = 20.0
 #: Shortest manoeuvre, in control periods: 4 steps sample the profile at its start, peak speed (T/4), turning
 #: point (T/2) and return (3T/4); at fewer the arms are shown a jump, not a motion to follow.
 MIN_DURATION_CONTROL_STEPS = 4
+#: Fastest reference centroid, m/s (peak speed pi |A| / T): no arm's end-effector moves at a kilometre per second
+#: (at the default max_joint_velocity, 50 rad/s, it would take an arm 20 m long).
+MAX_REFERENCE_SPEED = 1000.0
 _BOUND_MARGIN = 1.001  # observation bounds: a little above the largest value the reference can take
 
 
@@ -106,16 +117,26 @@ def parse_manoeuvre(value: Any, dim: int, formation_kind: str, control_dt: float
     if not isinstance(value, Mapping):
         raise ValueError(f"manoeuvre: expected a dict with keys {list(MANOEUVRE_KEYS)} or null, got {excerpt(value)}")
     check_known_keys("manoeuvre", value, list(MANOEUVRE_KEYS))
-    start = _number("manoeuvre.start", value.get("start", DEFAULT_START_SECONDS), "a time >= 0 (s)",
-                    lambda x: x >= 0)
-    duration = _number("manoeuvre.duration", value.get("duration", DEFAULT_DURATION_SECONDS), "a time > 0 (s)",
-                       lambda x: x > 0)
+    start = _number("manoeuvre.start", value.get("start", DEFAULT_START_SECONDS),
+                    f"a time >= 0 (s), at most {MAX_EPISODE_SECONDS:g} (the longest episode)",
+                    lambda x: 0 <= x <= MAX_EPISODE_SECONDS)
+    duration = _number("manoeuvre.duration", value.get("duration", DEFAULT_DURATION_SECONDS),
+                       f"a time > 0 (s), at most {MAX_EPISODE_SECONDS:g} (the longest episode)",
+                       lambda x: 0 < x <= MAX_EPISODE_SECONDS)
     if duration < MIN_DURATION_CONTROL_STEPS * control_dt:
         raise ValueError(f"manoeuvre.duration: expected at least {MIN_DURATION_CONTROL_STEPS} control periods "
                          f"({MIN_DURATION_CONTROL_STEPS * control_dt:g} s at {control_dt:g} s per env step) for the "
                          f"arms to follow the motion, got {duration:g} s")
     translation = _vector("manoeuvre.translation", value.get("translation", [0.0] * dim), dim, "m")
+    amplitude = math.hypot(*translation)  # inf rather than an overflow warning for huge components
+    if math.pi * amplitude / duration > MAX_REFERENCE_SPEED:
+        raise ValueError(f"manoeuvre.translation: expected a peak speed pi |A| / T of at most {MAX_REFERENCE_SPEED:g} "
+                         f"m/s, got |A| = {amplitude:g} m over T = {duration:g} s")
     rotation = _number("manoeuvre.rotation", value.get("rotation", 0.0), "an angle (rad)", lambda x: True)
+    if abs(rotation) > duration / control_dt:
+        raise ValueError(f"manoeuvre.rotation: expected at most half a turn (pi rad) per control period at the peak "
+                         f"turn rate pi |r| / T, i.e. |r| <= T / control_dt = {duration / control_dt:g} rad, got "
+                         f"{rotation:g} rad")
     if rotation != 0 and formation_kind != "distance":
         raise ValueError(f"manoeuvre.rotation: a {formation_kind} formation's shape is fixed in orientation; "
                          f"only distance formations can turn, got rotation {rotation:g} rad")
@@ -133,17 +154,25 @@ def parse_manoeuvre(value: Any, dim: int, formation_kind: str, control_dt: float
     return config if config.active else ManoeuvreConfig()  # one form of "no manoeuvre": equal scenarios compare equal
 
 
+def _finite_number(value: Any) -> bool:
+    """Whether ``value`` is a finite int or float (not a bool; an int too large for a float is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def _number(name: str, value: Any, expected: str, valid: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not (
-            math.isfinite(value) and valid(value)):
+    if not (_finite_number(value) and valid(value)):
         raise ValueError(f"{name}: expected {expected}, got {excerpt(value)}")
     return float(value)
 
 
 def _vector(name: str, value: Any, length: int, unit: str) -> tuple[float, ...]:
     ok = isinstance(value, (list, tuple, np.ndarray)) and len(value) == length and all(
-        not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(v)
-        for v in value)
+        _finite_number(v) for v in value)
     if not ok:
         raise ValueError(f"{name}: expected {length} finite numbers ({unit}), got {excerpt(value)}")
     return tuple(float(v) for v in value)

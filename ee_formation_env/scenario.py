@@ -37,8 +37,8 @@ import numpy as np
 # ee_formation_env.builtin, the robots in ee_formation_env.robots.
 from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario  # noqa: F401
 from ee_formation_env.formation import FORMATION_KINDS
-from ee_formation_env.inputs import (MAX_ARMS, MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_PHYSICS_HZ, check_known_keys,
-                                     check_nesting, excerpt, is_real_number)
+from ee_formation_env.inputs import (MAX_ARMS, MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_NEIGHBOUR_SLOTS, MAX_PHYSICS_HZ,
+                                     check_known_keys, check_nesting, excerpt, is_real_number)
 from ee_formation_env.scenario_file import read_scenario_file
 from ee_formation_env.manoeuvre import ManoeuvreConfig, parse_manoeuvre
 from ee_formation_env.mismatch import MismatchConfig, parse_mismatch
@@ -104,8 +104,8 @@ class Scenario:
     torque_limits: Any = _key(None, "``null`` = each URDF joint's effort; a number for every joint; a list "
                                     "per joint (same for every arm); or a list of such lists, one per arm", "N m")
     gravity: tuple[float, float, float] = _key((0.0, 0.0, -9.81), "world gravity vector", "m/s^2")
-    initial_q_noise: float = _key(0.05, "half-width of the uniform noise added to each ``initial_q`` at reset; "
-                                        "0 turns randomization off", "rad")
+    initial_q_noise: float = _key(0.05, "half-width of the uniform noise added to each ``initial_q`` at reset, "
+                                        "at most 2 pi (a full turn); 0 turns randomization off", "rad")
     arm_collisions: bool = _key(True, "simulate contacts between arms (contacts are always reported)")
     terminate_on_contact: bool = _key(False, "end the episode when two arms touch")
     gravity_compensation: bool = _key(False, "the env adds each arm's own gravity torque g(q) to the torque of "
@@ -117,7 +117,9 @@ class Scenario:
     max_joint_velocity: float = _key(50.0, "|dq| above this is a physics fault that terminates the episode "
                                            "(PyBullet's own 100 rad/s clamp is lifted so it cannot hide it)", "rad/s")
     neighbour_slots: int | None = _key(None, "neighbour slots in every agent's observation: null = the graph's "
-                                             "largest degree D; a number >= D pads every agent with empty slots "
+                                             "largest degree D; a number >= D (at most "
+                                             f"{MAX_NEIGHBOUR_SLOTS}, the most neighbours an agent of {MAX_ARMS} arms "
+                                             "has) pads every agent with empty slots "
                                              "(mask 0), so that teams of other sizes or graphs share one "
                                              "observation space (see :mod:`ee_formation_env.team_env`)")
     singularity_threshold: float = _key(1e-3, "smallest Jacobian singular value below which an initial "
@@ -372,6 +374,9 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["gravity"] = tuple(gravity.tolist())
     noise = data.get("initial_q_noise", _default("initial_q_noise"))
     kwargs["initial_q_noise"] = _non_negative("initial_q_noise", noise)
+    if kwargs["initial_q_noise"] > 2 * math.pi:
+        raise ValueError(f"initial_q_noise: expected at most 2 pi rad (a full turn of a joint; the noise is clipped to "
+                         f"the joint limits), got {kwargs['initial_q_noise']:g} rad")
     for flag in ("arm_collisions", "terminate_on_contact", "gravity_compensation"):
         value = data.get(flag, _default(flag))
         if not isinstance(value, bool):
@@ -382,9 +387,10 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
     kwargs["max_joint_velocity"] = _positive("max_joint_velocity", data.get("max_joint_velocity", _default("max_joint_velocity")))
     slots = data.get("neighbour_slots", _default("neighbour_slots"))
     if slots is not None and (not isinstance(slots, (int, np.integer)) or isinstance(slots, (bool, np.bool_))
-                              or slots < 1):
-        raise ValueError(f"neighbour_slots: expected null or an integer >= 1 (neighbour slots per agent), got "
-                         f"{excerpt(slots)}")
+                              or not 1 <= slots <= MAX_NEIGHBOUR_SLOTS):
+        raise ValueError(f"neighbour_slots: expected null or an integer from 1 to {MAX_NEIGHBOUR_SLOTS} (neighbour "
+                         f"slots per agent; an agent of {MAX_ARMS} arms has at most {MAX_NEIGHBOUR_SLOTS} "
+                         f"neighbours), got {excerpt(slots)}")
     kwargs["neighbour_slots"] = None if slots is None else int(slots)
     kwargs["singularity_threshold"] = _non_negative("singularity_threshold", data.get("singularity_threshold", _default("singularity_threshold")))
     kwargs["reward"] = parse_reward(data.get("reward", {}))

@@ -10,7 +10,11 @@ Rules (the bounds are in :mod:`ee_formation_env.inputs` and ``docs/scenarios.md`
   lines), instead of the last one silently winning;
 - a YAML document expands to at most :data:`~ee_formation_env.inputs.MAX_SCENARIO_NODES` nodes, aliases
   expanded, counted before anything is constructed;
-- data nested too deeply for the parser is refused as nesting (:data:`~ee_formation_env.inputs.MAX_NESTING_DEPTH`);
+- lists and dicts nested more than :data:`~ee_formation_env.inputs.MAX_NESTING_DEPTH` deep, and an integer of more
+  than :data:`~ee_formation_env.inputs.MAX_INTEGER_DIGITS` digits (Python's own bound on reading one), are refused
+  naming the file and the key (:func:`~ee_formation_env.inputs.field_path`), for YAML with the line: YAML while
+  it is composed, before the parser's recursion could run out of stack; JSON after it is parsed, or, when the
+  parser's recursion ran out first, by a scan of the text;
 - a file that does not parse is a ``ValueError`` whose message is the parser's own, several readable lines
   (the problem, the line and column, the line with a caret).
 """
@@ -24,7 +28,8 @@ from typing import Any
 
 import yaml
 
-from ee_formation_env.inputs import MAX_NESTING_DEPTH, MAX_SCENARIO_FILE_BYTES, MAX_SCENARIO_NODES, excerpt
+from ee_formation_env.inputs import (MAX_INTEGER_DIGITS, MAX_NESTING_DEPTH, MAX_SCENARIO_FILE_BYTES, MAX_SCENARIO_NODES,
+                                     excerpt, field_path)
 
 # The YAML 1.2 core schema's implicit types (https://yaml.org/spec/1.2.2/#1032-tag-resolution), replacing
 # PyYAML's YAML 1.1 ones (octal 010, sexagesimal 1:30, booleans yes/no/on/off, timestamps, and 1e3 a string).
@@ -32,8 +37,14 @@ _YAML12_BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
 _YAML12_INT = re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$")
 _YAML12_FLOAT = re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
                            r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$")
+_INT_TAG = "tag:yaml.org,2002:int"
 _YAML11_TAGS = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float",
                 "tag:yaml.org,2002:timestamp"}
+
+
+class FileRefusal(ValueError):
+    """A refusal of a part of a scenario file, its message starting with the key; :func:`read_scenario_file`
+    puts the file's name before it."""
 
 
 class BoundedSafeLoader(yaml.SafeLoader):
@@ -49,6 +60,29 @@ class BoundedSafeLoader(yaml.SafeLoader):
     """
 
     max_nodes = MAX_SCENARIO_NODES
+
+    def __init__(self, stream: Any):
+        super().__init__(stream)
+        self._path: list[Any] = []  # the keys and indexes of the node being composed, from the document down
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node:
+        """Compose one node, refusing it, with its key and line, when it lies deeper than
+        :data:`MAX_NESTING_DEPTH` (before recursing further) or is an integer of more than
+        :data:`MAX_INTEGER_DIGITS` digits."""
+        key = index.value if isinstance(index, yaml.ScalarNode) else "(a key)" if index is None else index
+        self._path.append(key)
+        try:
+            if len(self._path) > MAX_NESTING_DEPTH + 1:  # the document's root is at depth 0
+                line = self.peek_event().start_mark.line + 1
+                raise FileRefusal(f"{field_path(self._path[1:])}: lists and dicts nest more than {MAX_NESTING_DEPTH} "
+                                  f"levels deep (line {line}; the scenario format needs 4)")
+            node = super().compose_node(parent, index)
+            if node.tag == _INT_TAG and len(node.value.lstrip("+-")) > MAX_INTEGER_DIGITS:
+                raise FileRefusal(f"{field_path(self._path[1:])}: expected an integer of at most {MAX_INTEGER_DIGITS} "
+                                  f"digits, got one of {len(node.value.lstrip('+-'))} (line {node.start_mark.line + 1})")
+            return node
+        finally:
+            self._path.pop()
 
     def compose_document(self) -> yaml.Node:
         node = super().compose_document()
@@ -131,6 +165,57 @@ def _children(node: yaml.Node) -> list[yaml.Node]:
     return []
 
 
+class _LongInteger:
+    """A JSON integer of more than :data:`MAX_INTEGER_DIGITS` digits, kept unconverted so that the key it is
+    the value of can be named."""
+
+    def __init__(self, text: str):
+        self.digits = len(text.lstrip("-"))
+
+
+def _json_int(text: str) -> int | _LongInteger:
+    return int(text) if len(text.lstrip("-")) <= MAX_INTEGER_DIGITS else _LongInteger(text)
+
+
+def _refuse_long_integers(data: Any) -> None:
+    """Refuse the first :class:`_LongInteger` in parsed JSON, naming its key (walked without recursion)."""
+    stack: list[tuple[Any, tuple[Any, ...]]] = [(data, ())]
+    while stack:
+        item, path = stack.pop()
+        if isinstance(item, _LongInteger):
+            raise FileRefusal(f"{field_path(path) or 'the document'}: expected an integer of at most "
+                              f"{MAX_INTEGER_DIGITS} digits, got one of {item.digits}")
+        children = item.items() if isinstance(item, dict) else enumerate(item) if isinstance(item, list) else ()
+        stack.extend((child, (*path, key)) for key, child in reversed(list(children)))
+
+
+def _json_deep_path(text: str, limit: int) -> list[Any] | None:
+    """The keys and indexes leading to the first list or dict of a JSON text nested deeper than ``limit``, by a
+    scan with its own stack (for a text too deep for the parser's recursion); None if the scan finds none."""
+    path: list[Any] = []  # per open list its current index, per open dict its current key (None before it)
+    i, n = 0, len(text)
+    while i < n:
+        char = text[i]
+        if char == '"':
+            end = i + 1
+            while end < n and text[end] != '"':
+                end += 2 if text[end] == "\\" else 1
+            if path and path[-1] is None:  # a dict's key
+                path[-1] = text[i + 1:end]
+            i = end + 1
+            continue
+        if char in "[{":
+            if len(path) >= limit:
+                return path
+            path.append(0 if char == "[" else None)
+        elif char in "]}" and path:
+            path.pop()
+        elif char == "," and path:
+            path[-1] = path[-1] + 1 if isinstance(path[-1], int) else None
+        i += 1
+    return None
+
+
 def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     """A JSON object from its key-value pairs; ``ValueError`` for a key given twice."""
     data: dict[str, Any] = {}
@@ -156,11 +241,17 @@ def read_scenario_file(path: Path) -> Any:
     try:
         text = raw.decode("utf-8")
         if path.suffix == ".json":
-            return json.loads(text, object_pairs_hook=_no_duplicate_keys)
+            data = json.loads(text, object_pairs_hook=_no_duplicate_keys, parse_int=_json_int)
+            _refuse_long_integers(data)
+            return data
         return yaml.load(text, Loader=BoundedSafeLoader)  # noqa: S506 (a SafeLoader subclass)
-    except RecursionError:
-        raise ValueError(f"scenario: {excerpt(str(path))}: lists and dicts nest more than {MAX_NESTING_DEPTH} "
-                         "levels deep") from None
+    except RecursionError:  # JSON's parser only: the YAML loader refuses the depth before it recurses
+        deep = _json_deep_path(text, MAX_NESTING_DEPTH)
+        field = f"{field_path(deep)}: " if deep else ""
+        raise ValueError(f"scenario: {excerpt(str(path))}: {field}lists and dicts nest more than {MAX_NESTING_DEPTH} "
+                         "levels deep (the scenario format needs 4)") from None
+    except FileRefusal as refusal:
+        raise ValueError(f"scenario: {excerpt(str(path))}: {refusal}") from None
     except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as error:
         # YAML's message is several lines (what, where, the line with a caret): shown as it is, at most 12 lines.
         detail = "\n".join(line[:300] for line in

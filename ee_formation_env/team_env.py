@@ -16,7 +16,7 @@ same team size and the same episode, bit for bit, whatever ran before. The episo
 
 **Array API** (:class:`TeamVectorEnv`, for batched learners): :meth:`~TeamVectorEnv.step_arrays` takes (K,
 Nmax * n) or (K, Nmax, n) actions (every arm of a family has the same n joints); an absent agent's entries
-must be finite and are ignored. It returns a :class:`~ee_formation_env.vector.BatchedStep` padded to Nmax
+are ignored, whatever they hold (NaN too); a live agent's must be finite (else a ``ValueError`` naming it). It returns a :class:`~ee_formation_env.vector.BatchedStep` padded to Nmax
 agents: observations (K, Nmax * O) with zeros for absent agents, rewards (K, Nmax) with 0 for them, the
 per-agent infos padded with zeros on the agent axis, ``applied_torque`` (K, Nmax * n), plus ``agent_mask``
 (K, Nmax) bool (the agents whose rewards and infos the step reports) and ``team_size`` (K,).
@@ -41,6 +41,7 @@ validated before any episode. ``render_mode`` ``"rgb_array"`` (one copy) renders
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Sequence
 
 import gymnasium
@@ -48,12 +49,14 @@ import numpy as np
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from ee_formation_env.actions import ActionCheck, numeric_action_array
+from ee_formation_env.actions import ActionCheck
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.infos import PER_AGENT_INFO
-from ee_formation_env.inputs import MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
+from ee_formation_env.inputs import (MAX_NUM_ENVS, check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows,
+                                     user_stacklevel)
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.team_families import TEAM_FAMILIES, check_team_size, team_scenario
+from ee_formation_env.validation import RigidityWarning
 from ee_formation_env.vector import AutoresetMode, BatchedStep
 
 __all__ = ["TeamVectorEnv", "TeamParallelEnv", "check_team_sizes", "largest_degree"]
@@ -145,9 +148,17 @@ class TeamVectorEnv:
         # Every size's scenario is checked (format and keys) before any PyBullet client starts.
         self._scenarios = {size: load_scenario(d, **self._overrides) for size, d in data.items()}
         self._envs: list[dict[int, FormationEnv]] = [{} for _ in range(K)]
+        self._warned_rigidity = False  # copy 0's builds below warn it once, for every size (_warn_once)
+        warned: list[int] = []  # the sizes whose graph is rigid but not minimally rigid
+        others: list[warnings.WarningMessage] = []
         try:
             for size in sizes:  # validates every size (geometry, first draw); their spaces make the union
-                self._env(0, size)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", RigidityWarning)
+                    self._env(0, size)
+                warned += [size] if any(issubclass(w.category, RigidityWarning) for w in caught) else []
+                others += [w for w in caught if not issubclass(w.category, RigidityWarning)]
+            self._warn_once(warned, others)  # inside: a filter that turns the warning into an error closes the clients
         except BaseException:
             self.close()
             raise
@@ -169,6 +180,7 @@ class TeamVectorEnv:
         self.joint_slices = [slice(i * n, (i + 1) * n) for i in range(self.max_agents)]
         self.observation_slices = [slice(i * self.observation_size, (i + 1) * self.observation_size)
                                    for i in range(self.max_agents)]
+        self.actions_check = ActionCheck(self.possible_agents, self.joint_slices)
         self.np_randoms = [seeding.np_random(None)[0] for _ in range(K)]
         self.team_size = np.full(K, self.max_agents, dtype=np.int64)  # each copy's current N
         self.episode_seeds = np.zeros(K, dtype=np.int64)  # the seed each copy's size-N env was last reset with
@@ -219,10 +231,10 @@ class TeamVectorEnv:
 
     def step_arrays(self, actions: Any) -> BatchedStep:
         """One step of every copy from (K, Nmax * n) or (K, Nmax, n) actions (absent agents' entries ignored);
-        checked (numeric, finite, shape) before any copy moves."""
+        checked (numeric, shape, the live agents' finite) before any copy moves."""
         check_steppable(self.connected, self._needs_reset, self._ended)
-        K, N, n = self.num_envs, self.max_agents, self.n_joints_per_arm
-        flat = numeric_action_array(actions, [(K, N * n), (K, N, n), (K * N, n)], (K, N * n), rows_per_copy=N)
+        K, n = self.num_envs, self.n_joints_per_arm
+        flat = self.actions_check.flat_array(actions, K, live=self.agent_mask)
         steps = []
         for k in range(K):
             size = int(self.team_size[k])
@@ -267,9 +279,24 @@ class TeamVectorEnv:
         """Copy ``k``'s env of team size ``size``, built on first use."""
         env = self._envs[k].get(size)
         if env is None:
-            env = FormationEnv(self._scenarios[size], render_mode=self.render_mode)
+            with warnings.catch_warnings():
+                if self._warned_rigidity:  # said once, at construction: not again for a copy's later build
+                    warnings.simplefilter("ignore", RigidityWarning)
+                env = FormationEnv(self._scenarios[size], render_mode=self.render_mode)
             self._envs[k][size] = env
         return env
+
+    def _warn_once(self, warned: Sequence[int], others: Sequence[warnings.WarningMessage]) -> None:
+        """One rigidity warning for the team sizes ``warned`` (their builds' own, one per size, held back),
+        attributed to the user's line that built the team env; ``others``, the builds' other warnings, as they
+        were."""
+        for w in others:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+        if warned:
+            warnings.warn(f"edges: the {self.family} graphs at team sizes {list(warned)} are infinitesimally rigid but "
+                          "not minimally rigid; the paper's convergence proof assumes minimal rigidity",
+                          RigidityWarning, stacklevel=user_stacklevel())
+        self._warned_rigidity = True
 
     def _reset_copy(self, k: int) -> None:
         generator = self.np_randoms[k]

@@ -14,7 +14,8 @@ Checks, each failure a ``ValueError`` naming the problem:
 - ``initial_q`` has one entry per joint and lies within the joint limits;
 - planar (``dim = 2``) scenarios use arms that move in their base x-y plane, with yaw-only bases;
 - the graph is connected; for distance formations it is infinitesimally rigid at the shape (a
-  ``UserWarning`` says when it is rigid but not minimally rigid, the paper's assumption);
+  :class:`RigidityWarning`, a ``UserWarning``, says when it is rigid but not minimally rigid, the paper's
+  assumption);
 - the shape is reachable: some placement of it (translations, and for distance formations rotations and
   reflections) puts every vertex inside its arm's sampled workspace;
 - no initial configuration is at a kinematic singularity;
@@ -34,11 +35,16 @@ import numpy as np
 from typing import Any, Sequence
 
 from ee_formation_env.formation import FormationGraph, check_rigidity
-from ee_formation_env.inputs import excerpt
+from ee_formation_env.inputs import excerpt, user_stacklevel
 from ee_formation_env.kinematics import SerialChain, rpy_to_matrix, singularity_margins
-from ee_formation_env.robots import ROBOTS
+from ee_formation_env.robots import PYBULLET_DATA_ROBOTS, ROBOTS
 from ee_formation_env.scenario import ArmConfig, Scenario
 from ee_formation_env.workspace import workspace
+
+
+class RigidityWarning(UserWarning):
+    """A distance formation's graph is rigid but not minimally rigid (the paper's assumption); warned once per
+    build, attributed to the user's line that built the env or scenario."""
 
 
 def _candidate_rotations(dim: int, allow_rotation: bool) -> list[np.ndarray]:
@@ -130,7 +136,7 @@ def check_task(scenario: Scenario, models: Sequence[SerialChain], initial_q: Seq
             warnings.warn(
                 f"edges: the graph is infinitesimally rigid but not minimally rigid ({report.n_edges} edges, "
                 f"{report.required_rank} suffice); the paper's convergence proof assumes minimal rigidity",
-                UserWarning, stacklevel=4,
+                RigidityWarning, stacklevel=user_stacklevel(),
             )
 
     translation = float(np.linalg.norm(scenario.manoeuvre.translation)) if scenario.manoeuvre.active else 0.0
@@ -233,15 +239,43 @@ def _check_arm(index: int, q0: np.ndarray, model: SerialChain, scenario: Scenari
         raise ValueError(
             f"{where}.initial_q: {q0.tolist()} is at a kinematic singularity (smallest Jacobian singular "
             f"value {margin:.2e} m < singularity_threshold {scenario.singularity_threshold:.1e} m); "
-            + _bent_pose_hint(arm, model)
+            + _bent_pose_hint(arm, model, q0, scenario.dim, scenario.singularity_threshold)
         )
 
 
-def _bent_pose_hint(arm: ArmConfig, model: SerialChain) -> str:
-    """A concrete suggestion of an initial_q away from singularities."""
-    if arm.robot is not None and len(ROBOTS[arm.robot].start_q) == model.n_joints:
-        return f"start with a bent elbow, e.g. initial_q: {list(ROBOTS[arm.robot].start_q)} ({arm.robot}'s default)"
-    bent = [0.0] * model.n_joints
-    bent[min(1, model.n_joints - 1)] = 1.0
-    return (f"bend a joint away from the stretched pose, e.g. initial_q: {bent} (check it is within the joint "
-            "limits)")
+#: The bends (rad) tried, one joint or two at a time, from a singular start to find a suggestion.
+_HINT_BENDS = (1.0, -1.0, 0.5, -0.5)
+
+
+def nonsingular_pose(model: SerialChain, q0: np.ndarray, dim: int, threshold: float,
+                     preferred: Sequence[Sequence[float]] = ()) -> tuple[float, ...] | None:
+    """A configuration (rad) near ``q0`` within the joint limits whose singularity margin (the smallest Jacobian
+    singular value in ``dim`` dimensions, m) is at least ``threshold``, as :func:`check_task` tests a start:
+    the first of ``preferred`` (e.g. the robot's start pose) that passes, else ``q0`` with one joint bent by
+    one of :data:`_HINT_BENDS`, else with two joints bent; None if none passes."""
+    start = np.clip(np.asarray(q0, dtype=np.float64), model.lower, model.upper)
+    candidates = [np.asarray(q, dtype=np.float64) for q in preferred if len(q) == model.n_joints]
+    joints = range(model.n_joints)
+    for first_bend in _HINT_BENDS:
+        candidates += [start + first_bend * np.eye(model.n_joints)[j] for j in joints]
+    for first_bend in _HINT_BENDS:
+        for second_bend in _HINT_BENDS:
+            for j in joints:
+                candidates += [start + first_bend * np.eye(model.n_joints)[j] + second_bend * np.eye(model.n_joints)[k]
+                               for k in joints if k > j]
+    for candidate in candidates:
+        q = np.round(np.clip(candidate, model.lower, model.upper), 4)  # a suggestion as written, then tested
+        if float(singularity_margins(model.jacobian(q)[None], dim)[0]) >= threshold:
+            return tuple(q.tolist())
+    return None
+
+
+def _bent_pose_hint(arm: ArmConfig, model: SerialChain, q0: np.ndarray, dim: int, threshold: float) -> str:
+    """A concrete suggestion of an initial_q away from singularities, itself checked as the start is."""
+    defaults = {spec.urdf.resolve(): spec.start_q for spec in (*ROBOTS.values(), *PYBULLET_DATA_ROBOTS.values())}
+    default = ROBOTS[arm.robot].start_q if arm.robot is not None else defaults.get(Path(arm.urdf).resolve())
+    pose = nonsingular_pose(model, q0, dim, threshold, preferred=[default] if default is not None else [])
+    if pose is None:
+        return "bend a joint away from the stretched pose"
+    source = " (the robot's default start)" if default is not None and np.allclose(pose, default) else ""
+    return f"bend a joint away from the stretched pose, e.g. initial_q: {list(pose)}{source}"

@@ -335,9 +335,9 @@ def test_a_manoeuvre_shorter_than_four_control_periods_is_refused_naming_duratio
 
 def test_a_translation_no_end_effector_can_follow_is_refused_naming_translation_before_physics():
     # The planar arms reach 3 m: no end-effector moves farther than 6 m, across its workspace.
-    with pytest.raises(ValueError, match=r"^manoeuvre\.translation: \|A\| = 1e\+06 m is beyond what the arms can "
+    with pytest.raises(ValueError, match=r"^manoeuvre\.translation: \|A\| = 100 m is beyond what the arms can "
                                          r"follow.*shortest reach 3\.000 m"):
-        build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [1e6, 0.0]}))
+        build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [100.0, 0.0]}))
     build_task(load_scenario("planar_square_transport", manoeuvre={"translation": [5.9, 0.0]}))  # within
 
 
@@ -425,3 +425,30 @@ def test_the_tracking_targets_are_the_shape_placed_as_the_start_stood_then_turne
     ratios = motion.tracking_ratios(np.array([config.start + 1.0]), start[None], np.pad(start, ((0, 0), (0, 0)))[None],
                                     0.02)
     assert ratios.shape == (1, 4) and (ratios > 0).all()  # one second in, the still start is off its targets
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"rotation": 1e308}, r"^manoeuvre\.rotation: expected at most half a turn \(pi rad\) per control period at the "
+                          r"peak turn rate pi \|r\| / T, i\.e\. \|r\| <= T / control_dt = 4000 rad, got 1e\+308 rad$"),
+    ({"rotation": 10**400}, r"^manoeuvre\.rotation: expected an angle \(rad\), got"),
+    ({"translation": [1e308, 1e308, 0.0]}, r"^manoeuvre\.translation: expected a peak speed pi \|A\| / T of at most "
+                                           r"1000 m/s, got \|A\| = 1\.41421e\+308 m over T = 20 s$"),
+    ({"translation": [6400.0, 0.0, 0.0]}, r"^manoeuvre\.translation: expected a peak speed"),
+    ({"start": 1e308}, r"^manoeuvre\.start: expected a time >= 0 \(s\), at most 1e\+06 \(the longest episode\), got 1e\+308$"),
+    ({"duration": 1e308}, r"^manoeuvre\.duration: expected a time > 0 \(s\), at most 1e\+06 \(the longest episode\), got 1e\+308$"),
+])
+def test_manoeuvre_numbers_that_would_overflow_the_reference_are_refused_naming_the_key(changes, message):
+    with pytest.raises(ValueError, match=message):
+        load_scenario("spatial_tetrahedron_rotate", manoeuvre=changes)
+
+
+def test_the_bounds_leave_the_fastest_allowed_reference_finite(make_env):
+    # planar_square steps at 100 Hz: over T = 0.04 s (4 periods) the turn may be 4 rad, the translation 12.7 m.
+    env = make_env("planar_square", episode_seconds=0.1, manoeuvre={"start": 0.0, "duration": 0.04, "rotation": 4.0})
+    observations, _ = env.reset(seed=0)
+    while env.agents:
+        observations, *_ = env.step({agent: np.zeros(2) for agent in env.agents})
+        assert all(np.isfinite(observation).all() for observation in observations.values())
+    with pytest.raises(ValueError, match=r"^manoeuvre\.rotation: expected at most half a turn"):
+        load_scenario("planar_square", manoeuvre={"start": 0.0, "duration": 0.04, "rotation": 4.01})
+    assert load_scenario("planar_square", manoeuvre={"duration": 0.04, "translation": [12.7, 0.0]}).manoeuvre.active

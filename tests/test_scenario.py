@@ -307,16 +307,22 @@ def test_more_arms_than_the_cap_are_refused_before_any_arm_is_parsed():
         load_scenario(scenario_dict(arms=arms))
 
 
-def test_a_dict_nested_20000_deep_is_a_value_error_about_nesting_not_a_recursion_error():
+def test_a_dict_nested_20000_deep_is_a_value_error_about_nesting_naming_the_key_not_a_recursion_error():
     from ee_formation_env.inputs import MAX_NESTING_DEPTH
 
     nested: list = []
     for _ in range(20_000):
         nested = [nested]
-    with pytest.raises(ValueError, match=rf"^scenario: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+    with pytest.raises(ValueError, match=rf"^scenario: arms: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
         load_scenario(scenario_dict(arms=nested))
-    with pytest.raises(ValueError, match=rf"^overrides: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+    with pytest.raises(ValueError, match=rf"^scenario: shape: lists and dicts nest more than {MAX_NESTING_DEPTH} levels"):
+        load_scenario(scenario_dict(shape=nested))
+    with pytest.raises(ValueError, match=rf"^overrides: gravity: lists and dicts nest more than {MAX_NESTING_DEPTH} "):
         load_scenario("planar_square", gravity=nested)
+    deep_arm = scenario_dict()
+    deep_arm["arms"][1]["initial_q"] = nested
+    with pytest.raises(ValueError, match=r"^scenario: arms\[1\]\.initial_q: lists and dicts nest more than"):
+        load_scenario(deep_arm)
 
 
 @pytest.mark.parametrize("data, hint", [
@@ -343,3 +349,21 @@ def test_a_misspelt_builtin_name_gets_a_did_you_mean():
 
     with pytest.raises(ValueError, match="did you mean 'planar_square'"):
         ee_formation_env.load_scenario("planar_sqare")
+
+
+def test_neighbour_slots_beyond_the_most_neighbours_any_scenario_has_are_refused_before_allocating():
+    from ee_formation_env.inputs import MAX_ARMS, MAX_NEIGHBOUR_SLOTS
+
+    assert MAX_NEIGHBOUR_SLOTS == MAX_ARMS - 1
+    assert load_scenario("planar_square", neighbour_slots=MAX_NEIGHBOUR_SLOTS).neighbour_slots == MAX_NEIGHBOUR_SLOTS
+    for slots in (MAX_NEIGHBOUR_SLOTS + 1, 10**9, 0):
+        with pytest.raises(ValueError, match=rf"^neighbour_slots: expected null or an integer from 1 to "
+                                             rf"{MAX_NEIGHBOUR_SLOTS} \(neighbour slots per agent.*got {slots}$"):
+            load_scenario("planar_square", neighbour_slots=slots)
+
+
+def test_initial_q_noise_beyond_a_full_turn_is_refused_naming_the_key_instead_of_overflowing_the_draw():
+    assert load_scenario("planar_square", initial_q_noise=2 * math.pi).initial_q_noise == 2 * math.pi
+    for noise in (2 * math.pi + 0.01, 1e308):
+        with pytest.raises(ValueError, match=r"^initial_q_noise: expected at most 2 pi rad \(a full turn of a joint"):
+            load_scenario("planar_square", initial_q_noise=noise)

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from ee_formation_env.builtin import BUILTIN_SCENARIOS, _FILES
-from ee_formation_env.inputs import MAX_NESTING_DEPTH
+from ee_formation_env.inputs import MAX_INTEGER_DIGITS, MAX_NESTING_DEPTH
 from ee_formation_env.scenario import load_scenario
 from ee_formation_env.scenario_file import BoundedSafeLoader, read_scenario_file
 
@@ -66,12 +66,48 @@ def test_a_json_key_given_twice_is_refused_naming_the_key_and_the_file(tmp_path)
 
 
 @pytest.mark.parametrize("suffix", [".yaml", ".json"])
-def test_a_file_nested_20000_deep_is_a_value_error_about_nesting_not_a_recursion_error(tmp_path, suffix):
+def test_a_file_nested_20000_deep_is_a_value_error_naming_the_key_not_a_recursion_error(tmp_path, suffix):
     deep = "[" * 20_000 + "]" * 20_000
     path = tmp_path / f"deep{suffix}"
     path.write_text(json.dumps({"shape": []})[:-1] + f', "arms": {deep}}}', encoding="utf-8")
-    with pytest.raises(ValueError, match=rf"^scenario: .*deep{suffix}'.*nest more than {MAX_NESTING_DEPTH} levels"):
+    with pytest.raises(ValueError, match=rf"^scenario: .*deep{suffix}': arms: lists and dicts nest more than "
+                                         rf"{MAX_NESTING_DEPTH} levels"):
         load_scenario(path)
+
+
+def test_a_shape_nested_20000_deep_names_shape_and_for_yaml_its_line(tmp_path):
+    deep = "[" * 20_000 + "]" * 20_000
+    (tmp_path / "deep.yaml").write_text(f"arms: []\nshape: {deep}\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"^scenario: .*deep\.yaml': shape: lists and dicts nest more than "
+                                         rf"{MAX_NESTING_DEPTH} levels deep \(line 2;"):
+        load_scenario(tmp_path / "deep.yaml")
+    (tmp_path / "deep.json").write_text(f'{{"arms": [], "shape": {deep}}}', encoding="utf-8")
+    with pytest.raises(ValueError, match=r"^scenario: .*deep\.json': shape: lists and dicts nest more than"):
+        load_scenario(tmp_path / "deep.json")
+    # Block-style YAML nests a sequence per "- " on one line: refused while composed, naming the key too.
+    (tmp_path / "block.yaml").write_text("shape: [[0, 0]]\narms:\n" + "- " * 20_000 + "1\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"^scenario: .*block\.yaml': arms: lists and dicts nest more than "
+                                         rf"{MAX_NESTING_DEPTH} levels deep \(line 3;"):
+        load_scenario(tmp_path / "block.yaml")
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+def test_an_integer_of_5000_digits_is_refused_naming_the_file_and_the_key(tmp_path, suffix):
+    path = tmp_path / f"long{suffix}"
+    data = {**scenario_dict(), "frame_skip": 0}
+    path.write_text(json.dumps(data).replace('"frame_skip": 0', '"frame_skip": ' + "1" * 5000), encoding="utf-8")
+    line = r" \(line 1\)" if suffix == ".yaml" else ""
+    with pytest.raises(ValueError, match=rf"^scenario: .*long{suffix}': frame_skip: expected an integer of at most "
+                                         rf"{MAX_INTEGER_DIGITS} digits, got one of 5000{line}$"):
+        load_scenario(path)
+    nested = json.dumps(data).replace('"frame_skip": 0', '"sensing": {"seed": -' + "9" * 5000 + "}")
+    path.write_text(nested, encoding="utf-8")
+    with pytest.raises(ValueError, match=rf"^scenario: .*long{suffix}': sensing\.seed: expected an integer"):
+        load_scenario(path)
+    path.write_text(json.dumps(data).replace('"frame_skip": 0', '"frame_skip": ' + "1" * MAX_INTEGER_DIGITS),
+                    encoding="utf-8")
+    with pytest.raises(ValueError, match=r"^frame_skip: expected at most 1000000 physics steps"):
+        load_scenario(path)  # a long integer Python reads is the field's to refuse
 
 
 def test_a_file_nested_past_the_bound_but_within_the_parser_is_refused_as_nesting_too(tmp_path):

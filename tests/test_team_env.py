@@ -200,3 +200,38 @@ def test_bad_actions_are_refused_naming_the_field_before_any_copy_moves():
     with pytest.raises(ValueError, match=r"^actions: expected finite values"):
         vector.step_arrays(np.full((1, 3, 2), np.inf))
     env.close()
+
+
+def test_non_finite_actions_name_the_agent_and_an_absent_agent_s_padded_slot_is_ignored():
+    vector = ee_formation_env.team_vector_env("planar_team", num_envs=1, team_sizes=[3, 4])
+    seed = next(s for s in range(100) if vector.reset_arrays(seed=s) and vector.team_size[0] == 3)
+    actions = np.zeros((1, 4, 2))
+    actions[0, 1] = np.nan  # a live agent
+    with pytest.raises(ValueError, match=r"^actions: expected finite values, got non-finite values in copies \[0\] "
+                                         r"\(copy 0, agent 'arm_1': \[nan, nan\]\)"):
+        vector.step_arrays(actions)
+    padded = np.zeros((1, 4, 2))
+    padded[0, 3] = np.nan  # arm_3 is absent from a team of 3: its slot is ignored, as documented
+    stepped = vector.step_arrays(padded)
+    vector.reset_arrays(seed=seed)
+    assert np.array_equal(stepped.observations, vector.step_arrays(np.zeros((1, 4, 2))).observations)
+    vector.close()
+
+
+@pytest.mark.parametrize("build", [
+    lambda: ee_formation_env.team_parallel_env("spatial_team"),
+    lambda: ee_formation_env.team_vector_env("planar_team", num_envs=2, team_sizes=[3, 4, 5]),
+])
+def test_the_families_rigidity_warning_is_warned_once_per_build_at_the_user_s_line(build):
+    from ee_formation_env.validation import RigidityWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env = build()
+        for seed in range(6):  # later copies build their sizes' envs at their first resets: no warning again
+            getattr(env, "reset_arrays", getattr(env, "reset", None))(seed=seed)
+    rigidity = [w for w in caught if issubclass(w.category, RigidityWarning)]
+    assert len(rigidity) == 1, [str(w.message) for w in rigidity]
+    assert rigidity[0].filename == __file__, rigidity[0].filename
+    assert "graphs at team sizes [" in str(rigidity[0].message) and "not minimally rigid" in str(rigidity[0].message)
+    env.close()

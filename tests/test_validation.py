@@ -285,3 +285,72 @@ def test_the_pair_distance_bound_never_refuses_a_reachable_shape(name):
     bases = np.array([arm.base_position[:scenario.dim] for arm in scenario.arms])
     assert _pairs_can_reach(np.asarray(scenario.shape), bases, spaces)
     assert find_reachable_placement(scenario) is not None
+
+
+def _all_arms_at(data, q):
+    for arm in data["arms"]:
+        arm["initial_q"] = list(q)
+    return data
+
+
+def _robot_scenario(name):
+    """Three arms of registry robot ``name`` (four planar_2links for planar_square), every one at all zeros."""
+    from ee_formation_env.robots import PYBULLET_DATA_ROBOTS
+
+    if name == "planar_2link":
+        return _all_arms_at(scenario_dict(), [0.0, 0.0])
+    spec = {**ROBOTS, **PYBULLET_DATA_ROBOTS}[name]
+    arm = {"robot": name} if name in ROBOTS else {"urdf": str(spec.urdf), "ee_link": spec.ee_link}
+    bases = [[0.0, 0.0, 0.0], [1.2, 0.0, 0.0], [0.6, 1.0, 0.0]]
+    data = {"arms": [{**arm, "base_position": base} for base in bases], "edges": [[0, 1], [1, 2], [2, 0]],
+            "shape": [[0.4, 0.2, 0.5], [0.8, 0.2, 0.5], [0.6, 0.5, 0.5]], "dim": 3}
+    return _all_arms_at(data, [0.0] * len(spec.start_q))
+
+
+@pytest.mark.parametrize("name", ["planar_2link", "pera_arm", "kuka_iiwa", "franka_panda"])
+def test_the_singular_start_suggestion_is_itself_accepted_for_every_registry_robot(no_physics, name):
+    import json
+    import re
+
+    from ee_formation_env.robots import PYBULLET_DATA_ROBOTS
+    from ee_formation_env.kinematics import chain_model, singularity_margins
+    from ee_formation_env.validation import nonsingular_pose
+
+    assert set(ROBOTS) | set(PYBULLET_DATA_ROBOTS) == {"planar_2link", "pera_arm", "kuka_iiwa", "franka_panda"}
+    data = _robot_scenario(name)
+    # A threshold that the all-zeros start fails, for every robot (some are not singular at zeros by 1e-3 m).
+    scenario = load_scenario(data)
+    model = chain_model(scenario.arms[0].urdf, scenario.arms[0].ee_link)
+    dim = scenario.dim
+    threshold = max(1e-3, 1.5 * float(singularity_margins(model.jacobian(np.zeros(model.n_joints))[None], dim)[0]))
+    data["singularity_threshold"] = threshold
+    message = _rejects(data, r"^arms\[0\]\.initial_q: \[0\.0(, 0\.0)+\] is at a kinematic singularity .* e\.g\. "
+                             r"initial_q: \[")
+    suggestion = json.loads(re.search(r"e\.g\. initial_q: (\[[^\]]*\])", message).group(1))
+    assert float(singularity_margins(model.jacobian(np.array(suggestion))[None], dim)[0]) >= threshold
+    try:
+        build_task(load_scenario(_all_arms_at(data, suggestion)))
+    except ValueError as error:  # the start is accepted; a later check (reach) may still refuse the layout
+        assert "singularity" not in str(error) and "initial_q" not in str(error), str(error)
+    # The search alone (without the robot's default start) also finds a start that passes.
+    pose = nonsingular_pose(model, np.zeros(model.n_joints), dim, threshold)
+    assert pose is not None and float(singularity_margins(model.jacobian(np.array(pose))[None], dim)[0]) >= threshold
+    assert np.all(np.array(pose) >= model.lower) and np.all(np.array(pose) <= model.upper)
+
+
+def test_the_rigidity_warning_is_warned_once_per_build_at_the_user_s_line(closer):
+    from ee_formation_env.validation import RigidityWarning
+
+    data = scenario_dict(edges=[[0, 1], [1, 2], [2, 3], [3, 0], [0, 2], [1, 3]])  # K4: 6 edges, 5 suffice
+    builds = [lambda: closer(ee_formation_env.parallel_env(data)),
+              lambda: closer(ee_formation_env.vector_env(data, num_envs=2)),
+              lambda: ee_formation_env.validate_scenario(data),
+              lambda: build_task(load_scenario(data))]
+    for build in builds:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            build()
+        rigidity = [w for w in caught if issubclass(w.category, RigidityWarning)]
+        assert len(rigidity) == 1 and issubclass(rigidity[0].category, UserWarning)
+        assert rigidity[0].filename == __file__, rigidity[0].filename
+        assert "rigid but not minimally rigid (6 edges, 5 suffice)" in str(rigidity[0].message)

@@ -61,6 +61,8 @@ def agent_steps(text: str) -> int:
     import math
 
     cleaned = str(text).strip().replace("_", "")
+    if cleaned.isdigit():  # exactly, not through a float (9007199254740993 stays itself)
+        return int(cleaned)
     scale = {"k": 1_000, "m": 1_000_000}.get(cleaned[-1:].lower(), 1)
     number = float(cleaned[:-1] if scale != 1 else cleaned)
     value = number * scale

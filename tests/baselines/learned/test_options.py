@@ -63,7 +63,8 @@ def test_the_training_page_shows_the_generated_options_table():
 
 
 @pytest.mark.parametrize("written, steps", [("400000", 400_000), ("1e5", 100_000), ("600k", 600_000), ("5M", 5_000_000),
-                                            ("4_000", 4_000)])
+                                            ("4_000", 4_000), ("1.5e6", 1_500_000), ("1.5k", 1_500),
+                                            ("9007199254740993", 9_007_199_254_740_993)])
 def test_budgets_are_read_as_the_docs_write_them(written, steps):
     from ee_formation_env.baselines.learned.config import TrainConfig
 
