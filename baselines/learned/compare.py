@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import os
 from pathlib import Path
 from typing import Any, Callable
 
@@ -22,6 +21,7 @@ import numpy as np
 
 import ee_formation_env
 from ee_formation_env import baselines
+from ee_formation_env.baselines.atomic_files import make_folder, replacing, write_text
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.interruption import RunStopped
@@ -40,7 +40,8 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     """Evaluate the learned policy of the run in ``run_dir`` (its saved ``config``, on the scenario saved with
     it) and every reference policy on the same held-out seeds, with the evaluation settings of ``args``
     (``eval_episodes``, ``eval_seconds``, ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md``
-    and ``.png`` into ``results_dir`` (default: the run folder).
+    and ``.png`` into ``results_dir`` (default: the run folder), each whole or not at all: a write the file system
+refuses is a :class:`~ee_formation_env.baselines.atomic_files.WriteRefused` naming the file.
 
     All (policy, seed) episodes run together as the copies of one batched env
     (:func:`~ee_formation_env.baselines.metrics.run_policies`), the policies shared among ``--eval-workers``
@@ -55,7 +56,7 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     names = ["learned", *baselines.POLICIES, *(tuned_row(law) for law in tuned)]
     episodes: dict[tuple[str, int], Any] = {}
     results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
-    results_dir.mkdir(parents=True, exist_ok=True)
+    make_folder(results_dir)
     setup = (scenario, overrides, str(run_dir), config)
     bar = _evaluation_progress(len(names) * len(seeds), args.no_progress)
 
@@ -96,13 +97,11 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
                   "shortfall": None if shortfall is None else f"against {best!r}: the learned policy {shortfall}",
                   "shortfalls": found}
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
-    (results_dir / "comparison.md").write_text(
-        f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
+    write_text(results_dir / "comparison.md",
+               f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
     _plot(run_dir, results_dir, results, label, error_unit)
-    # Last, and whole or not at all: a run folder holding comparison.json has its complete comparison.
-    temporary = results_dir / ".comparison.json.partial"
-    temporary.write_text(json.dumps(comparison, indent=2, default=float))
-    os.replace(temporary, results_dir / "comparison.json")
+    # Last: a run folder holding comparison.json has its complete comparison.
+    write_text(results_dir / "comparison.json", json.dumps(comparison, indent=2, default=float))
     print(table)
     gains = "tuned gains" if tuned else "default gains (no tuned gains for this scenario)"
     print(f"judged against the best law with {gains}: {best}", flush=True)
@@ -316,5 +315,8 @@ def _plot(run_dir: Path, results_dir: Path, results: dict[str, Any], label: str,
         axis.invert_yaxis()  # first policy on top, as in the table
     axes[2].set_yticklabels([])  # same rows as the middle panel
     figure.tight_layout()
-    figure.savefig(results_dir / "comparison.png", dpi=110)
-    plt.close(figure)
+    try:
+        with replacing(results_dir / "comparison.png") as temporary:
+            figure.savefig(temporary, dpi=110, format="png")
+    finally:
+        plt.close(figure)
