@@ -21,7 +21,7 @@ import ee_formation_env
 from ee_formation_env.baselines.atomic_files import WriteRefused, refused
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.learned.checkpoint import write_json
-from ee_formation_env.baselines.learned.compare import compare, reference_returns, saved_scenario
+from ee_formation_env.baselines.learned.compare import compare, reference_gains, reference_returns, saved_scenario
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.imitation import check_reference_run, reference_run
 from ee_formation_env.baselines.learned.interruption import (RunStopped, StopSignal, TrainingInterrupted,
@@ -94,6 +94,7 @@ def train(config: TrainConfig) -> Path:
                 raise RunStopped(f"training: {refused(run_dir / 'config.json', error)}") from None
             print(f"training {config.algo} ({config.backend}, mode {config.mode}) on {config.scenario} for "
                   f"{config.total_timesteps} agent steps -> {run_dir}")
+            print(f"recipe: {config.recipe_used()}; reference laws: {reference_gains(scenario)}", flush=True)
             return _train_and_compare(config, saved, run_dir, started)
     except RunStopped as stopped:
         if stopped.run_dir is not None or has_resumable_state(run_dir):

@@ -131,6 +131,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         first, _, rest = str(fault).partition("\n")
         raise RunStopped(f"training: {first}", details=rest or None) from fault
     venv = model.get_env()
+    print(f"TensorBoard logs: {out_dir / 'tensorboard'} (watch with `tensorboard --logdir {out_dir / 'tensorboard'}`)",
+          flush=True)
     interrupted = None
     try:
         if resume_from is not None:
@@ -153,7 +155,7 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
             callbacks.append(_time_limit_callback(args.max_train_seconds))
         if not args.no_progress:
             callbacks.append(_progress_callback(collected_steps(args.total_timesteps - start_steps, model,
-                                                                venv.num_envs)))
+                                                                venv.num_envs), start_steps))
         faults = FaultTally()
         callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents),
                                          int(args.fault_guard_start * args.total_timesteps)))
@@ -358,17 +360,18 @@ def collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:
     return math.ceil(total_timesteps / chunk) * chunk
 
 
-def _progress_callback(total: int) -> Any:
-    """A tqdm bar over the agent steps of training, ``total`` being what will be collected (no overshoot)."""
+def _progress_callback(total: int, done: int = 0) -> Any:
+    """A tqdm bar over the agent steps of the run: from ``done`` (the steps a resumed run has done) to ``done``
+    plus ``total``, what this segment will collect (no overshoot)."""
     from stable_baselines3.common.callbacks import BaseCallback
     from tqdm.auto import tqdm
 
     class TrainingProgress(BaseCallback):
         def _on_training_start(self) -> None:
-            self.bar = tqdm(total=total, desc="training", unit=" agent steps", unit_scale=True)
+            self.bar = tqdm(total=done + total, initial=done, desc="training", unit=" agent steps", unit_scale=True)
 
         def _on_step(self) -> bool:
-            self.bar.update(min(self.training_env.num_envs, total - self.bar.n))
+            self.bar.update(min(self.training_env.num_envs, done + total - self.bar.n))
             return True
 
         def _on_training_end(self) -> None:
