@@ -5,7 +5,9 @@ without a traceback (``--debug`` shows it). The message is one line, except for 
 parse, whose message ends with the parser's own lines (where, and the line with a caret). A run that stopped
 before its end (:class:`~ee_formation_env.baselines.learned.interruption.RunStopped`) prints its one line, which
 says how to continue it: stopped by SIGINT/SIGTERM, it exits with 128 + the signal's number; stopped by a fault
-outside its input (a worker process died, the disk is full), with ``error: `` before the line and status 1.
+outside its input (a worker process died, the disk is full), with ``error: `` before the line and status 1. A
+file the file system refuses to write (:class:`~ee_formation_env.baselines.atomic_files.WriteRefused`) is
+``error: cannot write <file> (<why>)`` and status 1.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ INPUT_ERRORS = (ValueError, TypeError)
 def report_errors(command: Callable[[], int], debug: bool) -> int:
     """Run ``command``; bad input prints ``error: <field>: <what>`` to stderr and returns 2 (``debug``: raise it,
     with its traceback). A run that stopped before its end prints how to continue it and returns its exit code
-    (a signal's, 128 + its number, even with ``debug``)."""
+    (a signal's, 128 + its number, even with ``debug``); a refused write prints its one line and returns 1."""
+    from ee_formation_env.baselines.atomic_files import WriteRefused
     from ee_formation_env.baselines.learned.interruption import RunStopped
 
     try:
@@ -30,6 +33,11 @@ def report_errors(command: Callable[[], int], debug: bool) -> int:
             raise
         print(str(stopped) if stopped.signal_name else f"error: {stopped}", file=sys.stderr)
         return stopped.exit_code
+    except WriteRefused as error:
+        if debug:
+            raise
+        print(f"error: {error}", file=sys.stderr)
+        return 1
     except INPUT_ERRORS as error:
         if debug:
             raise

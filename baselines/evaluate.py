@@ -37,6 +37,7 @@ import numpy as np
 
 import ee_formation_env
 from ee_formation_env.baselines import POLICIES, REFERENCE_CONTROLLERS, make_policies
+from ee_formation_env.baselines.atomic_files import write_text
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.metrics import (DEFAULT_EVALUATION_COPIES, DEFAULT_POSITION_TOLERANCE, EpisodeMetrics,
                                                 PolicySource, format_table, metric_definitions, run_episode,
@@ -430,8 +431,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m ee_formation_
                   "overrides": evaluated[0].overrides}
         if run is not None:
             record.update(run=str(run.run_dir), learned_label=run.label)
-        with open(args.json, "w", encoding="utf-8") as handle:
-            json.dump({**record, "results": results}, handle, indent=2, default=float)
+        write_text(Path(args.json), json.dumps({**record, "results": results}, indent=2, default=float))
         print(f"wrote {Path(args.json).resolve()}")
     return 0
 

@@ -393,11 +393,13 @@ replay it bit for bit).
 def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Sequence[int],
                  position_tolerance: float = DEFAULT_POSITION_TOLERANCE, hold_seconds: float = DEFAULT_HOLD_SECONDS,
                  overrides: Mapping[str, Any] | None = None, max_copies: int = 64,
-                 stop_on_precision_hold: bool = False) -> dict[str, list[EpisodeMetrics]]:
+                 stop_on_precision_hold: bool = False, on_steps: Callable[[int], None] | None = None
+                 ) -> dict[str, list[EpisodeMetrics]]:
     """:func:`run_episodes` of several policies on the same ``seeds``, all (policy, seed) episodes as the copies
     of one batched env (``len(policies) x len(seeds)`` copies, in rounds of at most ``max_copies``; each copy
     runs one episode from a fresh world): ``{name: [metrics per seed]}``. ``stop_on_precision_hold``: as for
-    :func:`run_episodes`."""
+    :func:`run_episodes`. ``on_steps(n)``: after each step of the batched env, with the number of episodes that
+    took it (a progress bar's feed)."""
     seeds = [int(seed) for seed in seeds]
     unique = sorted(set(seeds))
     jobs = [(name, seed) for name in policies for seed in unique]
@@ -410,7 +412,7 @@ def run_policies(scenario: Any, policies: Mapping[str, PolicySource], seeds: Seq
             teams = _BatchedTeams(env, [sources[name](env.copy_view(k)) for k, (name, _) in enumerate(chunk)])
             copy_seeds = [seed for _, seed in chunk]
             results.update(zip(chunk, _run_round(env, teams, copy_seeds, position_tolerance, hold_seconds,
-                                                 stop_on_precision_hold=stop_on_precision_hold)))
+                                                 stop_on_precision_hold=stop_on_precision_hold, on_steps=on_steps)))
     return {name: [results[(name, seed)] for seed in seeds] for name in policies}
 
 
@@ -423,8 +425,8 @@ def _policy_source(policy: PolicySource) -> Callable[[Any], Mapping[str, Policy]
 
 
 def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[int], position_tolerance: float,
-               hold_seconds: float, hooks: _EpisodeHooks | None = None, stop_on_precision_hold: bool = False
-               ) -> list[EpisodeMetrics]:
+               hold_seconds: float, hooks: _EpisodeHooks | None = None, stop_on_precision_hold: bool = False,
+               on_steps: Callable[[int], None] | None = None) -> list[EpisodeMetrics]:
     """The episode loop: one episode per seed (at most K of them) on the copies 0.. of ``env``, copy k reset with
     ``seeds[k]``; the copies beyond them run too (seeded after the last) and are ignored. ``env`` autoresets
     (an :class:`EvaluationVectorEnv`, which keeps each ended copy's final end-effectors) or, with one copy, does
@@ -477,6 +479,8 @@ def _run_round(env: VectorFormationEnv, teams: _BatchedTeams, seeds: Sequence[in
         for i in range(1, N):
             step_energy = step_energy + squares[:, i]
         rows = np.flatnonzero(active)
+        if on_steps is not None:
+            on_steps(len(rows))
         energy[rows] += step_energy[rows] * dt
         peak[rows] = np.maximum(peak[rows], np.abs(torques[rows]).max(axis=1))
         clipped[rows] += np.count_nonzero(np.abs(np.asarray(actions, dtype=np.float64).reshape(K, T)[rows]) > 1.0,

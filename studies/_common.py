@@ -14,6 +14,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from ee_formation_env.baselines import REFERENCE_CONTROLLERS
+from ee_formation_env.baselines.atomic_files import replacing
 from ee_formation_env.env import FormationEnv
 
 #: The paper's laws I, II and III by label, each the name of its reference controller (registry order).
@@ -36,8 +37,12 @@ def save_figure(fig: Any, path: Path, dpi: int = DPI) -> Path:
     import matplotlib.pyplot as plt  # the "figures" extra: imported only by studies that draw
 
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi, pil_kwargs={"optimize": True})
-    plt.close(fig)
+    try:
+        with replacing(path) as temporary:  # whole or not at all
+            fig.savefig(temporary, dpi=dpi, format=Path(path).suffix.lstrip(".") or "png",
+                        pil_kwargs={"optimize": True})
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -47,6 +47,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from ee_formation_env.baselines.atomic_files import make_folder, replacing
 from ee_formation_env.builtin import BUILTIN_SCENARIOS
 from ee_formation_env.scenario_sets import held_out_scenarios
 from studies.scoreboard_cells import read_cell, stale_reason
@@ -110,8 +111,9 @@ def archive_cells(cells: Sequence[tuple[Path, dict[str, Any]]], cells_root: Path
         shutil.rmtree(archive / scenario / method, ignore_errors=True)
     for path, _ in cells:
         target = archive / path.relative_to(cells_root)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(path, target)
+        make_folder(target.parent)
+        with replacing(target) as temporary:
+            shutil.copyfile(path, temporary)
 
 
 def merged_rows(committed: Sequence[dict[str, Any]], fresh: Sequence[dict[str, Any]],

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import ee_formation_env
+from ee_formation_env.baselines.atomic_files import make_folder, write_text
 
 #: The layout of a cell record: raised when aggregation reads a field differently (2: the precision metrics,
 #: and a protocol holding every board setting that decides a cell's numbers).
@@ -143,24 +144,37 @@ def read_cell(path: Path) -> tuple[dict[str, Any] | None, str | None]:
 
 def write_cell(path: Path, record: Mapping[str, Any], protocol: Mapping[str, Any]) -> dict[str, Any]:
     """Stamp ``record`` (schema, code version, protocol, digest) and write it atomically: a complete file or
-    none."""
+    none. A write the file system refuses (or a folder at ``path``) is a
+    :class:`~ee_formation_env.baselines.atomic_files.WriteRefused` naming the cell's file."""
     stamped = {**record, "schema": CELL_SCHEMA, "code": code_version(), "protocol": _plain(protocol)}
     stamped = json.loads(json.dumps(stamped, default=float))  # as it reads back (tuples as lists, NaN kept)
     stamped["digest"] = record_digest(stamped)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial")
-    partial.write_text(json.dumps(stamped, indent=1, default=float), encoding="utf-8")
-    partial.replace(path)
+    make_folder(path.parent)
+    write_text(path, json.dumps(stamped, indent=1, default=float))
     record, problem = read_cell(path)
     if record is None:
         raise OSError(f"{path}: the cell written does not read back ({problem})")
     return record
 
 
+def check_cell_path(path: Path) -> None:
+    """``ValueError`` naming ``path`` if a cell cannot be written there (a folder, or a file on its way, stands
+    there): said before the cell is computed, not after."""
+    path = Path(path)
+    if path.is_dir() and not path.is_symlink():
+        raise ValueError(f"cell: {path} is a folder, where the cell's file goes: move it away, then run again")
+    blocking = next((parent for parent in path.parents if parent.exists() and not parent.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"cell: cannot write {path}: {blocking} is a file, where a folder is expected: move it "
+                         "away, then run again")
+
+
 def cached_record(path: Path, label: str, protocol: Mapping[str, Any], progress: Callable[[str], None],
                   accept_stale: bool = False) -> dict[str, Any] | None:
     """The cell at ``path`` if it is this code's result (or stale, with ``accept_stale``), else None: the cell
-    is to be computed. A corrupt file, or a stale one (:func:`stale_reason`), is reported in one line naming it."""
+    is to be computed. A corrupt file, or a stale one (:func:`stale_reason`), is reported in one line naming it; a
+    path no cell can be written to is a ``ValueError`` (:func:`check_cell_path`)."""
+    check_cell_path(path)
     if path.is_file():
         record, problem = read_cell(path)
         if record is not None:
@@ -208,8 +222,8 @@ def mark_run(run_dir: Path, protocol: Mapping[str, Any]) -> None:
     """Record that this code trains the run in ``run_dir`` for ``protocol`` (before it starts, so that a stopped
     run has it)."""
     path = run_code_path(run_dir)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"code": code_version(), "protocol": _plain(protocol)}), encoding="utf-8")
+    make_folder(path.parent)
+    write_text(path, json.dumps({"code": code_version(), "protocol": _plain(protocol)}))
 
 
 def _plain(value: Any) -> Any:

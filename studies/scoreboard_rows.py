@@ -16,6 +16,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ee_formation_env.baselines.atomic_files import make_folder, write_text
 from ee_formation_env.baselines.metrics import fault_kinds
 from ee_formation_env.baselines.verdict import ENERGY_RATIO, episode_values as verdict_values, judge
 from ee_formation_env.scenario import load_scenario
@@ -425,19 +426,19 @@ def team_size_figure(board_rows: Sequence[dict[str, Any]], path: Path) -> Path |
 def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdown_path: Path | None = None,
                   generated_page: Path | None = None) -> None:
     """``scoreboard.json`` (``{"rows": [...]}``), the markdown tables, and the generated block of a docs page."""
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps({"rows": list(board_rows), "metrics": {k: {"title": t, "unit": u, "meaning": m}
+    make_folder(json_path.parent)
+    write_text(json_path, json.dumps({"rows": list(board_rows), "metrics": {k: {"title": t, "unit": u, "meaning": m}
                                                                           for k, t, u, m, _ in METRICS}},
-                                    indent=1, default=float) + "\n", encoding="utf-8")
+                                     indent=1, default=float) + "\n")
     table = format_board(board_rows)
     if markdown_path is not None:
-        markdown_path.write_text(table, encoding="utf-8")
+        write_text(markdown_path, table)
     if generated_page is not None:
         text = generated_page.read_text(encoding="utf-8")
         for block, content in (("scoreboard", table), ("headline", headline_table(board_rows)),
                                ("headline-wide", headline_table(board_rows, wide=True))):
             text = _filled_block(text, block, content, generated_page)
-        generated_page.write_text(text, encoding="utf-8")
+        write_text(generated_page, text)
 
 
 def _filled_block(text: str, block: str, content: str, page: Path) -> str:

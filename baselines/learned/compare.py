@@ -12,9 +12,9 @@ learned policy is judged against the best tuned law, else against the laws' defa
 
 from __future__ import annotations
 
+import functools
 import json
 import multiprocessing
-import os
 from pathlib import Path
 from typing import Any, Callable
 
@@ -22,6 +22,7 @@ import numpy as np
 
 import ee_formation_env
 from ee_formation_env import baselines
+from ee_formation_env.baselines.atomic_files import make_folder, replacing, write_text
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.interruption import RunStopped
@@ -40,7 +41,8 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     """Evaluate the learned policy of the run in ``run_dir`` (its saved ``config``, on the scenario saved with
     it) and every reference policy on the same held-out seeds, with the evaluation settings of ``args``
     (``eval_episodes``, ``eval_seconds``, ``eval_workers``, ``no_progress``); writes ``comparison.json``, ``.md``
-    and ``.png`` into ``results_dir`` (default: the run folder).
+    and ``.png`` into ``results_dir`` (default: the run folder), each whole or not at all: a write the file system
+    refuses is a :class:`~ee_formation_env.baselines.atomic_files.WriteRefused` naming the file.
 
     All (policy, seed) episodes run together as the copies of one batched env
     (:func:`~ee_formation_env.baselines.metrics.run_policies`), the policies shared among ``--eval-workers``
@@ -55,30 +57,30 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
     names = ["learned", *baselines.POLICIES, *(tuned_row(law) for law in tuned)]
     episodes: dict[tuple[str, int], Any] = {}
     results_dir = Path(run_dir) if results_dir is None else Path(results_dir)
-    results_dir.mkdir(parents=True, exist_ok=True)
+    make_folder(results_dir)
     setup = (scenario, overrides, str(run_dir), config)
-    bar = _evaluation_progress(len(names) * len(seeds), args.no_progress)
+    episode_seconds = scenario.episode_seconds if args.eval_seconds is None else args.eval_seconds
+    progress = EvaluationProgress(len(names) * len(seeds), max(1, round(episode_seconds / scenario.control_dt)),
+                                  f"comparison: learned + {len(names) - 1} reference rows x {len(seeds)} episodes",
+                                  args.no_progress)
 
     def done(runs: dict[str, list[Any]]) -> None:
         for name, metrics in runs.items():
             episodes.update(((name, seed), m) for seed, m in zip(seeds, metrics))
-            if bar is not None:
-                bar.set_postfix_str(name)
-                bar.update(len(metrics))
+            progress.finished(len(metrics))
 
     verify_model(run_dir, config["backend"])
     workers = min(args.eval_workers, len(names))
     if workers == 0:
-        _evaluation_worker_setup(*setup)
+        _evaluation_worker_setup(*setup, progress.stepped if progress.shown else None)
         try:
             done(_evaluate_policies(names, seeds))
         finally:
             _evaluation_worker_teardown()
     else:
-        _evaluate_in_workers(workers, setup, names, seeds, done)
-    if bar is not None:
-        bar.close()
-    else:
+        _evaluate_in_workers(workers, setup, names, seeds, done, progress)
+    progress.close()
+    if not progress.shown:
         print(f"evaluated {len(names)} policies on {len(seeds)} seeds", flush=True)
     error_unit = "m²" if scenario.formation == "distance" else "m"
     results: dict[str, Any] = {}
@@ -87,7 +89,6 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
         results[name] = summarize(runs)
         results[name]["per_episode"] = [e.as_dict() for e in runs]
     label = SavedRun(run_dir, config).label
-    episode_seconds = scenario.episode_seconds if args.eval_seconds is None else args.eval_seconds
     judged = judged_laws(results, tuned)
     found, best = learned_shortfalls(results, judged, episode_seconds)
     shortfall = "; ".join(item["message"] for item in found) or None
@@ -96,13 +97,11 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
                   "shortfall": None if shortfall is None else f"against {best!r}: the learned policy {shortfall}",
                   "shortfalls": found}
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
-    (results_dir / "comparison.md").write_text(
-        f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
+    write_text(results_dir / "comparison.md",
+               f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
     _plot(run_dir, results_dir, results, label, error_unit)
-    # Last, and whole or not at all: a run folder holding comparison.json has its complete comparison.
-    temporary = results_dir / ".comparison.json.partial"
-    temporary.write_text(json.dumps(comparison, indent=2, default=float))
-    os.replace(temporary, results_dir / "comparison.json")
+    # Last: a run folder holding comparison.json has its complete comparison.
+    write_text(results_dir / "comparison.json", json.dumps(comparison, indent=2, default=float))
     print(table)
     gains = "tuned gains" if tuned else "default gains (no tuned gains for this scenario)"
     print(f"judged against the best law with {gains}: {best}", flush=True)
@@ -134,6 +133,19 @@ def tuned_laws(scenario: Any, overrides: dict[str, Any]) -> list[str]:
     return laws
 
 
+def reference_gains(scenario: Any) -> str:
+    """Which gains the reference laws of the comparison run with on ``scenario`` (:func:`tuned_laws`), in words."""
+    from ee_formation_env.baselines.reference.tuned import tuned_path
+
+    tuned = tuned_laws(scenario, {})
+    if tuned:
+        return f"tuned gains ({', '.join(tuned)}; defaults for the others)" if len(tuned) < len(
+            baselines.MODEL_BASED_POLICIES) else "tuned gains"
+    if tuned_path(scenario.name).is_file():
+        return "default gains (the tuned file of this scenario's name was tuned on another scenario)"
+    return "default gains (no tuned file for this scenario)"
+
+
 def judged_laws(results: dict[str, Any], tuned: list[str]) -> list[str]:
     """The rows the learned policy is judged against: the tuned laws where there are any, else the defaults."""
     return [tuned_row(law) for law in tuned] if tuned else [n for n in baselines.MODEL_BASED_POLICIES if n in results]
@@ -151,8 +163,9 @@ def learned_shortfalls(results: dict[str, Any], laws: list[str], episode_seconds
 
 
 def _evaluate_in_workers(workers: int, setup: tuple, names: list[str], seeds: list[int],
-                         done: Callable[[dict[str, list[Any]]], None]) -> None:
-    """The policies ``names`` shared among ``workers`` spawned processes, each result handed to ``done``.
+                         done: Callable[[dict[str, list[Any]]], None], progress: EvaluationProgress) -> None:
+    """The policies ``names`` shared among ``workers`` spawned processes, each result handed to ``done``; the
+    episode steps the workers take are counted in shared memory and shown by ``progress`` twice a second.
 
     The workers ignore SIGINT (blocked from their start), as the env workers do: a Ctrl-C to the process group
     reaches this process alone, and whatever ends the comparison early (a signal, an error) ends the workers at
@@ -161,13 +174,20 @@ def _evaluate_in_workers(workers: int, setup: tuple, names: list[str], seeds: li
     import concurrent.futures
     import multiprocessing
 
-    pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                                  initializer=_evaluation_worker_setup, initargs=setup)
+    context = multiprocessing.get_context("spawn")
+    steps = context.Value("q", 0) if progress.shown else None  # passed at the workers' start, as spawn requires
+    pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=context, initializer=_evaluation_worker_setup,
+                                                  initargs=(*setup, steps))
     try:
         with interrupts_blocked():  # the processes start with the submissions
-            futures = [pool.submit(_evaluate_policies, names[i::workers], seeds) for i in range(workers)]
-        for future in concurrent.futures.as_completed(futures):
-            done(future.result())
+            pending = {pool.submit(_evaluate_policies, names[i::workers], seeds) for i in range(workers)}
+        while pending:
+            finished, pending = concurrent.futures.wait(pending, timeout=0.5,
+                                                        return_when=concurrent.futures.FIRST_COMPLETED)
+            for future in finished:
+                done(future.result())
+            if steps is not None:
+                progress.stepped_in_all(steps.value)
     except concurrent.futures.process.BrokenProcessPool:
         codes = [process.exitcode for process in getattr(pool, "_processes", {}).values()]
         _end_workers(pool)
@@ -194,11 +214,20 @@ def _end_workers(pool: Any) -> None:
 _EVALUATION: dict[str, Any] = {}  # one evaluation worker's settings
 
 
-def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any]) -> None:
+def _evaluation_worker_setup(scenario: Any, overrides: dict[str, Any], run_dir: str, config: dict[str, Any],
+                             steps: Any = None) -> None:
+    """``steps``: where the episode steps taken are counted, a callable (this process) or a shared
+    ``multiprocessing.Value`` (a worker); None: not counted."""
     if multiprocessing.parent_process() is not None:  # a worker process: Ctrl-C is its parent's to handle
         ignore_interrupts()
     _EVALUATION.clear()
-    _EVALUATION.update(scenario=scenario, overrides=overrides, run_dir=Path(run_dir), config=config)
+    _EVALUATION.update(scenario=scenario, overrides=overrides, run_dir=Path(run_dir), config=config,
+                       on_steps=steps if steps is None or callable(steps) else functools.partial(_count, steps))
+
+
+def _count(shared: Any, steps: int) -> None:
+    with shared.get_lock():
+        shared.value += steps
 
 
 def _evaluation_worker_teardown() -> None:
@@ -212,12 +241,13 @@ def _evaluate_policies(names: list[str], seeds: list[int]) -> dict[str, list[Any
     run = SavedRun(_EVALUATION["run_dir"], _EVALUATION["config"])
     learned_overrides = run.env_overrides()
     sources: dict[str, Any] = {name: run.policy_source() if name == "learned" else _law_source(name) for name in names}
-    scenario, overrides = _EVALUATION["scenario"], _EVALUATION["overrides"]
+    scenario, overrides, on_steps = _EVALUATION["scenario"], _EVALUATION["overrides"], _EVALUATION["on_steps"]
     if not learned_overrides or "learned" not in sources:
-        return run_policies(scenario, sources, seeds, overrides=overrides)
+        return run_policies(scenario, sources, seeds, overrides=overrides, on_steps=on_steps)
     learned = run_policies(scenario, {"learned": sources.pop("learned")}, seeds,
-                           overrides={**overrides, **learned_overrides})
-    return {**learned, **(run_policies(scenario, sources, seeds, overrides=overrides) if sources else {})}
+                           overrides={**overrides, **learned_overrides}, on_steps=on_steps)
+    return {**learned, **(run_policies(scenario, sources, seeds, overrides=overrides, on_steps=on_steps)
+                          if sources else {})}
 
 
 def _law_source(name: str) -> Any:
@@ -241,15 +271,54 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
     return {name: float(np.mean([m.mean_return for m in runs[name]])) for name in baselines.POLICIES}
 
 
-def _evaluation_progress(total: int, disabled: bool) -> Any:
-    """A tqdm bar over the comparison's episodes, or None (``--no-progress``, or tqdm not installed)."""
-    if disabled:
-        return None
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, desc="evaluating", unit=" episodes")
+class EvaluationProgress:
+    """The comparison's progress bar over its ``total`` episodes, labelled with what runs (``label``): the
+    episodes run together and end together, so it advances with the steps they take (``episode_steps`` steps of
+    one episode make one), and is set to the episodes done as each worker's results arrive. Nothing is shown
+    with ``disabled`` (``--no-progress``) or without tqdm (``shown`` False)."""
+
+    def __init__(self, total: int, episode_steps: int, label: str, disabled: bool):
+        self.total, self.episode_steps, self.steps, self.done = total, episode_steps, 0, 0
+        self.bar = None
+        if not disabled:
+            try:
+                from tqdm.auto import tqdm
+            except ImportError:
+                return
+            self.bar = tqdm(total=total, desc=label, unit=" episodes",
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total} episodes "
+                                       "[{elapsed}<{remaining}]")
+
+    @property
+    def shown(self) -> bool:
+        return self.bar is not None
+
+    def stepped(self, steps: int) -> None:
+        """``steps`` more episode steps taken (this process)."""
+        self.stepped_in_all(self.steps + steps)
+
+    def stepped_in_all(self, steps: int) -> None:
+        """``steps`` episode steps taken in all, so far (the workers' shared count)."""
+        self.steps = steps
+        self._show()
+
+    def finished(self, episodes: int) -> None:
+        """``episodes`` more episodes whose results arrived."""
+        self.done += episodes
+        self._show()
+
+    @property
+    def episodes(self) -> float:
+        """The episodes shown as done: those whose results arrived, or more as counted by their steps."""
+        return min(float(self.total), max(float(self.done), self.steps / self.episode_steps))
+
+    def _show(self) -> None:
+        if self.bar is not None and self.episodes > self.bar.n:
+            self.bar.update(self.episodes - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _learning_curve(path: Path) -> np.ndarray:
@@ -316,5 +385,8 @@ def _plot(run_dir: Path, results_dir: Path, results: dict[str, Any], label: str,
         axis.invert_yaxis()  # first policy on top, as in the table
     axes[2].set_yticklabels([])  # same rows as the middle panel
     figure.tight_layout()
-    figure.savefig(results_dir / "comparison.png", dpi=110)
-    plt.close(figure)
+    try:
+        with replacing(results_dir / "comparison.png") as temporary:
+            figure.savefig(temporary, dpi=110, format="png")
+    finally:
+        plt.close(figure)

@@ -415,6 +415,18 @@ class TrainConfig:
         return dataclasses.replace(self, **{name: value for name, value in recipe.settings.items()
                                             if name not in given})
 
+    def recipe_used(self) -> str:
+        """Which settings this configuration trains with, in words: its scenario's recipe (:meth:`with_recipe`
+        applied it: the recipe is set and the mode is the recipe's) or the flat defaults, and why."""
+        recipe = recipe_for(self.scenario)
+        if recipe is None:
+            return "flat defaults (no recipe for this scenario)"
+        if self.recipe == "none":
+            return "flat defaults (--recipe none)"
+        if self.mode != recipe.mode:
+            return f"flat defaults (--mode {self.mode} is not the mode of its recipe, {recipe.method})"
+        return f"{recipe.method} (the board's recipe for {self.scenario})"
+
     @classmethod
     def _given(cls, argv: Sequence[str] | None) -> set[str]:
         """The fields ``argv`` sets (parsed as :meth:`from_args` parses it, defaults left out)."""

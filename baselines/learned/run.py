@@ -12,20 +12,22 @@ from __future__ import annotations
 
 import dataclasses
 import platform
+import shutil
 import time
 from pathlib import Path
 from typing import Any
 
 import ee_formation_env
+from ee_formation_env.baselines.atomic_files import WriteRefused, refused
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.learned.checkpoint import write_json
-from ee_formation_env.baselines.learned.compare import compare, reference_returns, saved_scenario
+from ee_formation_env.baselines.learned.compare import compare, reference_gains, reference_returns, saved_scenario
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.imitation import check_reference_run, reference_run
 from ee_formation_env.baselines.learned.interruption import (RunStopped, StopSignal, TrainingInterrupted,
                                                              raise_on_signals, stop_on_signals)
 from ee_formation_env.baselines.learned.run_folder import check_out, created_run_folder, has_resumable_state
-from ee_formation_env.baselines.learned.run_lock import run_lock
+from ee_formation_env.baselines.learned.run_lock import LOCK_NAME, holder_pid, lock_holder, run_lock
 from ee_formation_env.baselines.learned.saved_run import (load_saved_config, model_from_checkpoint,
                                                           newest_intact_checkpoint, write_saved_config)
 from ee_formation_env.baselines.learned.segments import (TIMING, close_killed_segments, read_timing,
@@ -86,9 +88,13 @@ def train(config: TrainConfig) -> Path:
     saved["versions"] = package_versions()
     try:
         with created_run_folder(run_dir, config.overwrite, ee_formation_env.__version__):
-            write_saved_config(run_dir, saved)
+            try:
+                write_saved_config(run_dir, saved)
+            except OSError as error:
+                raise RunStopped(f"training: {refused(run_dir / 'config.json', error)}") from None
             print(f"training {config.algo} ({config.backend}, mode {config.mode}) on {config.scenario} for "
                   f"{config.total_timesteps} agent steps -> {run_dir}")
+            print(f"recipe: {config.recipe_used()}; reference laws: {reference_gains(scenario)}", flush=True)
             return _train_and_compare(config, saved, run_dir, started)
     except RunStopped as stopped:
         if stopped.run_dir is not None or has_resumable_state(run_dir):
@@ -191,6 +197,11 @@ def _validated_scenario(config: TrainConfig) -> tuple[Any, TeamPadding | None]:
         except ValueError as error:
             raise ValueError(f"--policy-network: {str(error).partition(': ')[2]}") from None
     slots = config.n_envs * scenario.n_agents
+    if slots > EVAL_SEED_OFFSET:  # too many whatever the seed: the env count is at fault
+        seed = f" from --seed {config.seed}" if config.seed else ""
+        raise ValueError(f"--n-envs: {config.n_envs} envs x {scenario.n_agents} agents = {slots} env slots, whose "
+                         f"reset seeds{seed} would reach the held-out evaluation seeds ({EVAL_SEED_OFFSET} and up): "
+                         f"expected at most {max((EVAL_SEED_OFFSET - config.seed) // scenario.n_agents, 1)}")
     if config.seed + slots > EVAL_SEED_OFFSET:
         raise ValueError(f"--seed: {config.seed} + {slots} env slots reaches the held-out evaluation seeds "
                          f"({EVAL_SEED_OFFSET} and up): expected at most {EVAL_SEED_OFFSET - slots}")
@@ -225,8 +236,14 @@ def _compare_and_write(config: TrainConfig, saved: dict[str, Any], run_dir: Path
     ``--resume`` then runs it alone; ``comparison.json`` is written last, so a run holding it is complete."""
     try:
         with raise_on_signals():
-            write_json(run_dir / "reference_returns.json", reference_returns(saved))
+            references = run_dir / "reference_returns.json"
+            try:
+                write_json(references, reference_returns(saved))
+            except OSError as error:
+                raise refused(references, error) from None
             compare(config, saved, run_dir)
+    except WriteRefused as error:
+        raise RunStopped(f"comparison: {error}; training is complete", run_dir, "runs the comparison") from None
     except StopSignal as stopped:
         raise TrainingInterrupted(run_dir, stopped.signal_name, int(timing.get("agent_steps", 0)),
                                   phase="comparison") from None
@@ -244,9 +261,17 @@ def _compare_and_write(config: TrainConfig, saved: dict[str, Any], run_dir: Path
 def evaluate_saved_run(config: TrainConfig) -> dict[str, Any]:
     """``--eval-only RUN_DIR``: the comparison of a saved run on the scenario saved with it, with the evaluation
     settings of ``config``, written into ``RUN_DIR/evaluations/<date>-<time>/`` (the run's own results stay).
-    The run's files are checked first (:mod:`~ee_formation_env.baselines.learned.saved_run`)."""
+    A run another process is training (its lock held) is refused, naming that process; the run's files are then
+    checked (:mod:`~ee_formation_env.baselines.learned.saved_run`)."""
     exit_if_reimporting_main()
     run_dir = Path(config.eval_only)
+    holder = lock_holder(run_dir)  # first: a run in training has no final model yet, which is no damage
+    if holder is not None:
+        pid = holder_pid(holder)
+        trainer = (f"pid {pid}" if pid is not None else
+                   f"an unknown process (its lock file {run_dir / LOCK_NAME} has no pid)")
+        raise ValueError(f"--eval-only: {run_dir} is being trained by {trainer}: wait for it to end, or stop it "
+                         "(its model is saved when it stops), then evaluate it")
     saved, _ = load_saved_config(run_dir, "--eval-only")
     require_training_extras(config, saved)
     results_dir = run_dir / "evaluations" / time.strftime("%Y%m%d-%H%M%S")
@@ -254,7 +279,16 @@ def evaluate_saved_run(config: TrainConfig) -> dict[str, Any]:
     while results_dir.exists():
         suffix += 1
         results_dir = results_dir.with_name(f"{results_dir.name.split('.')[0]}.{suffix}")
-    comparison = compare(config, saved, run_dir, results_dir)
+    try:
+        comparison = compare(config, saved, run_dir, results_dir)
+    except WriteRefused as error:  # the run's own files are only read: only the new evaluation folder goes
+        shutil.rmtree(results_dir, ignore_errors=True)
+        try:
+            results_dir.parent.rmdir()  # evaluations/, if this was its first evaluation
+        except OSError:
+            pass
+        raise RunStopped(f"--eval-only: {error}; the run is unchanged (its partial evaluation removed): the same "
+                         "command evaluates it again") from None
     print(f"wrote {results_dir}/comparison.md, comparison.json, comparison.png")
     return comparison
 

@@ -30,13 +30,26 @@ LOCK_NAME = ".ee-formation-run.lock"
 
 
 class RunLocked(ValueError):
-    """The run folder is locked by a live process (``pid`` on ``host``): a ``ValueError`` naming ``flag``."""
+    """The run folder is locked by a live process (``pid`` on ``host``; None where the lock file does not say,
+    e.g. empty, or written by another program): a ``ValueError`` naming ``flag``."""
 
     def __init__(self, flag: str, run_dir: Path, holder: dict):
-        self.pid, self.host = holder.get("pid"), holder.get("host")
+        self.pid, self.host = holder_pid(holder), holder.get("host")
+        lock = Path(run_dir) / LOCK_NAME
+        if self.pid is None:
+            super().__init__(f"{flag}: {run_dir} is in use by an unknown process (the lock file {lock} is held but "
+                             "has no pid): wait for it to end or stop it (`fuser` or `lsof` on the lock file names "
+                             "it), or choose another folder")
+            return
         where = f"pid {self.pid}" + (f" on {self.host}" if self.host and self.host != socket.gethostname() else "")
         super().__init__(f"{flag}: {run_dir} is in use by another trainer ({where}, its lock "
-                         f"{Path(run_dir) / LOCK_NAME}): wait for it to end, stop it, or choose another folder")
+                         f"{lock}): wait for it to end, stop it, or choose another folder")
+
+
+def holder_pid(holder: dict | None) -> int | None:
+    """The pid a lock holder's record names: a positive integer, else None (unknown)."""
+    pid = (holder or {}).get("pid")
+    return pid if isinstance(pid, int) and not isinstance(pid, bool) and pid > 0 else None
 
 
 def lock_holder(run_dir: Path) -> dict | None:
@@ -122,7 +135,7 @@ def _acquire(path: Path, run_dir: Path, flag: str) -> int:
             break
         os.close(descriptor)  # its holder removed the file as we opened it: try the new one
     previous = _read_holder(path)
-    if previous and previous.get("pid"):
+    if holder_pid(previous) is not None:
         host = f" on {previous['host']}" if previous.get("host") and previous["host"] != me["host"] else ""
         print(f"note: {path}: took over the stale lock of pid {previous['pid']}{host}, which ended without "
               "releasing it", file=sys.stderr, flush=True)

@@ -20,13 +20,14 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ee_formation_env.baselines.atomic_files import WriteRefused, refused, replacing
 from ee_formation_env.baselines.learned.checkpoint import (DISK_ERRORS, CheckpointWriteError, checkpoint_name,
-                                                           checkpoints, restore_checkpoint, save_checkpoint,
-                                                           write_failure)
+                                                           checkpoints, restore_checkpoint, save_checkpoint)
 from ee_formation_env.baselines.learned.config import FAULT_WINDOW, TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import RunStopped, StopRequest
 from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
+from ee_formation_env.baselines.learned.run_folder import has_resumable_state
 from ee_formation_env.baselines.learned.set_network import (pooled_running_statistics, sb3_policy_kwargs,
                                                             set_description, slot_layout_of)
 from ee_formation_env.baselines.learned.segments import (close_killed_segments, new_monitor_name, read_timing,
@@ -130,6 +131,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         first, _, rest = str(fault).partition("\n")
         raise RunStopped(f"training: {first}", details=rest or None) from fault
     venv = model.get_env()
+    print(f"TensorBoard logs: {out_dir / 'tensorboard'} (watch with `tensorboard --logdir {out_dir / 'tensorboard'}`)",
+          flush=True)
     interrupted = None
     try:
         if resume_from is not None:
@@ -152,7 +155,7 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
             callbacks.append(_time_limit_callback(args.max_train_seconds))
         if not args.no_progress:
             callbacks.append(_progress_callback(collected_steps(args.total_timesteps - start_steps, model,
-                                                                venv.num_envs)))
+                                                                venv.num_envs), start_steps))
         faults = FaultTally()
         callbacks.append(_fault_callback(faults, args.max_fault_fraction, len(venv.unwrapped.agents),
                                          int(args.fault_guard_start * args.total_timesteps)))
@@ -178,24 +181,22 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
         else:
             interrupted = stop.signal_name if stop is not None and stop.requested else None
         _save_model(out_dir, model, args, interrupted)
-        if stopped_by is None:
-            model.save(out_dir / "model.zip")  # SB3's own format, for SB3 users; never read by the project
-    except CheckpointWriteError as error:
-        raise RunStopped(f"{error}; {_intact_checkpoints(out_dir)}", out_dir,
-                         "continues from it once there is room") from None
-    except OSError as error:  # a log or model.zip the file system refuses: the checkpoints are written whole
-        if error.errno not in DISK_ERRORS:
-            raise
-        raise RunStopped(f"training: cannot write {error.filename or out_dir} ({write_failure(error)}); "
-                         f"{_intact_checkpoints(out_dir)}", out_dir, "continues from it once there is room") from None
+        if stopped_by is None:  # SB3's own format, for SB3 users; never read by the project
+            with replacing(out_dir / "model.zip") as temporary:
+                model.save(temporary)  # SB3 adds .zip only to a name without a suffix
+    except OSError as error:
+        raise _refused_write(error, out_dir) from None
     finally:
         venv.close()
     seconds = time.time() - started
-    update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps), train_seconds=seconds,
-                   interrupted=interrupted, running=False, **faults.as_dict())
-    timing["agent_steps_per_s"] = (model.num_timesteps - start_steps) / max(seconds, 1e-9)  # this segment's
-    write_timing(out_dir, timing)
-    write_learning_curve(out_dir, timing["segments"])
+    try:
+        update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps), train_seconds=seconds,
+                       interrupted=interrupted, running=False, **faults.as_dict())
+        timing["agent_steps_per_s"] = (model.num_timesteps - start_steps) / max(seconds, 1e-9)  # this segment's
+        write_timing(out_dir, timing)
+        write_learning_curve(out_dir, timing["segments"])
+    except OSError as error:
+        raise _refused_write(error, out_dir) from None
     if stopped_by is not None:
         raise TrainingFaults(f"{stopped_by} (the model so far is saved in {out_dir / MODEL_FOLDER})")
     return timing
@@ -225,6 +226,24 @@ def _stopping_for_the_same_signal(fault: Exception, stop: StopRequest | None) ->
     while not stop.requested and time.monotonic() < deadline:
         time.sleep(0.02)  # lets the handler run
     return stop.requested
+
+
+def _refused_write(error: OSError, out_dir: Path) -> Exception:
+    """What a write the file system refused during training raises: a :class:`RunStopped` naming the file (or
+    the checkpoint) and, only when ``out_dir`` holds something to continue from, the ``--resume`` command (else
+    the caller says that nothing was saved). Any other ``OSError`` is returned as it is."""
+    if isinstance(error, CheckpointWriteError):
+        message = str(error)
+    elif isinstance(error, WriteRefused) or (error.errno in DISK_ERRORS and error.filename):
+        message = f"training: {refused(Path(error.filename), error)}"
+    elif error.errno in DISK_ERRORS:  # an appended log (its writer does not say which): the monitor or TensorBoard's
+        message = (f"training: cannot write the logs in {out_dir}, its monitor file or tensorboard/ "
+                   f"({refused(out_dir, error).reason})")
+    else:
+        return error
+    if not has_resumable_state(out_dir):
+        return RunStopped(f"{message}; no checkpoint was saved before")
+    return RunStopped(f"{message}; {_intact_checkpoints(out_dir)}", out_dir, "continues from it once there is room")
 
 
 def _intact_checkpoints(out_dir: Path) -> str:
@@ -341,17 +360,18 @@ def collected_steps(total_timesteps: int, model: Any, num_envs: int) -> int:
     return math.ceil(total_timesteps / chunk) * chunk
 
 
-def _progress_callback(total: int) -> Any:
-    """A tqdm bar over the agent steps of training, ``total`` being what will be collected (no overshoot)."""
+def _progress_callback(total: int, done: int = 0) -> Any:
+    """A tqdm bar over the agent steps of the run: from ``done`` (the steps a resumed run has done) to ``done``
+    plus ``total``, what this segment will collect (no overshoot)."""
     from stable_baselines3.common.callbacks import BaseCallback
     from tqdm.auto import tqdm
 
     class TrainingProgress(BaseCallback):
         def _on_training_start(self) -> None:
-            self.bar = tqdm(total=total, desc="training", unit=" agent steps", unit_scale=True)
+            self.bar = tqdm(total=done + total, initial=done, desc="training", unit=" agent steps", unit_scale=True)
 
         def _on_step(self) -> bool:
-            self.bar.update(min(self.training_env.num_envs, total - self.bar.n))
+            self.bar.update(min(self.training_env.num_envs, done + total - self.bar.n))
             return True
 
         def _on_training_end(self) -> None:

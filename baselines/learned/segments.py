@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from ee_formation_env.baselines.atomic_files import refused, write_text
 from ee_formation_env.baselines.learned.checkpoint import write_json
 
 TIMING = "timing.json"
@@ -92,7 +93,11 @@ def write_timing(run_dir: Path, timing: dict[str, Any]) -> None:
     if segments:
         timing["agent_steps"] = int(segments[-1].get("agent_steps", segments[-1]["start_agent_steps"]))
         timing["interrupted"] = segments[-1].get("interrupted")
-    write_json(Path(run_dir) / TIMING, timing)
+    path = Path(run_dir) / TIMING
+    try:
+        write_json(path, timing)
+    except OSError as error:  # named: a refused write says which file
+        raise refused(path, error) from None
 
 
 def write_learning_curve(run_dir: Path, segments: list[dict[str, Any]]) -> None:
@@ -116,6 +121,5 @@ def write_learning_curve(run_dir: Path, segments: list[dict[str, Any]]) -> None:
                 continue  # a line a kill cut short
             total += length
             rows.append((total, reward))
-    with open(Path(run_dir) / "learning_curve.csv", "w", encoding="utf-8") as handle:
-        handle.write("agent_steps,episode_return\n")
-        handle.writelines(f"{steps},{ret}\n" for steps, ret in rows)
+    write_text(Path(run_dir) / "learning_curve.csv",
+               "agent_steps,episode_return\n" + "".join(f"{steps},{ret}\n" for steps, ret in rows))

@@ -4,6 +4,9 @@
 from __future__ import annotations
 
 import json
+import resource
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -108,6 +111,27 @@ def test_json_next_to_an_existing_file_keeps_it_until_the_results_are_written(tm
     with pytest.raises(SystemExit):
         main(["--policy", "zero", "--scenario", "no_such_scenario", "--json", str(target)])  # refused after the probe
     assert target.read_text() == "earlier results"
+
+
+_SIZE_LIMITED = """
+import resource, sys
+resource.setrlimit(resource.RLIMIT_FSIZE, (200, 200))
+from ee_formation_env.baselines.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.skipif(not hasattr(resource, "RLIMIT_FSIZE"), reason="file-size limits")
+def test_json_over_a_file_size_limit_is_one_line_naming_it_and_keeps_the_earlier_file(tmp_path):
+    """The probe passes (appending nothing); the results, written whole or not at all, exceed the limit."""
+    target = tmp_path / "results.json"
+    target.write_text("earlier results")
+    result = subprocess.run([sys.executable, "-c", _SIZE_LIMITED, "evaluate", "--policy", "zero", "--quiet", *SHORT,
+                             "--json", str(target)], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert result.stderr.splitlines() == [f"error: cannot write {target} (file too large: over this process's "
+                                          "file-size limit (ulimit -f): raise it)"]
+    assert target.read_text() == "earlier results" and sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]
 
 
 def test_help_defines_every_column(capsys):

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import json
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
 
 import ee_formation_env
 from studies import scoreboard_cells as cells
 
+REPO = Path(__file__).resolve().parents[2]
 PROTOCOL = {"method": {"name": "gradient", "reference": "gradient"}}
 
 
@@ -32,7 +39,7 @@ def test_a_written_cell_is_stamped_and_current(tmp_path):
     record = cells.write_cell(path, _complete(), PROTOCOL)
     assert record["schema"] == cells.CELL_SCHEMA and record["code"] == cells.code_version()
     assert cells.stale_reason(record, PROTOCOL) is None
-    assert not path.with_suffix(".partial").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cell.json"]  # no partial write left
 
 
 def test_a_cell_of_another_schema_code_or_method_definition_is_stale_and_says_why(tmp_path):
@@ -109,3 +116,40 @@ def test_an_edited_cell_is_refused_naming_why_and_a_written_cell_reads_back_inta
     link = tmp_path / "link.json"
     link.symlink_to(path)
     assert cells.read_cell(link) == (None, "not a regular file")
+
+
+def test_a_folder_where_a_cell_goes_is_one_line_naming_it_before_the_cell_is_computed(tmp_path):
+    path = tmp_path / "cells" / "cell.json"
+    path.mkdir(parents=True)
+    computed = []
+    with pytest.raises(ValueError) as refused:
+        cells.cached_cell(path, "cell", PROTOCOL, lambda: computed.append(1) or _complete(), lambda line: None)
+    assert str(refused.value) == f"cell: {path} is a folder, where the cell's file goes: move it away, then run again"
+    assert not computed
+    (tmp_path / "blocked").write_text("a file")
+    with pytest.raises(ValueError, match=f"cell: cannot write .*: {tmp_path / 'blocked'} is a file, where a folder"):
+        cells.cached_cell(tmp_path / "blocked" / "cell.json", "cell", PROTOCOL, _complete, lambda line: None)
+
+
+_SIZE_LIMITED_CELL = """
+import resource, sys
+from pathlib import Path
+from ee_formation_env.baselines.cli_errors import report_errors
+from studies import scoreboard_cells as cells
+record = {"scenario": "planar_square", "method": "gradient", "seed": None, "eval_seeds": [10000],
+          "episode_seconds": 1.0, "budget": {}, "wall_seconds": 0.0, "episodes": [{"success": True}] * 50}
+resource.setrlimit(resource.RLIMIT_FSIZE, (1000, 1000))
+sys.exit(report_errors(lambda: cells.write_cell(Path(sys.argv[1]), record, {}) and 0, False))
+"""
+
+
+@pytest.mark.skipif(not hasattr(resource, "RLIMIT_FSIZE"), reason="file-size limits")
+def test_a_cell_over_a_file_size_limit_is_one_line_naming_it_and_the_old_cell_stays(tmp_path):
+    path = tmp_path / "cell.json"
+    old = cells.write_cell(path, _complete(), PROTOCOL)
+    result = subprocess.run([sys.executable, "-c", _SIZE_LIMITED_CELL, str(path)], cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 1, result.stderr[-3000:]
+    assert result.stderr.splitlines() == [f"error: cannot write {path} (file too large: over this process's "
+                                          "file-size limit (ulimit -f): raise it)"]
+    assert cells.read_cell(path) == (old, None) and sorted(p.name for p in tmp_path.iterdir()) == ["cell.json"]

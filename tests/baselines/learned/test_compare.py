@@ -12,7 +12,8 @@ pytest.importorskip("stable_baselines3")
 
 from ee_formation_env import baselines  # noqa: E402
 from ee_formation_env.baselines.cli import train_command  # noqa: E402
-from ee_formation_env.baselines.learned.compare import learned_shortfalls, reference_returns  # noqa: E402
+from ee_formation_env.baselines.learned.compare import (EvaluationProgress, learned_shortfalls,  # noqa: E402
+                                                        reference_gains, reference_returns)
 from ee_formation_env.baselines.learned.options import TrainingOptions  # noqa: E402
 from ee_formation_env.baselines.metrics import run_policies  # noqa: E402
 
@@ -102,3 +103,45 @@ def test_a_run_worse_than_its_references_warns_at_its_end(tmp_path, capsys):
     for item in comparison["shortfalls"]:
         assert f"warning: {item['metric']}: the learned policy {item['message']}" in out
     assert bool(comparison["shortfall"]) == bool(comparison["shortfalls"])
+
+
+def test_the_comparison_progress_advances_with_the_steps_its_episodes_take():
+    progress = EvaluationProgress(4, 10, "comparison: learned + 1 reference rows x 2 episodes", disabled=False)
+    try:
+        assert progress.shown and progress.bar.desc == "comparison: learned + 1 reference rows x 2 episodes"
+        progress.stepped(4)  # 4 episodes ran a step each: 4 of the 40 steps
+        assert progress.bar.n == pytest.approx(0.4)
+        progress.stepped_in_all(25)  # the workers' shared count
+        assert progress.bar.n == pytest.approx(2.5)
+        progress.finished(3)  # results arrived: what arrived counts, however few steps were counted
+        assert progress.bar.n == pytest.approx(3.0)
+        progress.stepped(1000)
+        assert progress.bar.n == pytest.approx(4.0)  # never past the total
+    finally:
+        progress.close()
+    assert not EvaluationProgress(4, 10, "x", disabled=True).shown
+
+
+def test_run_policies_reports_every_step_of_its_episodes():
+    counted = []
+    runs = run_policies("planar_square", {"zero": "zero", "gradient": "gradient"}, [10_000, 10_001],
+                        overrides={"episode_seconds": 0.3}, on_steps=counted.append)
+    from ee_formation_env import load_scenario
+
+    dt = load_scenario("planar_square").control_dt
+    assert counted == [4] * len(counted)  # the 4 episodes run to their end together, one call per step
+    assert all(m.sim_time == pytest.approx(len(counted) * dt) for ms in runs.values() for m in ms)
+
+
+def test_the_reference_gains_of_a_comparison_are_said_in_words(tmp_path):
+    import yaml
+
+    from ee_formation_env import load_scenario
+    from ee_formation_env.builtin import builtin_scenario
+
+    path = tmp_path / "mine.yaml"
+    data = builtin_scenario("planar_square")
+    data["name"] = "mine"
+    path.write_text(yaml.safe_dump(data))
+    assert reference_gains(load_scenario(str(path))) == "default gains (no tuned file for this scenario)"
+    assert reference_gains(load_scenario("planar_square")).startswith("tuned gains")

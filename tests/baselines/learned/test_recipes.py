@@ -52,6 +52,18 @@ def test_a_scenario_file_takes_no_recipe(tmp_path):
     assert _config("--scenario", str(path)).reference == "adaptive_jacobian"
 
 
+def test_the_settings_a_run_trains_with_are_said_in_words(tmp_path):
+    import yaml
+
+    path = tmp_path / "mine.yaml"
+    path.write_text(yaml.safe_dump(builtin_scenario("planar_square")))
+    assert _config("--scenario", str(path)).recipe_used() == "flat defaults (no recipe for this scenario)"
+    assert _config().recipe_used() == "residual-ppo-gradient (the board's recipe for planar_square)"
+    assert _config("--recipe", "none").recipe_used() == "flat defaults (--recipe none)"
+    assert _config("--mode", "torque").recipe_used() == ("flat defaults (--mode torque is not the mode of its "
+                                                         "recipe, residual-ppo-gradient)")
+
+
 def test_a_bad_recipe_is_refused_naming_the_flag(capsys):
     with pytest.raises(SystemExit):
         _config("--recipe", "best")

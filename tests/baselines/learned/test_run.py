@@ -170,6 +170,41 @@ def test_progress_total_is_what_sb3_collects():
     assert collected_steps(3001, SimpleNamespace(), 4) == 3004
 
 
+def test_a_resumed_runs_progress_bar_starts_at_the_agent_steps_done():
+    from types import SimpleNamespace
+
+    from ee_formation_env.baselines.learned.sb3_backend import _progress_callback
+
+    bar = _progress_callback(512, done=1024)
+    bar.model = SimpleNamespace(get_env=lambda: SimpleNamespace(num_envs=4))  # what init_callback sets
+    bar._on_training_start()
+    try:
+        assert (bar.bar.n, bar.bar.total) == (1024, 1536)
+        bar._on_step()
+        assert bar.bar.n == 1028
+    finally:
+        bar._on_training_end()
+
+
+def test_a_run_says_its_settings_reference_gains_and_tensorboard_folder_at_its_start(tmp_path, capsys):
+    import yaml
+
+    from ee_formation_env.builtin import builtin_scenario
+
+    scenario = builtin_scenario("planar_square")
+    scenario["name"] = "my_square"
+    path = tmp_path / "my_square.yaml"
+    path.write_text(yaml.safe_dump(scenario))
+    run_dir = tmp_path / "run"
+    assert train_command(["--scenario", str(path), "--out", str(run_dir), "--mode", "torque",
+                          "--total-timesteps", "200", *FAST]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert ("recipe: flat defaults (no recipe for this scenario); reference laws: default gains (no tuned file "
+            "for this scenario)") in lines
+    logs = run_dir / "tensorboard"
+    assert f"TensorBoard logs: {logs} (watch with `tensorboard --logdir {logs}`)" in lines and logs.is_dir()
+
+
 def test_torque_mode_starts_as_a_copy_of_its_reference(tmp_path):
     """--imitate: DAgger rounds, the actor fitted to the reference's actions."""
     run_dir = tmp_path / "run"

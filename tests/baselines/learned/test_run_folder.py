@@ -284,3 +284,54 @@ def test_a_lock_that_is_a_link_is_refused_and_nothing_is_written_through_it(tmp_
     with pytest.raises(ValueError, match="not a regular file|Is a directory|cannot lock"):
         with run_lock(run_dir, "--resume"):
             pass
+
+
+def _foreign_lock(run_dir: Path, content: str) -> int:
+    """Hold ``run_dir``'s lock as another program would: the file holding ``content`` (no pid of ours), its
+    flock taken through a descriptor of its own (a flock conflicts across descriptors, in one process too)."""
+    run_dir.mkdir(exist_ok=True)
+    (run_dir / LOCK_NAME).write_text(content)
+    import fcntl
+
+    descriptor = os.open(run_dir / LOCK_NAME, os.O_RDONLY)
+    fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return descriptor
+
+
+@pytest.mark.parametrize("content", ["", "not json", '{"pid": null}', '{"pid": "abc"}'])
+def test_a_lock_held_without_a_pid_names_an_unknown_process_and_its_lock_file(tmp_path, content):
+    run_dir = tmp_path / "run"
+    descriptor = _foreign_lock(run_dir, content)
+    try:
+        with pytest.raises(ValueError) as refused:
+            with run_lock(run_dir, "--resume"):
+                pass
+    finally:
+        os.close(descriptor)
+    message = str(refused.value)
+    assert message.startswith(f"--resume: {run_dir} is in use by an unknown process (the lock file "
+                              f"{run_dir / LOCK_NAME} is held but has no pid)"), message
+    assert "None" not in message
+
+
+def test_eval_only_on_a_run_being_trained_names_the_trainer_not_damage(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    descriptor = _foreign_lock(run_dir, json.dumps({"pid": 4321, "host": "here"}))
+    try:
+        assert train_command(["--eval-only", str(run_dir), *EVAL_FAST]) == 2
+        assert _one_error_line(capsys) == (f"error: --eval-only: {run_dir} is being trained by pid 4321: wait for it "
+                                           "to end, or stop it (its model is saved when it stops), then evaluate it")
+        (run_dir / LOCK_NAME).write_text("")
+        assert train_command(["--eval-only", str(run_dir), *EVAL_FAST]) == 2
+        assert f"is being trained by an unknown process (its lock file {run_dir / LOCK_NAME} has no pid)" in \
+            _one_error_line(capsys)
+    finally:
+        os.close(descriptor)
+
+
+def test_too_many_envs_are_refused_naming_n_envs_and_its_bound(tmp_path, capsys):
+    assert train_command(["--out", str(tmp_path / "run"), *TINY, "--n-envs", "100000"]) == 2
+    assert _one_error_line(capsys) == ("error: --n-envs: 100000 envs x 4 agents = 400000 env slots, whose reset "
+                                       "seeds would reach the held-out evaluation seeds (10000 and up): expected at "
+                                       "most 2500")
+    assert not (tmp_path / "run").exists()

@@ -180,3 +180,55 @@ def test_a_kill_after_the_final_checkpoint_leaves_a_run_that_resume_finishes(tra
     assert not segment["running"] and segment["interrupted"] == KILLED and segment["agent_steps"] == steps
     assert (run_dir / "learning_curve.csv").read_text() == (trained_run / "learning_curve.csv").read_text()
     assert (run_dir / "comparison.json").is_file()
+
+
+# ------------------------------------------------------------------------------------------ resuming
+RESUMABLE = ["--mode", "torque", "--n-envs", "1", "--n-workers", "0", "--n-steps", "16", "--train-episode-seconds",
+             "0.5", "--total-timesteps", "256"]
+
+
+def _interrupted_at(agent_steps: int, monkeypatch) -> None:
+    """A stop request (as a SIGINT sets it) at the first step from ``agent_steps`` on, instead of a signal, whose
+    moment depends on timing."""
+    from ee_formation_env.baselines.learned import sb3_backend
+
+    stop_callback = sb3_backend._stop_callback
+
+    def stopping(stop):
+        from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+
+        class StopAt(BaseCallback):
+            def _on_step(self) -> bool:
+                if self.model.num_timesteps >= agent_steps and not stop.requested:
+                    stop.signal_name = "SIGINT"
+                return True
+
+        return CallbackList([StopAt(), stop_callback(stop)])
+
+    monkeypatch.setattr(sb3_backend, "_stop_callback", stopping)
+
+
+def _parameters(run_dir: Path):
+    import torch
+
+    state = torch.load(run_dir / "model" / "policy.pt", weights_only=True)
+    return torch.cat([value.flatten().double() for value in state.values()])
+
+
+def test_a_run_interrupted_at_the_same_step_and_resumed_ends_the_same_every_time(tmp_path, monkeypatch):
+    """docs/training.md ("--resume"): with --n-workers 0, the same interruption step gives the same resumed run,
+    bit for bit; it finishes its budget in whole rollouts from that step, with finite parameters."""
+    import torch
+
+    ends = []
+    for name in ("first", "second"):
+        run_dir = tmp_path / name
+        with monkeypatch.context() as patch:
+            _interrupted_at(100, patch)
+            assert train_command(["--out", str(run_dir), *RESUMABLE, *EVAL_FAST]) == 130
+        assert json.loads((run_dir / "model" / "state.json").read_text())["agent_steps"] == 100
+        assert train_command(["--resume", str(run_dir), *EVAL_FAST]) == 0
+        ends.append((_parameters(run_dir), json.loads((run_dir / "timing.json").read_text())["agent_steps"]))
+    (first, first_steps), (second, second_steps) = ends
+    assert torch.equal(first, second) and torch.isfinite(first).all()
+    assert first_steps == second_steps == 100 + 3 * 64  # 156 steps left: three whole rollouts of 16 x 4 slots
