@@ -44,8 +44,12 @@ BACKEND_MODULES = {"sb3": (("torch", "stable_baselines3"), "train"),
 CONFIG_FIX = ("restore the config.json the run wrote (to change the budget, give --resume RUN --total-timesteps N "
               "instead of editing it)")
 
-#: The stamp's fields that the run's configuration decides (:func:`stamp_config_fields`), and those that the
-#: model itself has (checked against the loaded model: :func:`check_stamp_sizes`).
+#: The settings of config.json that ``--resume`` may rewrite (the budget: ``TrainConfig.RESUME_FIELDS``, which
+#: imports this module's users and so is not imported here), left out of the stamp's digest.
+BUDGET_FIELDS = ("total_timesteps",)
+
+#: The stamp's fields that the model itself decides (checked against the loaded model: :func:`check_stamp_sizes`;
+#: those the configuration decides: :func:`stamp_config_fields`).
 SIZE_FIELDS = ("observation_size", "action_size")
 
 
@@ -56,11 +60,9 @@ def model_files(backend: str) -> tuple[str, ...]:
 
 
 def config_digest(config: Mapping[str, Any]) -> str:
-    """The sha256 of a run's configuration (``config.json``'s content, its keys sorted) less the budget, the one
-    setting ``--resume`` may change (:attr:`TrainConfig.RESUME_FIELDS`)."""
-    from ee_formation_env.baselines.learned.config import TrainConfig  # config imports this package's loaders
-
-    settings = {key: value for key, value in config.items() if key not in TrainConfig.RESUME_FIELDS}
+    """The sha256 of a run's configuration (``config.json``'s content, its keys sorted) less the budget
+    (:data:`BUDGET_FIELDS`)."""
+    settings = {key: value for key, value in config.items() if key not in BUDGET_FIELDS}
     text = json.dumps(settings, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
     return hashlib.sha256(text.encode("ascii")).hexdigest()
 

@@ -71,6 +71,9 @@ def test_every_model_folder_holds_a_stamp_of_its_run_covered_by_its_checksums(re
 
 
 def test_the_config_digest_leaves_the_budget_out_and_nothing_else(residual_run):
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    assert run_files.BUDGET_FIELDS == TrainConfig.RESUME_FIELDS  # what --resume may rewrite in config.json
     config = _config(residual_run)
     digest = run_files.config_digest(config)
     assert run_files.config_digest({**config, "total_timesteps": config["total_timesteps"] + 1000}) == digest
