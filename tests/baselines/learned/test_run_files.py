@@ -81,6 +81,23 @@ def test_the_config_digest_leaves_the_budget_out_and_nothing_else(residual_run):
     assert run_files.config_digest(dict(reversed(list(config.items())))) == digest  # key order is not content
 
 
+@pytest.mark.parametrize("field, value, says", [
+    ("mode", "torque", "stamp.json: mode: the stamp says 'torque', config.json 'residual'"),
+    ("obs_features", "log-error", "stamp.json: obs_features: the stamp says 'log-error', config.json 'none'"),
+    ("engine", "mujoco", "stamp.json: engine: the stamp says 'mujoco', config.json 'pybullet'"),
+    ("action", None, "stamp.json: action: the stamp says None"),
+    ("action_size", 3, "stamp.json: action_size: the stamp says 3, the model has 2 (its normalizer and actor)"),
+    ("format", 0, "stamp.json: format: expected a stamp of format 1"),
+])
+def test_each_field_of_the_stamp_is_checked_behind_its_digest_naming_it(copy, field, value, says):
+    """A stamp edited and re-signed, its digest still the config's: each field is checked all the same."""
+    _edit_json(copy / "model" / run_files.STAMP, lambda s: s.update({field: value}))
+    _resign(copy / "model")
+    with pytest.raises(ValueError) as refused:
+        open_run(copy, "--policy")
+    assert str(refused.value).startswith(f"--policy: {copy / 'model'}/") and says in str(refused.value), refused.value
+
+
 def test_an_intact_run_opens_on_every_path(copy):
     config = open_run(copy, "--policy")
     assert config == _config(copy) and SavedRun.load(copy, "run").config == config
