@@ -410,10 +410,10 @@ def trained_policies(method: Method, run_dir: Path, env: Any = None) -> Callable
         from ee_formation_env.baselines.learned.benchmarl_task import load_benchmarl_policy
 
         return load_benchmarl_policy(run_dir / "policy").policy_factory()
-    from ee_formation_env.baselines.learned.policy import learned_policy_factory
+    from ee_formation_env.baselines.learned.policy import SavedRun, learned_policy_factory
 
-    config = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-    return learned_policy_factory(run_dir, env, config)
+    run = SavedRun.load(run_dir, f"{method.name} run")  # its files, stamp and model checked, as the cells' are
+    return learned_policy_factory(run_dir, env, run.config)
 
 
 def _benchmarl_cell(board: Board, scenario: str, method: Method, seed: int, run_dir: Path, current: bool = True

@@ -13,6 +13,8 @@ file                      content
 ``vecnormalize.json``     the observation and return normalization statistics
 ``obs_normalizer.json``   the observation normalization the evaluation applies (SB3 runs)
 ``state.json``            the agent steps done, the updates done, the budget
+``stamp.json``            the model's stamp: its run's configuration digest, mode, spaces
+                          (:mod:`~ee_formation_env.baselines.learned.run_files`)
 ``SHA256SUMS``            the sha256 of every other file (``sha256sum -c SHA256SUMS`` checks them), written last
 ========================  ==================================================================================
 

@@ -26,10 +26,9 @@ from ee_formation_env.baselines.atomic_files import make_folder, replacing, writ
 from ee_formation_env.baselines.learned.checkpoint import read_json
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.interruption import RunStopped
-from ee_formation_env.baselines.learned.saved_run import verify_model
 from ee_formation_env.worker_processes import ignore_interrupts, interrupts_blocked, unguarded_main_hint
 from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET
-from ee_formation_env.baselines.learned.policy import SavedRun, saved_scenario
+from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, SavedRun, load_model, saved_scenario
 from ee_formation_env.baselines.metrics import format_table, run_policies, summarize
 from ee_formation_env.baselines.verdict import best_law, estimates, shortfalls
 
@@ -69,7 +68,7 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
             episodes.update(((name, seed), m) for seed, m in zip(seeds, metrics))
             progress.finished(len(metrics))
 
-    verify_model(run_dir, config["backend"])
+    load_model(Path(run_dir) / MODEL_FOLDER, config, "comparison")  # before any episode: files, stamp, sizes
     workers = min(args.eval_workers, len(names))
     if workers == 0:
         _evaluation_worker_setup(*setup, progress.stepped if progress.shown else None)

@@ -11,6 +11,7 @@ the env settings the run trained with.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -22,6 +23,8 @@ from ee_formation_env.baselines.learned.features import FeatureRows, check_invar
 from ee_formation_env.baselines.learned.modes import ActionRows
 from ee_formation_env.baselines.learned.numpy_layers import apply_numpy_layers, numpy_layers
 from ee_formation_env.baselines.learned.options import TrainingOptions
+from ee_formation_env.baselines.learned.run_files import (BACKEND_MODULES, MODEL_FOLDER, check_model_files,
+                                                          check_stamp_sizes, read_run_config)
 from ee_formation_env.baselines.learned.set_network import (check_serves, expanded_statistics, numpy_set_actor,
                                                             pooled_statistics, slot_layout, slot_layout_of)
 from ee_formation_env.baselines.learned.team import AgentPadding, PaddingRows, TeamPadding, agent_rules
@@ -104,13 +107,6 @@ class LearnedPolicy:
         return lambda observations: np.stack([policy(row) for policy, row in zip(policies, observations)])
 
 
-MODEL_FOLDER = "model"  # a run's final model, in the checkpoint format
-
-#: What reloading a run's model needs per backend: the modules, and the pip extra(s) that install them.
-BACKEND_MODULES = {"sb3": (("torch", "stable_baselines3"), "train"),
-                   "rllib": (("torch", "ray.rllib"), "train,distributed")}
-
-
 def saved_scenario(config: Mapping[str, Any]) -> Any:
     """The scenario a run saved (its parsed data), or, for runs saved without it, its name or file."""
     return config.get("scenario_data") or config["scenario"]
@@ -127,28 +123,9 @@ class SavedRun:
 
     @classmethod
     def load(cls, run_dir: Path | str, what: str = "run") -> "SavedRun":
-        """The run in ``run_dir``; a folder that is not a finished run (no ``config.json`` or no ``model/``),
-        or a backend whose packages are not installed, is refused in one line starting with ``what``."""
-        from ee_formation_env.baselines.extras import require
-
-        run_dir = Path(run_dir)
-        if not (run_dir / "config.json").is_file():
-            raise ValueError(f"{what}: {run_dir} is not a train.py run folder (no config.json in it)")
-        config = read_json(run_dir / "config.json", what)
-        if not isinstance(config, dict) or config.get("backend") not in BACKEND_MODULES or "scenario" not in config:
-            raise ValueError(f"{what}: {run_dir / 'config.json'} is not a run's configuration (no scenario, or a "
-                             f"backend other than {list(BACKEND_MODULES)})")
-        if not (run_dir / MODEL_FOLDER / "obs_normalizer.json").is_file():
-            raise ValueError(f"{what}: {run_dir} holds no final model ({MODEL_FOLDER}/): the run has not finished "
-                             "(--resume continues it)")
-        modules, extras = BACKEND_MODULES[config["backend"]]
-        require(modules, extras, f"{what} (a --backend {config['backend']} run)")
-        verify_run_files(run_dir, config["backend"], what)
-        try:
-            TrainingOptions.from_saved(config)
-        except (TypeError, ValueError) as error:
-            raise ValueError(f"{what}: {run_dir / 'config.json'}: {error}") from None
-        return cls(run_dir, config)
+        """The finished run in ``run_dir``, opened by :func:`open_run` (its files, stamp and model checked); a
+        fault is refused in one line starting with ``what``."""
+        return cls(run_dir, open_run(run_dir, what))
 
     @property
     def options(self) -> TrainingOptions:
@@ -188,24 +165,70 @@ class SavedRun:
         return policies
 
 
-def verify_run_files(run_dir: Path, backend: str, what: str) -> None:
-    """Every path that reads a run (evaluate, --eval-only, --resume, --imitate, the board's cells) checks the
-    same files first: the run folder's marker (a folder the project wrote), ``config.json`` against the folder's
-    ``SHA256SUMS`` and the final model's files against the model's, each required; a fault is one ``ValueError``
-    starting with ``what`` and naming the file. Integrity against accidents (an edit, a truncated copy, a file
-    of another run), not authenticity: whoever edits a file can also rewrite its checksum."""
-    from ee_formation_env.baselines.learned.checkpoint import verify_checksums
-    from ee_formation_env.baselines.learned.run_folder import require_project_run
+def open_run(run_dir: Path | str, what: str, final_model: bool = True) -> dict[str, Any]:
+    """The one check every path that reads a run makes before anything else runs (evaluate --policy,
+    --eval-only, --resume, --imitate, the board's cells): its ``config.json``
+    (:func:`~ee_formation_env.baselines.learned.run_files.read_run_config`: the folder's marker, the file's sha256,
+    a run's configuration) and, with ``final_model``, its final model, loaded by :func:`load_model` (its files'
+    sha256, its stamp against config.json and against the loaded model). ``--resume`` opens the configuration
+    alone, then loads the checkpoint it continues from. Returns config.json's content; a fault is one
+    ``ValueError`` starting with ``what``, naming the file (and the field)."""
+    from ee_formation_env.baselines.extras import require
 
     run_dir = Path(run_dir)
-    require_project_run(run_dir, what)
+    config = read_run_config(run_dir, what)
+    if final_model:
+        if not (run_dir / MODEL_FOLDER).is_dir():
+            raise ValueError(f"{what}: {run_dir} holds no final model ({MODEL_FOLDER}/): the run has not finished "
+                             "(--resume continues it)")
+        modules, extras = BACKEND_MODULES[config["backend"]]
+        require(modules, extras, f"{what} (a --backend {config['backend']} run)")
+        load_model(run_dir / MODEL_FOLDER, config, what)
+    return config
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A model folder's policy as :func:`load_model` read it: the observation normalization, the deterministic
+    actor on normalized observations (None for a set network, rebuilt per team: :func:`_set_policy`) and the
+    sizes the model itself has."""
+
+    normalizer: ObservationNormalizer
+    predict: Callable[[np.ndarray], np.ndarray] | None
+    observation_size: int
+    action_size: int
+
+
+def load_model(model_dir: Path, config: Mapping[str, Any], what: str) -> LoadedModel:
+    """The model in ``model_dir`` (a run's ``model/`` or one of its checkpoints) of the run configured by
+    ``config``, the one way a saved model is read: its files checked against the folder's ``SHA256SUMS`` and its
+    stamp against ``config`` (:func:`~ee_formation_env.baselines.learned.run_files.check_model_files`), the policy
+    loaded (tensors and JSON only: nothing in the files is executed, a damaged file is a one-line refusal, not
+    a torch traceback), then the stamp's sizes against the loaded normalizer and actor. A fault is one
+    ``ValueError`` starting with ``what``."""
+    model_dir = Path(model_dir)
+    stamp = check_model_files(model_dir, config, what)
     try:
-        verify_checksums(run_dir, ["config.json"], "restore the config.json the run wrote")
-        names = ("policy.json", "policy.pt") if backend == "sb3" else ("rllib_module.json", "rllib_module.pt")
-        verify_checksums(run_dir / MODEL_FOLDER, (*names, "obs_normalizer.json"),
-                         "the model is damaged: `--resume RUN` trains it again from the newest intact checkpoint")
+        normalizer = ObservationNormalizer.load(model_dir / "obs_normalizer.json")
+        predict = None
+        if config["backend"] == "rllib":
+            predict = rllib_predictor(model_dir)
+        else:
+            policy = load_policy(model_dir)  # a set network: as it trained, its own slot count
+            _check_fits(normalizer, tuple(policy.observation_space.shape), model_dir)
+            if TrainingOptions.from_saved(config).policy_network != "set":
+                predict = _numpy_actor(policy) if config["algo"] == "ppo" else None
+                if predict is None:
+                    predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
+        size = normalizer.mean.shape[0]
+        if predict is None:
+            actions = policy.action_space.shape[0]
+        else:
+            actions = np.asarray(predict(np.zeros(size, dtype=np.float32))).shape[-1]  # the actor's own output
     except ValueError as error:
         raise ValueError(f"{what}: {error}") from None
+    check_stamp_sizes(model_dir, stamp, size, actions, what)
+    return LoadedModel(normalizer, predict, size, actions)
 
 
 def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[str, Any]:
@@ -214,30 +237,22 @@ def learned_policies(run_dir: Path, env: Any, config: dict[str, Any]) -> dict[st
     return learned_policy_factory(run_dir, env, config)(env)
 
 
-def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], checkpoint: Path | None = None
-                           ) -> Callable[[Any], dict[str, Any]]:
+def learned_policy_factory(run_dir: Path, env: Any, config: dict[str, Any], checkpoint: Path | None = None,
+                           what: str = "policy") -> Callable[[Any], dict[str, Any]]:
     """``env -> per-agent policies`` of a saved run (as :func:`learned_policies`), the model read once: each
     call gives fresh reference controllers (their own internal state) around the one shared, stateless learned
     part, what :func:`ee_formation_env.baselines.metrics.run_episodes` calls once per copy. ``checkpoint``: one
-    of the run's checkpoint folders instead of its final model (SB3 runs)."""
+    of the run's checkpoint folders instead of its final model (SB3 runs). The model is read by :func:`load_model`
+    (a fault: one ``ValueError`` starting with ``what``)."""
     model_dir = Path(run_dir) / MODEL_FOLDER if checkpoint is None else Path(checkpoint)
     if checkpoint is not None and config["backend"] != "sb3":
         raise ValueError(f"checkpoint: only SB3 runs keep checkpoints (this run: --backend {config['backend']})")
-    normalizer = ObservationNormalizer.from_checkpoint(model_dir)
+    model = load_model(model_dir, config, what)
+    normalizer, predict, size, actions = model.normalizer, model.predict, model.observation_size, model.action_size
     options = TrainingOptions.from_saved(config)
     if options.policy_network == "set":
         learned = _set_policy(model_dir, env, normalizer)
         return composed_policy_factory({agent: learned for agent in env.possible_agents}, env, options)
-    if config["backend"] == "sb3":
-        policy = load_policy(model_dir)
-        _check_fits(normalizer, tuple(policy.observation_space.shape), model_dir)
-        predict = _numpy_actor(policy) if config["algo"] == "ppo" else None
-        if predict is None:
-            predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
-    else:
-        predict = rllib_predictor(model_dir)
-    size = normalizer.mean.shape[0]
-    actions = np.asarray(predict(np.zeros(size, dtype=np.float32))).shape[-1]  # the actor's own output size
     padding = TeamPadding.from_saved(config)
     if padding is None:
         check_team(env, size, actions, options.resolved().obs_features)

@@ -25,8 +25,9 @@ import numpy as np
 
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.interruption import StopRequest
-from ee_formation_env.baselines.learned.checkpoint import atomic_directory, write_json
-from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
+from ee_formation_env.baselines.learned.checkpoint import atomic_directory, read_json, write_json
+from ee_formation_env.baselines.learned.policy import ObservationNormalizer
+from ee_formation_env.baselines.learned.run_files import CONFIG, MODEL_FOLDER, STAMP, model_stamp
 from ee_formation_env.baselines.learned.training_env import env_factory
 
 #: The PPO settings both backends share and SB3 keeps as its defaults (sb3_backend.build_sb3_model).
@@ -143,7 +144,8 @@ def train_rllib(args: TrainConfig, out_dir: Path, stop: StopRequest | None = Non
     write_json(out_dir / "timing.json", timing)
     # RLlib's own checkpoint, for RLlib users: it holds pickles and the project never reads it back.
     algorithm.save(str((out_dir / "rllib_checkpoint").resolve()))
-    save_rllib_module(algorithm.get_module("shared"), out_dir / MODEL_FOLDER, module_config(args))
+    save_rllib_module(algorithm.get_module("shared"), out_dir / MODEL_FOLDER, module_config(args),
+                      read_json(out_dir / CONFIG, CONFIG))
     with open(out_dir / "learning_curve.csv", "w", encoding="utf-8") as handle:
         handle.write("agent_steps,episode_return\n")  # the mean per agent, as SB3's monitor reports it
         handle.writelines(f"{s},{r}\n" for s, r in history)
@@ -153,11 +155,13 @@ def train_rllib(args: TrainConfig, out_dir: Path, stop: StopRequest | None = Non
     return timing
 
 
-def save_rllib_module(module: Any, model_dir: Path, model_config: dict[str, Any]) -> None:
+def save_rllib_module(module: Any, model_dir: Path, model_config: dict[str, Any], config: dict[str, Any]) -> None:
     """The shared module as plain data in ``model_dir`` (atomically): its parameters (``rllib_module.pt``, a
-    ``state_dict``), its spaces and ``model_config`` (``rllib_module.json``) and an identity normalizer (the
-    module saw raw observations). :func:`ee_formation_env.baselines.learned.policy.rllib_predictor` rebuilds
-    it from RLlib's default PPO module."""
+    ``state_dict``), its spaces and ``model_config`` (``rllib_module.json``), an identity normalizer (the
+    module saw raw observations) and the model's stamp for the run's ``config`` (config.json's content:
+    :mod:`~ee_formation_env.baselines.learned.run_files`).
+    :func:`ee_formation_env.baselines.learned.policy.rllib_predictor` rebuilds it from RLlib's default PPO
+    module."""
     import torch
 
     with atomic_directory(model_dir) as partial:
@@ -169,3 +173,4 @@ def save_rllib_module(module: Any, model_dir: Path, model_config: dict[str, Any]
                                                     "model_config": model_config})
         dim = int(np.prod(module.observation_space.shape))
         ObservationNormalizer.identity(dim).save(partial / "obs_normalizer.json")
+        write_json(partial / STAMP, model_stamp(config, dim, int(np.prod(space.shape))))

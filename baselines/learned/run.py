@@ -29,7 +29,7 @@ from ee_formation_env.baselines.learned.interruption import (RunStopped, StopSig
 from ee_formation_env.baselines.learned.run_folder import check_out, created_run_folder, has_resumable_state
 from ee_formation_env.baselines.learned.run_lock import LOCK_NAME, holder_pid, lock_holder, run_lock
 from ee_formation_env.baselines.learned.saved_run import (load_saved_config, model_from_checkpoint,
-                                                          newest_intact_checkpoint, write_saved_config)
+                                                          resume_checkpoint, write_saved_config)
 from ee_formation_env.baselines.learned.segments import (TIMING, close_killed_segments, read_timing,
                                                          write_learning_curve, write_timing)
 from ee_formation_env.baselines.learned.set_network import set_description
@@ -115,16 +115,14 @@ def resume(config: TrainConfig) -> Path:
     if not (run_dir / "config.json").is_file():
         raise ValueError(f"--resume: {run_dir / 'config.json'} not found")
     with run_lock(run_dir, "--resume"):
-        saved, settings = load_saved_config(run_dir, "--resume")
+        saved, settings = load_saved_config(run_dir, "--resume", final_model=False)
         settings = dataclasses.replace(settings, resume=str(run_dir), out=str(run_dir),
                                        **{name: getattr(config, name) for name in TrainConfig.EVALUATION_FIELDS})
         if settings.backend != "sb3" or settings.algo != "ppo":
             raise ValueError(f"--resume: runs of --backend sb3 --algo ppo only (this one: {settings.backend} "
                              f"{settings.algo}; SAC's replay buffer and RLlib's state are not checkpointed)")
-        found = newest_intact_checkpoint(run_dir)
-        if found is None:
-            raise ValueError(f"--resume: {run_dir} holds no complete checkpoint to continue from")
-        steps, newest = found
+        require_training_extras(settings)  # before the checkpoint's model is loaded
+        steps, newest = resume_checkpoint(run_dir, saved)
         if config.total_timesteps is not None and config.total_timesteps != settings.total_timesteps:
             if config.total_timesteps < steps:
                 raise ValueError(f"--total-timesteps: {config.total_timesteps} is below the {steps} agent steps "
@@ -138,7 +136,6 @@ def resume(config: TrainConfig) -> Path:
         if steps >= settings.total_timesteps and (run_dir / "comparison.json").is_file():
             raise ValueError(f"--resume: {run_dir} is complete ({steps} of {settings.total_timesteps} agent steps): "
                              "--total-timesteps N (more than that) extends it")
-        require_training_extras(settings)
         if extended:  # the new budget is the run's own from now on, so that a later --resume keeps it
             write_saved_config(run_dir, saved)
         settings = dataclasses.replace(settings, scenario=saved_scenario(saved))  # as saved, not as the file is now
@@ -272,7 +269,7 @@ def evaluate_saved_run(config: TrainConfig) -> dict[str, Any]:
                    f"an unknown process (its lock file {run_dir / LOCK_NAME} has no pid)")
         raise ValueError(f"--eval-only: {run_dir} is being trained by {trainer}: wait for it to end, or stop it "
                          "(its model is saved when it stops), then evaluate it")
-    saved, _ = load_saved_config(run_dir, "--eval-only")
+    saved, _ = load_saved_config(run_dir, "--eval-only", final_model=True)
     require_training_extras(config, saved)
     results_dir = run_dir / "evaluations" / time.strftime("%Y%m%d-%H%M%S")
     suffix = 1

@@ -22,11 +22,13 @@ import numpy as np
 
 from ee_formation_env.baselines.atomic_files import WriteRefused, refused, replacing
 from ee_formation_env.baselines.learned.checkpoint import (DISK_ERRORS, CheckpointWriteError, checkpoint_name,
-                                                           checkpoints, restore_checkpoint, save_checkpoint)
+                                                           checkpoints, read_json, restore_checkpoint,
+                                                           save_checkpoint, write_json)
 from ee_formation_env.baselines.learned.config import FAULT_WINDOW, TrainConfig
 from ee_formation_env.baselines.learned.imitation import imitate
 from ee_formation_env.baselines.learned.interruption import RunStopped, StopRequest
-from ee_formation_env.baselines.learned.policy import MODEL_FOLDER, ObservationNormalizer
+from ee_formation_env.baselines.learned.policy import ObservationNormalizer
+from ee_formation_env.baselines.learned.run_files import CONFIG, MODEL_FOLDER, STAMP, model_stamp
 from ee_formation_env.baselines.learned.run_folder import has_resumable_state
 from ee_formation_env.baselines.learned.set_network import (pooled_running_statistics, sb3_policy_kwargs,
                                                             set_description, slot_layout_of)
@@ -135,6 +137,10 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
           flush=True)
     interrupted = None
     try:
+        # The model's stamp, written into every checkpoint and the final model: config.json as this command
+        # wrote it (a resume with a new budget rewrote it first), the policy's own sizes.
+        stamp = model_stamp(read_json(out_dir / CONFIG, CONFIG), model.policy.observation_space.shape[0],
+                            model.policy.action_space.shape[0])
         if resume_from is not None:
             restore_checkpoint(resume_from, model)
         elif args.imitate != "none":
@@ -147,7 +153,8 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
             update_segment(out_dir, timing, segment, agent_steps=int(model.num_timesteps),
                            train_seconds=time.time() - started)
 
-        saver = _checkpoint_callback(out_dir, args, max(args.total_timesteps // (4 * venv.num_envs), 1), progress)
+        saver = _checkpoint_callback(out_dir, args, stamp, max(args.total_timesteps // (4 * venv.num_envs), 1),
+                                     progress)
         callbacks = [saver]
         if stop is not None:
             callbacks.append(_stop_callback(stop))
@@ -171,7 +178,7 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
                 stopped_by = fault
             except WorkerFault as fault:  # an env worker died or stopped: the model itself is fine
                 if not _stopping_for_the_same_signal(fault, stop):
-                    _save_model(out_dir, model, args, f"{type(fault).__name__}: {fault}")
+                    _save_model(out_dir, model, args, stamp, f"{type(fault).__name__}: {fault}")
                     first, _, rest = str(fault).partition("\n")
                     raise RunStopped(f"training: {first}; the model at {model.num_timesteps} agent steps is saved "
                                      f"in {out_dir / MODEL_FOLDER}", out_dir, "continues the run",
@@ -180,7 +187,7 @@ def train_sb3(args: TrainConfig, out_dir: Path, stop: StopRequest | None = None,
             interrupted = "physics faults"
         else:
             interrupted = stop.signal_name if stop is not None and stop.requested else None
-        _save_model(out_dir, model, args, interrupted)
+        _save_model(out_dir, model, args, stamp, interrupted)
         if stopped_by is None:  # SB3's own format, for SB3 users; never read by the project
             with replacing(out_dir / "model.zip") as temporary:
                 model.save(temporary)  # SB3 adds .zip only to a name without a suffix
@@ -208,11 +215,17 @@ def _normalizer(model: Any) -> ObservationNormalizer:
     return ObservationNormalizer(venv.obs_rms.mean.copy(), venv.obs_rms.var.copy(), venv.clip_obs)
 
 
-def _save_model(out_dir: Path, model: Any, args: TrainConfig, interrupted: str | None) -> None:
+def _evaluation_files(model: Any, stamp: dict[str, Any]) -> dict[str, Callable[[Path], None]]:
+    """The files of a checkpoint that the evaluation reads besides the policy: the observation normalization it
+    applies and the model's stamp (:mod:`~ee_formation_env.baselines.learned.run_files`)."""
+    return {"obs_normalizer.json": _normalizer(model).save, STAMP: lambda path: write_json(path, stamp)}
+
+
+def _save_model(out_dir: Path, model: Any, args: TrainConfig, stamp: dict[str, Any], interrupted: str | None) -> None:
     """The final model (``model/``): a complete checkpoint with the observation normalization the evaluation
-    applies, ``state.json`` saying why training ended early (``interrupted``; None: it did not)."""
+    applies and the stamp, ``state.json`` saying why training ended early (``interrupted``; None: it did not)."""
     save_checkpoint(out_dir / MODEL_FOLDER, model, args.algo, policy_kwargs(args), args.total_timesteps,
-                    {"interrupted": interrupted}, files={"obs_normalizer.json": _normalizer(model).save})
+                    {"interrupted": interrupted}, files=_evaluation_files(model, stamp))
 
 
 def _stopping_for_the_same_signal(fault: Exception, stop: StopRequest | None) -> bool:
@@ -257,9 +270,10 @@ def _intact_checkpoints(out_dir: Path) -> str:
     return f"the older checkpoints are intact (newest: {found[-1].name})"
 
 
-def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int, saved: Callable[[], None]) -> Any:
+def _checkpoint_callback(out_dir: Path, args: TrainConfig, stamp: dict[str, Any], every: int,
+                         saved: Callable[[], None]) -> Any:
     """Every ``every`` vec-env steps, a complete checkpoint (:func:`save_checkpoint`) of the model, with the
-    observation normalization the evaluation applies; then ``saved()``."""
+    observation normalization the evaluation applies and the stamp; then ``saved()``."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class CheckpointSaver(BaseCallback):
@@ -267,7 +281,7 @@ def _checkpoint_callback(out_dir: Path, args: TrainConfig, every: int, saved: Ca
             if self.n_calls % every == 0:
                 save_checkpoint(out_dir / "checkpoints" / checkpoint_name(self.model.num_timesteps), self.model,
                                 args.algo, policy_kwargs(args), args.total_timesteps,
-                                files={"obs_normalizer.json": _normalizer(self.model).save})
+                                files=_evaluation_files(self.model, stamp))
                 saved()
             return True
 

@@ -269,7 +269,14 @@ def test_a_folder_that_is_not_a_finished_run_is_refused_naming_it(tmp_path, caps
     with pytest.raises(SystemExit):
         main(["--policy", str(tmp_path)])
     assert f"error: --policy: {tmp_path} is not a train.py run folder (no config.json in it)" in capsys.readouterr().err
-    (tmp_path / "config.json").write_text(json.dumps({"scenario": "planar_square", "backend": "sb3", "mode": "torque"}))
+    from ee_formation_env.baselines.learned.run_folder import MARKER
+    from ee_formation_env.baselines.learned.saved_run import write_saved_config
+
+    write_saved_config(tmp_path, {"scenario": "planar_square", "backend": "sb3", "mode": "torque"})
+    with pytest.raises(SystemExit):
+        main(["--policy", str(tmp_path)])
+    assert f"error: --policy: {tmp_path} has no {MARKER}: not a run folder train.py wrote" in capsys.readouterr().err
+    (tmp_path / MARKER).write_text("{}")  # a run killed before it saved its model
     with pytest.raises(SystemExit):
         main(["--policy", str(tmp_path)])
     assert "holds no final model (model/): the run has not finished" in capsys.readouterr().err
@@ -325,10 +332,13 @@ def test_an_rllib_run_without_ray_is_refused_in_one_line_naming_the_extra(tmp_pa
 
     if importlib.util.find_spec("ray") is not None:
         pytest.skip("ray is installed: the RLlib run would load")
+    from ee_formation_env.baselines.learned.run_folder import MARKER
+    from ee_formation_env.baselines.learned.saved_run import write_saved_config
+
+    (tmp_path / MARKER).write_text("{}")
     (tmp_path / "model").mkdir()
     (tmp_path / "model" / "obs_normalizer.json").write_text("{}")
-    (tmp_path / "config.json").write_text(json.dumps({"scenario": "planar_square", "backend": "rllib",
-                                                       "mode": "torque", "algo": "ppo"}))
+    write_saved_config(tmp_path, {"scenario": "planar_square", "backend": "rllib", "mode": "torque", "algo": "ppo"})
     with pytest.raises(SystemExit) as exit_info:
         main(["--policy", str(tmp_path)])
     assert "--policy (a --backend rllib run) needs ray.rllib, not installed" in str(exit_info.value)

@@ -75,7 +75,8 @@ def test_bad_arguments_fail_before_training(tmp_path, capsys):
     assert train_command(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x")]) == 2
     assert capsys.readouterr().err.startswith("error: scenario:")
     assert train_command(["--eval-only", str(tmp_path / "missing")]) == 2
-    assert "not found" in capsys.readouterr().err
+    assert capsys.readouterr().err.startswith(f"error: --eval-only: {tmp_path / 'missing'} is not a train.py run "
+                                              "folder (no config.json in it)")
     with pytest.raises(ValueError, match="scenario"):
         train_command(["--scenario", "no_such_scenario", "--out", str(tmp_path / "x"), "--debug"])
     assert not (tmp_path / "x").exists()
