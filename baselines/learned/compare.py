@@ -95,19 +95,38 @@ def compare(args: TrainConfig, config: dict[str, Any], run_dir: Path, results_di
                   "reference_gains": "tuned" if tuned else "default", "best_law": best,
                   "shortfall": None if shortfall is None else f"against {best!r}: the learned policy {shortfall}",
                   "shortfalls": found}
+    notes = coinciding_laws(results)
+    comparison["notes"] = notes
     table = format_table({label if k == "learned" else k: v for k, v in results.items()})
     write_text(results_dir / "comparison.md",
-               f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n")
+               f"# Comparison on {config['scenario']} ({len(seeds)} held-out seeds from {seeds[0]})\n\n{table}\n"
+               + "".join(f"\n{note}\n" for note in notes))
     _plot(run_dir, results_dir, results, label, error_unit)
     # Last: a run folder holding comparison.json has its complete comparison.
     write_text(results_dir / "comparison.json", json.dumps(comparison, indent=2, default=float))
     print(table)
+    for note in notes:
+        print(note, flush=True)
     gains = "tuned gains" if tuned else "default gains (no tuned gains for this scenario)"
     print(f"judged against the best law with {gains}: {best}", flush=True)
     for item in found:
         print(f"warning: {item['metric']}: the learned policy {item['message']} (threshold: {item['threshold']})",
               flush=True)
     return comparison
+
+
+def coinciding_laws(results: dict[str, Any]) -> list[str]:
+    """A note for each law whose episodes are another law's, step for step (``per_episode`` of :func:`compare`'s
+    results equal): ``approx_jacobian`` and ``gradient`` on arms no joint of which gravity loads, where law II
+    (K_I = 0, the exact kinematic estimate) is law I; said so that two equal rows are not taken for a fault."""
+    notes = []
+    for name in ("approx_jacobian", tuned_row("approx_jacobian")):
+        same = "gradient" if name == "approx_jacobian" else tuned_row("gradient")
+        if name in results and same in results and results[name]["per_episode"] == results[same]["per_episode"]:
+            notes.append(f"note: {name} gives {same}'s episodes step for step: no joint of these arms carries "
+                         "gravity, and law II with K_I = 0 and the exact kinematic estimate is law I "
+                         "(docs/controllers.md).")
+    return notes
 
 
 def tuned_row(law: str) -> str:

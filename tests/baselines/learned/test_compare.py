@@ -145,3 +145,15 @@ def test_the_reference_gains_of_a_comparison_are_said_in_words(tmp_path):
     path.write_text(yaml.safe_dump(data))
     assert reference_gains(load_scenario(str(path))) == "default gains (no tuned file for this scenario)"
     assert reference_gains(load_scenario("planar_square")).startswith("tuned gains")
+
+
+def test_two_laws_with_the_same_episodes_get_a_note_and_different_ones_none():
+    from ee_formation_env.baselines.learned.compare import coinciding_laws
+
+    episodes = [{"success": True, "settling_time": 0.9}]
+    results = {"gradient": {"per_episode": episodes}, "approx_jacobian": {"per_episode": list(episodes)},
+               "gradient (tuned)": {"per_episode": episodes},
+               "approx_jacobian (tuned)": {"per_episode": [{"success": True, "settling_time": 0.8}]}}
+    (note,) = coinciding_laws(results)
+    assert note.startswith("note: approx_jacobian gives gradient's episodes step for step: no joint")
+    assert coinciding_laws({"gradient": results["gradient"]}) == []

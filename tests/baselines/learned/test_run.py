@@ -50,6 +50,8 @@ def test_sb3_smoke_run_writes_every_artefact(tmp_path, mode, algo):
         assert METRIC_FIELDS <= set(summary)
         assert summary["episodes"] == 2
     assert comparison["seeds"] == [EVAL_SEED_OFFSET, EVAL_SEED_OFFSET + 1]
+    # planar_square: no joint carries gravity, so law II's rows are law I's, and the table says why
+    assert comparison["notes"] and comparison["notes"][0] in (run_dir / "comparison.md").read_text()
 
 
 def test_saved_model_reloads_and_reproduces_its_evaluation(tmp_path):
