@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping
 import numpy as np
 
 from ee_formation_env import baselines
+from ee_formation_env.baselines.atomic_files import write_text
 from ee_formation_env.baselines.learned.policy import SavedRun
 from ee_formation_env.baselines.reference.team import PolicyTeam
 
@@ -183,8 +184,8 @@ def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
         env.close()
     with torch.no_grad():
         model.policy.log_std.fill_(IMITATION_LOG_STD)
-    (out_dir / "imitation.json").write_text(json.dumps({"reference": args.imitate, "rounds": rounds,
-                                                        "log_std_after": IMITATION_LOG_STD}, indent=2))
+    write_text(out_dir / "imitation.json", json.dumps({"reference": args.imitate, "rounds": rounds,
+                                                       "log_std_after": IMITATION_LOG_STD}, indent=2))
 
 
 def _normalized(venv: Any, observations: np.ndarray) -> Any:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from ee_formation_env.baselines.atomic_files import write_text
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.interruption import StopRequest
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, read_json, write_json
@@ -146,9 +147,9 @@ def train_rllib(args: TrainConfig, out_dir: Path, stop: StopRequest | None = Non
     algorithm.save(str((out_dir / "rllib_checkpoint").resolve()))
     save_rllib_module(algorithm.get_module("shared"), out_dir / MODEL_FOLDER, module_config(args),
                       read_json(out_dir / CONFIG, CONFIG))
-    with open(out_dir / "learning_curve.csv", "w", encoding="utf-8") as handle:
-        handle.write("agent_steps,episode_return\n")  # the mean per agent, as SB3's monitor reports it
-        handle.writelines(f"{s},{r}\n" for s, r in history)
+    # the mean return per agent, as SB3's monitor reports it
+    rows = "".join(f"{steps},{value}\n" for steps, value in history)
+    write_text(out_dir / "learning_curve.csv", "agent_steps,episode_return\n" + rows)
     algorithm.stop()
     if not args.address:
         ray.shutdown()
