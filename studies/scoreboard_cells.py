@@ -28,6 +28,7 @@ started by other code or for another definition of its method is trained again, 
 
 from __future__ import annotations
 
+import errno
 import functools
 import hashlib
 import importlib.util
@@ -36,7 +37,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import ee_formation_env
-from ee_formation_env.baselines.atomic_files import make_folder, write_text
+from ee_formation_env.baselines.atomic_files import WriteRefused, make_folder, write_text
 
 #: The layout of a cell record: raised when aggregation reads a field differently (2: the precision metrics,
 #: and a protocol holding every board setting that decides a cell's numbers).
@@ -158,22 +159,24 @@ def write_cell(path: Path, record: Mapping[str, Any], protocol: Mapping[str, Any
 
 
 def check_cell_path(path: Path) -> None:
-    """``ValueError`` naming ``path`` if a cell cannot be written there (a folder, or a file on its way, stands
-    there): said before the cell is computed, not after."""
+    """A :class:`~ee_formation_env.baselines.atomic_files.WriteRefused` (an ``OSError``) naming ``path`` if a cell
+    cannot be written there (a folder, or a file on its way, stands there): said before the cell is computed, not
+    after, and reported by the board like any refused write."""
     path = Path(path)
     if path.is_dir() and not path.is_symlink():
-        raise ValueError(f"cell: {path} is a folder, where the cell's file goes: move it away, then run again")
+        raise WriteRefused(path, errno.EISDIR, "a folder stands where the cell's file goes: move it away, then run "
+                           "again")
     blocking = next((parent for parent in path.parents if parent.exists() and not parent.is_dir()), None)
     if blocking is not None:
-        raise ValueError(f"cell: cannot write {path}: {blocking} is a file, where a folder is expected: move it "
-                         "away, then run again")
+        raise WriteRefused(path, errno.ENOTDIR, f"{blocking} is a file, where a folder is expected: move it away, "
+                           "then run again")
 
 
 def cached_record(path: Path, label: str, protocol: Mapping[str, Any], progress: Callable[[str], None],
                   accept_stale: bool = False) -> dict[str, Any] | None:
     """The cell at ``path`` if it is this code's result (or stale, with ``accept_stale``), else None: the cell
     is to be computed. A corrupt file, or a stale one (:func:`stale_reason`), is reported in one line naming it; a
-    path no cell can be written to is a ``ValueError`` (:func:`check_cell_path`)."""
+    path no cell can be written to is refused first (:func:`check_cell_path`)."""
     check_cell_path(path)
     if path.is_file():
         record, problem = read_cell(path)

@@ -286,7 +286,7 @@ def test_shipped_robots_start_away_from_singularities_when_no_initial_q_is_given
     env.reset(seed=0)
     # A singular initial_q given explicitly: the error suggests a concrete bent-elbow initial_q.
     data["arms"][2]["initial_q"] = [0.0, 0.0]
-    _refused(ValueError, r"^arms\[2\]\.initial_q: .* singularity.* initial_q: \[0\.0, 1\.0471975511965976\]",
+    _refused(ValueError, r"^arms\[2\]\.initial_q: .* singularity.* initial_q: \[0\.0, 1\.0472\] \(the robot's default start\)",
              lambda: ee_formation_env.parallel_env(data))
     # The built-ins give theirs: unchanged.
     assert all(arm.initial_q is not None for name in BUILTIN_SCENARIOS for arm in load_scenario(name).arms)

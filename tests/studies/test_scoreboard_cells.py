@@ -122,12 +122,13 @@ def test_a_folder_where_a_cell_goes_is_one_line_naming_it_before_the_cell_is_com
     path = tmp_path / "cells" / "cell.json"
     path.mkdir(parents=True)
     computed = []
-    with pytest.raises(ValueError) as refused:
+    with pytest.raises(OSError) as refused:
         cells.cached_cell(path, "cell", PROTOCOL, lambda: computed.append(1) or _complete(), lambda line: None)
-    assert str(refused.value) == f"cell: {path} is a folder, where the cell's file goes: move it away, then run again"
+    assert str(refused.value) == (f"cannot write {path} (a folder stands where the cell's file goes: move it away, "
+                                  "then run again)") and refused.value.filename == str(path)
     assert not computed
     (tmp_path / "blocked").write_text("a file")
-    with pytest.raises(ValueError, match=f"cell: cannot write .*: {tmp_path / 'blocked'} is a file, where a folder"):
+    with pytest.raises(OSError, match=f"cannot write .* \\({tmp_path / 'blocked'} is a file, where a folder"):
         cells.cached_cell(tmp_path / "blocked" / "cell.json", "cell", PROTOCOL, _complete, lambda line: None)
 
 
