@@ -151,6 +151,7 @@ def _smaller(row: dict[str, Any], committed: dict[str, Any]) -> bool:
 
 
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "scoreboard.md"
+DOCS_TABLES_PAGE = DOCS_PAGE.parent / "scoreboard-tables.md"  # every row per scenario and split (generated only)
 DOCS_JSON = DOCS_PAGE.parent / "results" / "scoreboard.json"
 DOCS_FIGURE = DOCS_PAGE.parent / "figures" / "scoreboard_team_size.png"  # the team-size split's success vs N
 DOCS_PARETO = DOCS_PAGE.parent / "figures" / "scoreboard_pareto.png"  # per task: time to the 1 mm band vs energy
@@ -236,12 +237,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.docs:  # merged into the committed board: its other rows' cells may be on another machine
         committed = json.loads(DOCS_JSON.read_text(encoding="utf-8"))["rows"] if DOCS_JSON.is_file() else []
         merged = merged_rows(committed, board_rows, args.replace_smaller)
-        write_outputs(merged, DOCS_JSON, generated_page=DOCS_PAGE)
+        write_outputs(merged, DOCS_JSON, generated_pages=(DOCS_PAGE, DOCS_TABLES_PAGE))
         archive_cells(board_cells, out / "cells", DOCS_CELLS)
         figures += [team_size_figure(merged, DOCS_FIGURE), pareto_figure(merged, DOCS_PARETO)]
     print(format_board(board_rows))
     written = ([out / "scoreboard.json", out / "scoreboard.md"]
-               + ([DOCS_JSON, DOCS_PAGE, DOCS_CELLS] if args.docs else [])
+               + ([DOCS_JSON, DOCS_PAGE, DOCS_TABLES_PAGE, DOCS_CELLS] if args.docs else [])
                + [figure for figure in figures if figure is not None])
     print(f"wrote {', '.join(map(str, written))}")
     if not_done:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -424,28 +425,45 @@ def team_size_figure(board_rows: Sequence[dict[str, Any]], path: Path) -> Path |
 
 
 def write_outputs(board_rows: Sequence[dict[str, Any]], json_path: Path, markdown_path: Path | None = None,
-                  generated_page: Path | None = None) -> None:
-    """``scoreboard.json`` (``{"rows": [...]}``), the markdown tables, and the generated block of a docs page."""
+                  generated_pages: Sequence[Path] = ()) -> None:
+    """``scoreboard.json`` (``{"rows": [...]}``), the markdown tables, and the generated blocks of the docs pages.
+
+    Each generated block (``headline``, ``headline-wide``, ``scoreboard``) is filled in whichever of
+    ``generated_pages`` holds it; a block none of them holds is a ``ValueError`` before any page is written.
+    """
+    blocks = {"scoreboard": format_board(board_rows), "headline": headline_table(board_rows),
+              "headline-wide": headline_table(board_rows, wide=True)}
+    pages = {page: page.read_text(encoding="utf-8") for page in generated_pages}
+    filled: set[str] = set()
+    for page, text in pages.items():
+        for block, content in blocks.items():
+            if _has_block(text, block):
+                pages[page] = text = _filled_block(text, block, content, page)
+                filled.add(block)
+    if pages and filled != set(blocks):
+        missing = "; ".join(f"no generated {block} block" for block in sorted(set(blocks) - filled))
+        raise ValueError(f"--docs: {missing} in {', '.join(map(str, pages))}")
     make_folder(json_path.parent)
     write_text(json_path, json.dumps({"rows": list(board_rows), "metrics": {k: {"title": t, "unit": u, "meaning": m}
                                                                           for k, t, u, m, _ in METRICS}},
                                      indent=1, default=float) + "\n")
-    table = format_board(board_rows)
     if markdown_path is not None:
-        write_text(markdown_path, table)
-    if generated_page is not None:
-        text = generated_page.read_text(encoding="utf-8")
-        for block, content in (("scoreboard", table), ("headline", headline_table(board_rows)),
-                               ("headline-wide", headline_table(board_rows, wide=True))):
-            text = _filled_block(text, block, content, generated_page)
-        write_text(generated_page, text)
+        write_text(markdown_path, blocks["scoreboard"])
+    for page, text in pages.items():
+        write_text(page, text)
+
+
+def _block_pattern(block: str) -> str:
+    return rf"(<!-- generated: {block} -->\n)(.*?)(<!-- end generated -->)"
+
+
+def _has_block(text: str, block: str) -> bool:
+    return re.search(_block_pattern(block), text, re.S) is not None
 
 
 def _filled_block(text: str, block: str, content: str, page: Path) -> str:
     """``text`` with its ``<!-- generated: block -->`` ... ``<!-- end generated -->`` block holding ``content``."""
-    import re
-
-    pattern = rf"(<!-- generated: {block} -->\n)(.*?)(<!-- end generated -->)"
+    pattern = _block_pattern(block)
     if not re.search(pattern, text, re.S):
         raise ValueError(f"--docs: {page} has no generated {block} block")
     return re.sub(pattern, lambda m: m.group(1) + content.strip() + "\n" + m.group(3), text, count=1, flags=re.S)

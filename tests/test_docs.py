@@ -163,10 +163,13 @@ MAX_PAGE_LINES = 400
 #: Pages the limit does not hold for, each with the reason.
 LONG_PAGES = {
     "api.md": "generated from the docstrings by mkdocstrings",
-    "scoreboard.md": "the board's generated tables; its prose alone is held to the limit",
+    "scoreboard-tables.md": "only the board's generated tables (a few lines of prose, held below)",
 }
-#: The most lines docs/*.md may have in all (snippets expanded, generated tables included).
-MAX_DOCS_LINES = 4_520
+#: The most lines of prose (outside the generated blocks) a page of LONG_PAGES's generated tables may have.
+MAX_TABLES_PAGE_PROSE = 12
+#: The most lines docs/*.md may have in all (snippets expanded, the headline's generated tables included; the page of
+#: the board's per-scenario tables, data rather than prose, left out).
+MAX_DOCS_LINES = 3_980
 _SNIPPET = re.compile(r'^--8<-- "([^"]+)"$', re.M)
 _GENERATED_BLOCK = re.compile(r"<!-- generated: [\w-]+ -->\n.*?<!-- end generated -->", re.S)
 
@@ -181,7 +184,8 @@ def test_every_docs_page_stays_short():
     lines = {page.name: len(_rendered(page).splitlines()) for page in sorted(DOCS.glob("*.md"))}
     too_long = {name: count for name, count in lines.items() if count > MAX_PAGE_LINES and name not in LONG_PAGES}
     assert not too_long, f"pages over {MAX_PAGE_LINES} lines (move their history to studies/notes/): {too_long}"
-    prose = len(_GENERATED_BLOCK.sub("", _rendered(DOCS / "scoreboard.md")).splitlines())
-    assert prose <= MAX_PAGE_LINES, f"docs/scoreboard.md has {prose} lines outside its generated tables"
+    prose = len(_GENERATED_BLOCK.sub("", _rendered(DOCS / "scoreboard-tables.md")).splitlines())
+    assert prose <= MAX_TABLES_PAGE_PROSE, f"docs/scoreboard-tables.md has {prose} lines outside its generated tables"
     assert set(LONG_PAGES) <= set(lines), "LONG_PAGES names a page that does not exist"
-    assert sum(lines.values()) <= MAX_DOCS_LINES, f"docs/*.md have {sum(lines.values())} lines in all"
+    total = sum(count for name, count in lines.items() if name != "scoreboard-tables.md")
+    assert total <= MAX_DOCS_LINES, f"docs/*.md have {total} lines in all (scoreboard-tables.md left out)"

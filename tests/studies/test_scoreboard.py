@@ -81,8 +81,9 @@ def test_committed_board_matches_its_page():
         pytest.skip("no committed scoreboard yet")
     rows = json.loads(scoreboard.DOCS_JSON.read_text(encoding="utf-8"))["rows"]
     page = scoreboard.DOCS_PAGE.read_text(encoding="utf-8")
-    assert scoreboard.format_board(rows).strip() in page
     assert scoreboard_rows.headline_table(rows).strip() in page
+    assert scoreboard_rows.headline_table(rows, wide=True).strip() in page
+    assert scoreboard.format_board(rows).strip() in scoreboard.DOCS_TABLES_PAGE.read_text(encoding="utf-8")
 
 
 def test_the_archived_cells_are_the_committed_rows_cells():
@@ -269,14 +270,31 @@ def test_a_page_without_the_headline_block_is_refused(tmp_path):
     page = tmp_path / "page.md"
     page.write_text("<!-- generated: scoreboard -->\n<!-- end generated -->\n", encoding="utf-8")
     with pytest.raises(ValueError, match="no generated headline block"):
-        scoreboard_rows.write_outputs([], tmp_path / "board.json", generated_page=page)
+        scoreboard_rows.write_outputs([], tmp_path / "board.json", generated_pages=[page])
     page.write_text("<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n<!-- generated: headline -->\n"
                     "<!-- end generated -->\n<!-- generated: headline-wide -->\n<!-- end generated -->\nkept\n",
                     encoding="utf-8")
-    scoreboard_rows.write_outputs([], tmp_path / "board.json", generated_page=page)
+    scoreboard_rows.write_outputs([], tmp_path / "board.json", generated_pages=[page])
     text = page.read_text(encoding="utf-8")
     assert "old" not in text and text.endswith("<!-- end generated -->\nkept\n")
     assert text.count("<!-- end generated -->") == 3 and "beats the best tuned law on 0 of 0 tasks" in text
+
+
+def test_the_generated_blocks_are_filled_in_whichever_page_holds_them_and_a_missing_one_writes_nothing(tmp_path):
+    headline, tables = tmp_path / "scoreboard.md", tmp_path / "scoreboard-tables.md"
+    headline.write_text("# Board\n<!-- generated: headline -->\nold\n<!-- end generated -->\n"
+                        "<!-- generated: headline-wide -->\nold\n<!-- end generated -->\n", encoding="utf-8")
+    tables.write_text("# Tables\n", encoding="utf-8")
+    board = tmp_path / "board.json"
+    with pytest.raises(ValueError, match="generated scoreboard block"):
+        scoreboard_rows.write_outputs([], board, generated_pages=[headline, tables])
+    assert not board.exists() and "old" in headline.read_text(encoding="utf-8")  # refused before any write
+    tables.write_text("# Tables\n<!-- generated: scoreboard -->\nold\n<!-- end generated -->\nkept\n",
+                      encoding="utf-8")
+    scoreboard_rows.write_outputs([], board, generated_pages=[headline, tables])
+    assert "old" not in headline.read_text(encoding="utf-8") + tables.read_text(encoding="utf-8")
+    assert "beats the best tuned law on 0 of 0 tasks" in headline.read_text(encoding="utf-8")
+    assert tables.read_text(encoding="utf-8").endswith("<!-- end generated -->\nkept\n") and board.is_file()
 
 
 @pytest.mark.parametrize("name", ["residual-ppo-invariant", "torque-ppo-invariant"])
@@ -369,6 +387,7 @@ def test_docs_keeps_the_committed_board_when_refused_and_replaces_it_with_replac
                                   "episodes": [_record("planar_square", "gradient", None, 1.0)["episodes"][0]] * 2}])
     board.write_text(json.dumps({"rows": committed}))
     monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
+    monkeypatch.setattr(scoreboard, "DOCS_TABLES_PAGE", page)  # one page holding every block
     monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
     monkeypatch.setattr(scoreboard, "DOCS_CELLS", tmp_path / "cells-archive")
     monkeypatch.setattr(scoreboard_methods, "run_cell", lambda *args: _record("planar_square", "gradient", None, 3.0))
@@ -393,6 +412,7 @@ def test_docs_archives_the_cells_behind_its_rows_and_a_row_gains_seeds_from_the_
                     "<!-- generated: headline-wide -->\n<!-- end generated -->\n\n"
                     "<!-- generated: scoreboard -->\nold\n<!-- end generated -->\n")
     monkeypatch.setattr(scoreboard, "DOCS_PAGE", page)
+    monkeypatch.setattr(scoreboard, "DOCS_TABLES_PAGE", page)  # one page holding every block
     monkeypatch.setattr(scoreboard, "DOCS_JSON", board)
     monkeypatch.setattr(scoreboard, "DOCS_CELLS", archive)
     trained = []
