@@ -41,6 +41,8 @@ from typing import Any, Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 
+from ee_formation_env.baselines.atomic_files import write_text
+
 FORMAT_VERSION = 1
 STEP_PREFIX = "step_"
 CHECKSUMS = "SHA256SUMS"  # sha256sum's own format: "<hex>  <name>" per line
@@ -109,16 +111,9 @@ def atomic_directory(target: Path) -> Iterator[Path]:
 
 
 def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as JSON into ``path`` through a temporary file renamed into place (removed if the write
-    fails: nothing half-written is left under either name)."""
-    path = Path(path)
-    temporary = path.with_name(f".{path.name}.partial")
-    try:
-        temporary.write_text(json.dumps(data, indent=2, default=_plain))
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    """Write ``data`` as JSON into ``path`` whole or not at all (:func:`~ee_formation_env.baselines.atomic_files.
+    write_text`: a refused write is a ``WriteRefused`` naming ``path``)."""
+    write_text(path, json.dumps(data, indent=2, default=_plain))
 
 
 # ------------------------------------------------------------------------------------------ checksums
@@ -133,14 +128,7 @@ def sha256(path: Path) -> str:
 def write_checksums(folder: Path, names: Iterable[str]) -> None:
     """``folder/SHA256SUMS``: the sha256 of each file ``names`` (relative to ``folder``), as ``sha256sum``
     writes them."""
-    lines = "".join(f"{sha256(Path(folder) / name)}  {name}\n" for name in sorted(names))
-    temporary = Path(folder) / f".{CHECKSUMS}.partial"
-    try:
-        temporary.write_text(lines, encoding="utf-8")
-        os.replace(temporary, Path(folder) / CHECKSUMS)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+    write_text(Path(folder) / CHECKSUMS, "".join(f"{sha256(Path(folder) / name)}  {name}\n" for name in sorted(names)))
 
 
 def read_checksums(folder: Path) -> dict[str, str] | None:
