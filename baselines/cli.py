@@ -5,19 +5,15 @@
   metrics table;
 - ``validate SCENARIO``: run every check the env runs on a scenario (:func:`ee_formation_env.validate_scenario`),
   without stepping physics: one ``OK`` line and exit status 0, or the error and exit status 2;
-- ``reproduce``, ``robustness``, ``random-scenarios``, ``sensing``, ``manoeuvres``, ``scoreboard``, ``team-size``: the studies (``python -m studies.<name>``), which run
-  from the repository root of a checkout (they are not part of the installed package): the command runs the
-  study in a child Python process whose working directory is the checkout, so that ``studies`` imports from
-  there as it does for ``python -m``; this process's import path is left as it is.
+
+The lab's studies, gain tuning and scoreboard are not part of the installed library: they run from the root of a
+checkout as ``python -m studies COMMAND`` (``studies/__main__.py``).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import subprocess
 import sys
-from pathlib import Path
 from typing import Callable, Sequence
 
 import ee_formation_env
@@ -73,57 +69,16 @@ def _validate(argv: Sequence[str]) -> int:
     return report_errors(run, args.debug)
 
 
-#: The child process of a study command: ``python -c`` puts its working directory, the checkout, first on
-#: the import path, where ``studies`` is found.
-_STUDY_PROCESS = ("import sys\n"
-                  "from ee_formation_env.baselines.cli import run_study_here\n"
-                  "sys.exit(run_study_here(sys.argv[1], sys.argv[2:]))\n")
-
-
-def run_study_here(module: str, argv: Sequence[str]) -> int:
-    """Run ``studies.<module>`` in this process, whose working directory is a checkout (the child process of a
-    study command); bad input is reported as by every command (:func:`report_errors`)."""
-    def run() -> int:
-        importlib.import_module(f"studies.{module}").main(list(argv))  # returns its results; they are written
-        return 0
-
-    return report_errors(run, "--debug" in argv)
-
-
-def _study(module: str) -> Callable[[Sequence[str]], int]:
-    def run(argv: Sequence[str]) -> int:
-        checkout = Path.cwd()
-        if not (checkout / "studies" / f"{module}.py").is_file() or not (checkout / "ee_formation_env").is_dir():
-            raise ValueError(f"{module.replace('_', '-')}: the study runs from the root of a checkout of the "
-                             f"repository (it is not installed): cd there and run it again, or `python -m "
-                             f"studies.{module}`")
-        return subprocess.run([sys.executable, "-c", _STUDY_PROCESS, module, *argv], cwd=checkout).returncode
-
-    return lambda argv: report_errors(lambda: run(argv), "--debug" in argv)
-
-
 COMMANDS: dict[str, tuple[str, Callable[[Sequence[str]], int]]] = {
     "train": ("train a shared policy (residual or torque mode) and compare it with the references",
               lambda argv: train_command(argv, prog="ee-formation train")),
     "evaluate": ("evaluate reference policies or a trained run on seeded episodes: the metrics table", _evaluate),
     "validate": ("run every check the env runs on a scenario, without stepping physics", _validate),
-    "reproduce": ("the paper's figures from the three laws (checkout only)", _study("reproduce")),
-    "robustness": ("the laws under model mismatch, stalls and windup (checkout only)", _study("robustness")),
-    "random-scenarios": ("the laws on random planar and spatial scenarios (checkout only)",
-                         _study("random_scenarios")),
-    "sensing": ("the laws against noisy, delayed, biased and misaligned measurements (checkout only)",
-                _study("sensing")),
-    "manoeuvres": ("the laws carrying and turning a formation: shape and tracking errors (checkout only)",
-                   _study("manoeuvres")),
-    "scoreboard": ("every built-in scenario x method over training seeds, with intervals (checkout only)",
-                   _study("scoreboard")),
-    "team-size": ("one set policy trained on 4 arms, zero-shot on teams of 3 to 8 (checkout only)",
-                  _study("team_size")),
 }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="ee-formation", description="Formation control of manipulator end-effectors: train, evaluate and study policies.")
+    parser = argparse.ArgumentParser(prog="ee-formation", description="Formation control of manipulator end-effectors: train and evaluate policies, validate scenarios. The lab's studies run from a checkout: python -m studies --help.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {ee_formation_env.__version__}",
                         help="print the version of ee-formation-env and exit")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)

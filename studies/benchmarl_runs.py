@@ -373,7 +373,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
     parser = argparse.ArgumentParser(prog="python -m studies.benchmarl_runs", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS)
+    parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS, help="the MARL algorithm (default mappo)")
     parser.add_argument("--scenario", default="planar_square", help="built-in scenario")
     from ee_formation_env.baselines.learned.modes import mode_names
 

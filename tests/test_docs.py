@@ -189,3 +189,20 @@ def test_every_docs_page_stays_short():
     assert set(LONG_PAGES) <= set(lines), "LONG_PAGES names a page that does not exist"
     total = sum(count for name, count in lines.items() if name != "scoreboard-tables.md")
     assert total <= MAX_DOCS_LINES, f"docs/*.md have {total} lines in all (scoreboard-tables.md left out)"
+
+
+def test_the_command_tables_list_exactly_the_commands_that_exist():
+    """getting-started.md lists the installed command's subcommands and the lab's, each once, as the parsers have them."""
+    from ee_formation_env.baselines.cli import COMMANDS as LIBRARY_COMMANDS
+    from studies.__main__ import COMMANDS as LAB_COMMANDS
+
+    text = (DOCS / "getting-started.md").read_text(encoding="utf-8")
+    library_table = text[text.index("| command | same as | what |"):].split("\n\n")[0]
+    library = re.findall(r"^\| `ee-formation (\w+)", library_table, re.M)
+    assert sorted(library) == sorted(LIBRARY_COMMANDS)
+    lab_table = text[text.index("| lab command | what |"):].split("\n\n")[0]
+    lab = [name for cell in re.findall(r"^\| (`[^|]+`) \|", lab_table, re.M) for name in re.findall(r"`([\w-]+)`", cell)]
+    assert sorted(lab) == sorted(LAB_COMMANDS)
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    stale = [name for name in LAB_COMMANDS if f"ee-formation {name}" in readme + text]
+    assert not stale, f"lab commands written as ee-formation commands: {stale}"
