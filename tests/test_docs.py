@@ -130,15 +130,6 @@ def test_every_page_is_in_the_navigation():
         assert f": {page.name}" in nav, f"docs/{page.name} is not in mkdocs.yml's nav"
 
 
-def test_api_page_lists_every_deprecated_path():
-    """Each deprecated alias module (a ``forward`` of ``_deprecated``) is on the API page with its new home."""
-    api = (DOCS / "api.md").read_text(encoding="utf-8")
-    for module in (ROOT / "ee_formation_env").glob("*.py"):
-        match = re.search(r'forward\(__name__, "([\w.]+)"\)', module.read_text(encoding="utf-8"))
-        if match:
-            assert f"| `ee_formation_env.{module.stem}` | `{match.group(1)}` |" in api, module.name
-
-
 def test_the_api_reference_shows_field_defaults_as_values_not_private_helper_calls():
     """mkdocstrings renders a dataclass field's default from its source: the docs' griffe extension turns
     ``_key("distance", ...)`` (and ``_option``) into the value, so no signature shows a private call."""

@@ -6,7 +6,6 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
-import warnings
 from pathlib import Path
 
 import pytest
@@ -108,24 +107,14 @@ def test_no_import_circle_among_modules():
             visit(name, [name])
 
 
-@pytest.mark.parametrize("old, new, name, framework", [
-    ("ee_formation_env.sb3", "ee_formation_env.integrations.sb3", "SharedPolicyVecEnv", "stable_baselines3"),
-    ("ee_formation_env.centralized", "ee_formation_env.integrations.centralized", "CentralizedFormationEnv",
-     "gymnasium"),
-    ("ee_formation_env.torchrl_env", "ee_formation_env.integrations.torchrl", "group_map", "torchrl"),
-    ("ee_formation_env.benchmarl_task", "ee_formation_env.integrations.benchmarl", "__doc__", "benchmarl"),
-])
-def test_old_import_paths_warn_and_give_the_same_objects(old, new, name, framework):
+@pytest.mark.parametrize("old", ["ee_formation_env.sb3", "ee_formation_env.centralized",
+                                 "ee_formation_env.torchrl_env", "ee_formation_env.benchmarl_task"])
+def test_the_removed_alias_modules_are_gone(old):
+    """The integrations live in ee_formation_env.integrations only (their aliases never reached a release)."""
     import importlib
 
-    pytest.importorskip(framework)
-    sys.modules.pop(old, None)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        module = importlib.import_module(old)
-    assert any(issubclass(w.category, DeprecationWarning) and new in str(w.message) for w in caught)
-    if name != "__doc__":
-        assert getattr(module, name) is getattr(importlib.import_module(new), name)
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module(old)
 
 
 _NO_TOP_LEVEL_BASELINES = """

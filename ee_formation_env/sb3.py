@@ -1,5 +1,0 @@
-"""Deprecated alias of :mod:`ee_formation_env.integrations.sb3` (kept until 2027-06-01, removed in version 0.3)."""
-
-from ee_formation_env._deprecated import forward
-
-__getattr__ = forward(__name__, "ee_formation_env.integrations.sb3")
