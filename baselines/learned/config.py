@@ -4,8 +4,8 @@ A :class:`TrainConfig` holds every setting of a run (``python train.py`` / ``ee-
 one flag, ``--n-envs`` for ``n_envs``): its own (scenario, budget, rollout layout, evaluation, output) and, nested as
 its field ``options``, the training options (mode, features, shaping, action scale), which
 :class:`~ee_formation_env.baselines.learned.options.TrainingOptions` declares and checks. Each setting is declared
-in one of them; :meth:`TrainConfig.settings` lists them flat, as the flags and ``config.json`` name them
-(:mod:`~ee_formation_env.baselines.learned.settings`). Fields left ``None`` take
+in one of them; :meth:`TrainConfig.settings` lists them flat, as the flags, ``config.json``, ``--config FILE`` and
+``--set key=value`` name them (:mod:`~ee_formation_env.baselines.learned.settings`). Fields left ``None`` take
 their training mode's preset (:data:`PRESETS`, each registered mode's ``preset``) when :meth:`TrainConfig.resolved`
 fills and checks them; a resolved configuration is what a run saves in its ``config.json`` and what
 :meth:`TrainConfig.from_dict` reads back. The training design behind the presets (episode length, start noise, PPO
@@ -18,6 +18,7 @@ import argparse
 import dataclasses
 import json
 import math
+import re
 import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -29,7 +30,8 @@ from ee_formation_env.baselines.learned.imitation import (IMITATION_EPISODES, IM
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
 from ee_formation_env.baselines.learned.options import PRESET_FIELDS, TrainingOptions
 from ee_formation_env.baselines.learned.recipes import RECIPE_CHOICES, recipe_for
-from ee_formation_env.baselines.learned.settings import Setting, agent_steps, flag_of
+from ee_formation_env.baselines.learned.settings import (Setting, agent_steps, flag_of, parse_assignment,
+                                                        read_settings_file)
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
 
@@ -368,13 +370,19 @@ class TrainConfig:
     # ------------------------------------------------------------------------------------------ the CLI
     @classmethod
     def add_arguments(cls, parser: argparse.ArgumentParser, defaults: bool = True) -> None:
-        """One flag per setting (``--n-envs`` for ``n_envs``), with its help, type and choices; with ``defaults``
-        False a flag not given takes the parser's ``argument_default``."""
+        """One flag per setting (``--n-envs`` for ``n_envs``), with its help, type and choices, and ``--config``
+        and ``--set``, which read settings from a file or one ``key=value``; with ``defaults`` False a flag not
+        given takes the parser's ``argument_default``."""
         for setting in cls.settings():
             kwargs = dict(setting.flag)
             if defaults and kwargs.get("action") != "store_true":
                 kwargs["default"] = setting.default
             parser.add_argument(flag_of(setting.name), **kwargs)
+        parser.add_argument("--config", metavar="FILE", help="a YAML or JSON file of settings, flat by name as a run's "
+                            "config.json writes them (n_envs: 8); a flag or --set given beside it wins")
+        parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="one setting by name, its value as "
+                            "its flag reads it (repeatable; null: its default); a flag given beside it wins, and it "
+                            "wins over --config")
 
     @classmethod
     def flags_table(cls) -> str:
@@ -402,10 +410,13 @@ class TrainConfig:
     #: Fields that ``--resume`` may set besides the evaluation fields: the budget (a new one, not below the agent
     #: steps done: a finished run is extended).
     RESUME_FIELDS = ("total_timesteps",)
+    #: The flags that say where settings come from rather than set one (:meth:`add_arguments`).
+    SOURCE_FLAGS = ("config", "set")
 
     def with_recipe(self, given: Collection[str]) -> "TrainConfig":
         """This configuration with its scenario's recipe (:mod:`~ee_formation_env.baselines.learned.recipes`)
-        for every setting not in ``given`` (those the command line set); itself where no recipe applies."""
+        for every setting not in ``given`` (those the command line, --set or --config set); itself where no
+        recipe applies."""
         recipe = recipe_for(self.scenario) if self.recipe == "board" else None
         if recipe is None or ("mode" in given and self.options.mode != recipe.mode):
             return self
@@ -428,18 +439,30 @@ class TrainConfig:
         """The settings ``argv``'s flags set (parsed as :meth:`from_args` parses it, defaults left out)."""
         parser = argparse.ArgumentParser(argument_default=argparse.SUPPRESS, add_help=False)
         cls.add_arguments(parser, defaults=False)
-        return set(vars(parser.parse_known_args(argv)[0]))
+        return set(vars(parser.parse_known_args(argv)[0])) - set(cls.SOURCE_FLAGS)
 
     @classmethod
     def from_args(cls, argv: Sequence[str] | None = None, prog: str = "train.py",
                   description: str | None = None) -> "TrainConfig":
-        """Parse command-line flags into a resolved configuration; a bad value is a parser error naming its flag."""
+        """Parse command-line flags into a resolved configuration; a bad value is a parser error naming its flag
+        (and the ``--config`` file or ``--set`` it came from). A flag wins over ``--set``, which wins over
+        ``--config``, which wins over the recipe and the mode's preset."""
         parser = cls.parser(prog, description)
-        values = vars(parser.parse_args(argv))
+        namespace = vars(parser.parse_args(argv))
+        path, assignments = namespace.pop("config"), namespace.pop("set") or []
+        sources: dict[str, str] = {}  # setting -> the --config file or --set that gave its value
         try:
+            given, settings = cls._given(argv), {setting.name: setting for setting in cls.settings()}
+            written = read_settings_file(path, settings) if path is not None else {}
+            sources.update((name, f"--config {path}") for name in written)
+            for text in assignments:  # in order: a later --set of a name wins
+                name, value = parse_assignment(text, settings)
+                written[name], sources[name] = value, f"--set {text}"
+            sources = {name: source for name, source in sources.items() if name not in given}
+            values = {**namespace, **{name: written[name] for name in sources}}
             config = cls().with_settings(values)
             if not (config.resume or config.eval_only):
-                config = config.with_recipe(cls._given(argv))
+                config = config.with_recipe(given | set(sources))
             if config.resume or config.eval_only:  # the saved run's settings decide; only evaluation flags may change
                 defaults = vars(parser.parse_args([]))
                 allowed = (*cls.UNSAVED_FIELDS, *cls.EVALUATION_FIELDS, *(cls.RESUME_FIELDS if config.resume else ()))
@@ -450,5 +473,13 @@ class TrainConfig:
                                      + ", ".join(flag_of(name) for name in changed))
             return config.resolved()
         except ValueError as error:
-            parser.error(str(error))
+            parser.error(_with_source(str(error), sources))
             raise  # parser.error exits; this line is never reached
+
+
+def _with_source(message: str, sources: Mapping[str, str]) -> str:
+    """``message`` (starting with the flag it is about) prefixed with the ``--config`` file or ``--set`` that
+    gave that setting its value, if one did."""
+    match = re.match(r"--([a-z0-9-]+)", message)
+    name = match.group(1).replace("-", "_") if match else None
+    return f"{sources[name]}: {message}" if name in sources else message
