@@ -221,8 +221,8 @@ def bench_training(budget: Budget, extra_args: Sequence[str] = ()) -> list[dict[
     layout = (f"{args.n_envs} envs in-process" if not args.n_workers else
               f"{args.n_envs} envs: {args.in_process_envs} in-process, the others in {args.n_workers} worker "
               f"process{'es' if args.n_workers > 1 else ''}")
-    return [{"section": "sb3_training", "case": f"train.py ({description}): {args.mode} mode, {layout}",
-             "scenario": args.scenario, "mode": args.mode, "n_envs": args.n_envs, "n_workers": args.n_workers,
+    return [{"section": "sb3_training", "case": f"train.py ({description}): {args.options.mode} mode, {layout}",
+             "scenario": args.scenario, "mode": args.options.mode, "n_envs": args.n_envs, "n_workers": args.n_workers,
              "in_process_envs": args.in_process_envs, "extra_args": list(extra_args),
              "agent_steps": agent_steps, "seconds": times, "agent_steps_per_s": agent_steps / min(times),
              "rollout_ms_per_update": 1000 * splits[fastest][0], "update_ms_per_update": 1000 * splits[fastest][1],

@@ -282,7 +282,7 @@ def reference_returns(config: dict[str, Any], episodes: int = REFERENCE_CURVE_EP
 
     In residual mode the reference alone is the learner's zero correction, whose return is the same.
     """
-    overrides = TrainConfig.from_dict(config).training_options().episode_overrides()  # the laws' raw torques
+    overrides = TrainConfig.from_dict(config).options.episode_overrides()  # the laws' raw torques
     seeds = [EVAL_SEED_OFFSET + 5_000 + k for k in range(episodes)]
     runs = run_policies(saved_scenario(config), dict(zip(baselines.POLICIES, baselines.POLICIES)), seeds,
                         overrides=overrides)

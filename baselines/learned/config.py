@@ -1,12 +1,15 @@
-"""The configuration of a training run: one typed object, the CLI flags derived from it.
+"""The configuration of a training run: one tree of typed objects, the CLI flags derived from it.
 
-A :class:`TrainConfig` holds every setting of a run (``python train.py`` / ``ee-formation train``: each field is
-one flag, ``--n-envs`` for ``n_envs``). The training options among them (mode, features, shaping, action
-scale) are :class:`~ee_formation_env.baselines.learned.options.TrainingOptions`' fields, with its defaults and
-meanings; :meth:`TrainConfig.training_options` hands them on. Fields left ``None`` take their training mode's
-preset (:data:`PRESETS`, each registered mode's ``preset``) when :meth:`TrainConfig.resolved` fills and checks them; a resolved configuration is what a
-run saves in its ``config.json`` and what :meth:`TrainConfig.from_dict` reads back. The training design
-behind the presets (episode length, start noise, PPO settings, rollout layout) is in docs/training.md.
+A :class:`TrainConfig` holds every setting of a run (``python train.py`` / ``ee-formation train``: each setting is
+one flag, ``--n-envs`` for ``n_envs``): its own (scenario, budget, rollout layout, evaluation, output) and, nested as
+its field ``options``, the training options (mode, features, shaping, action scale), which
+:class:`~ee_formation_env.baselines.learned.options.TrainingOptions` declares and checks. Each setting is declared
+in one of them; :meth:`TrainConfig.settings` lists them flat, as the flags, ``config.json``, ``--config FILE`` and
+``--set key=value`` name them (:mod:`~ee_formation_env.baselines.learned.settings`). Fields left ``None`` take
+their training mode's preset (:data:`PRESETS`, each registered mode's ``preset``) when :meth:`TrainConfig.resolved`
+fills and checks them; a resolved configuration is what a run saves in its ``config.json`` and what
+:meth:`TrainConfig.from_dict` reads back. The training design behind the presets (episode length, start noise, PPO
+settings, rollout layout) is in docs/training.md.
 """
 
 from __future__ import annotations
@@ -15,18 +18,20 @@ import argparse
 import dataclasses
 import json
 import math
+import re
+import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Collection, Iterator, Mapping, Sequence
 
 from ee_formation_env.baselines import MODEL_BASED_POLICIES
-from ee_formation_env.baselines.learned.features import FEATURE_SETS
 from ee_formation_env.baselines.learned.imitation import (IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS,
                                                          reference_features)
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
 from ee_formation_env.baselines.learned.options import PRESET_FIELDS, TrainingOptions
 from ee_formation_env.baselines.learned.recipes import RECIPE_CHOICES, recipe_for
-from ee_formation_env.baselines.learned.set_network import POLICY_NETWORKS
+from ee_formation_env.baselines.learned.settings import (Setting, agent_steps, flag_of, parse_assignment,
+                                                        read_settings_file)
 from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
 
@@ -55,62 +60,46 @@ def _preset_text(name: str) -> str:
     return ", ".join(f"{mode}: {getattr(preset, name)}" for mode, preset in PRESETS.items())
 
 
-def agent_steps(text: str) -> int:
-    """A budget as written on the command line: an integer, or an integer-valued ``1e5``, ``600k``, ``5M``
-    (``argparse``'s ``ValueError`` for anything else, which names the flag)."""
-    import math
-
-    cleaned = str(text).strip().replace("_", "")
-    if cleaned.isdigit():  # exactly, not through a float (9007199254740993 stays itself)
-        return int(cleaned)
-    scale = {"k": 1_000, "m": 1_000_000}.get(cleaned[-1:].lower(), 1)
-    number = float(cleaned[:-1] if scale != 1 else cleaned)
-    value = number * scale
-    if not math.isfinite(value) or value != int(value):
-        raise ValueError(f"not a whole number of agent steps: {text!r}")
-    return int(value)
-
-
-agent_steps.__name__ = "agent steps"  # argparse names the type in its message
-
-
 def _flag(help: str, default: Any = None, **argparse_kwargs: Any) -> Any:
     """A field that is also a command-line flag: its help and any argparse keywords travel in its metadata."""
     return field(default=default, metadata={"help": help, **argparse_kwargs})
 
 
-def _option_flag(name: str, **argparse_kwargs: Any) -> Any:
-    """The flag of the training option ``name``: its default and meaning are :class:`TrainingOptions`'
-    (one owner), its unit and, for an option a mode's preset fills (``PRESET_FIELDS``), the presets' values added
-    to the help."""
-    spec = TrainingOptions.__dataclass_fields__[name]
+def _option_setting(spec: dataclasses.Field, kind: Any) -> Setting:
+    """The setting of the training option ``spec`` (of type ``kind``): its default, meaning and choices are
+    :class:`TrainingOptions`' (its one owner); its flag adds the unit and, for an option a mode's preset fills
+    (``PRESET_FIELDS``), the presets' values to the help."""
     help = spec.metadata["meaning"] + (f", {spec.metadata['unit']}" if spec.metadata["unit"] else "")
-    if name in PRESET_FIELDS:
-        help += f" (default {_preset_text(name)})"
-    return _flag(help, spec.default, **argparse_kwargs)
+    if spec.name in PRESET_FIELDS:
+        help += f" (default {_preset_text(spec.name)})"
+    flag: dict[str, Any] = {"help": help}
+    if kind is bool:
+        flag["action"] = argparse.BooleanOptionalAction
+    elif kind in (int, float):
+        flag["type"] = kind
+    if spec.metadata["choices"]:
+        flag["choices"] = spec.metadata["choices"]
+    return Setting(spec.name, TrainingOptions, spec.default, flag)
+
+
+def _flag_error(error: Exception) -> ValueError:
+    """An owner's ``field: message`` error as the command line names it: ``--field: message``."""
+    name, _, rest = str(error).partition(": ")
+    return ValueError(f"{flag_of(name)}: {rest}")
 
 
 @dataclass
 class TrainConfig:
-    """Every setting of a training run; ``None`` fields take the mode's preset (:meth:`resolved`)."""
+    """Every setting of a training run, the training options nested as ``options``; ``None`` fields take the
+    mode's preset (:meth:`resolved`)."""
 
     scenario: Any = _flag("built-in name or YAML/JSON scenario file", "planar_square")
     recipe: str = _flag("board: a built-in scenario's recipe (the learned method leading its scoreboard, "
                         "recipes.py) sets every training flag not given, unless --mode names another mode; none: "
                         "the flat defaults", "board", choices=RECIPE_CHOICES)
-    mode: str = _option_flag("mode")
-    reference: str = _option_flag("reference", choices=MODEL_BASED_POLICIES)
-    residual_scale: float = _option_flag("residual_scale", type=float)
-    action_acceleration: float = _option_flag("action_acceleration", type=float)
-    correction_penalty: float = _option_flag("correction_penalty", type=float)
-    residual_gate: bool = _option_flag("residual_gate", action=argparse.BooleanOptionalAction)
-    residual_gate_power: float = _option_flag("residual_gate_power", type=float)
-    gravity_compensation: bool = _option_flag("gravity_compensation", action=argparse.BooleanOptionalAction)
-    joint_speed: float = _option_flag("joint_speed", type=float)
-    velocity_gain: float = _option_flag("velocity_gain", type=float)
-    joint_reach: float = _option_flag("joint_reach", type=float)
-    position_gain: float = _option_flag("position_gain", type=float)
-    target_smoothing: float = _option_flag("target_smoothing", type=float)
+    #: The training options (mode, features, shaping, action scale): their own dataclass, which declares and
+    #: checks them; their flags sit here, in its field order (:meth:`settings`).
+    options: TrainingOptions = field(default_factory=TrainingOptions, metadata={"settings": TrainingOptions})
     imitate: str | None = _flag("torque mode: start the policy as a copy of this reference, learned from its "
                                 "demonstrations (DAgger) before PPO: a reference law "
                                 f"({', '.join(MODEL_BASED_POLICIES)}) or a run folder of the same scenario and env "
@@ -133,8 +122,6 @@ class TrainConfig:
     in_process_envs: int | None = _flag("with worker processes: how many of the envs the learner's process steps "
                                         "while the workers step the others (default "
                                         f"{_preset_text('in_process_envs')}; 0 without workers)", type=int)
-    train_episode_seconds: float | None = _option_flag("train_episode_seconds", type=float)
-    train_initial_q_noise: float | None = _option_flag("train_initial_q_noise", type=float)
     gamma: float | None = _flag(f"discount per control step (default {_preset_text('gamma')})", type=float)
     log_std_init: float | None = _flag("initial log standard deviation of the Gaussian policy (ppo; default "
                                        f"{_preset_text('log_std_init')})", type=float)
@@ -142,12 +129,6 @@ class TrainConfig:
                                  "step (the default); N >= 1 with generalized state-dependent exploration (gSDE): "
                                  "the noise is a function of the policy's features, its random matrix drawn anew "
                                  "every N control steps; -1: once per rollout", 0, type=int)
-    obs_features: str | None = _option_flag("obs_features", choices=FEATURE_SETS)
-    policy_network: str = _option_flag("policy_network", choices=POLICY_NETWORKS)
-    hold_penalty: float | None = _option_flag("hold_penalty", type=float)
-    contact_penalty: float = _option_flag("contact_penalty", type=float)
-    reward_error_ceiling: float | None = _option_flag("reward_error_ceiling", type=float)
-    reward_tracking: float | None = _option_flag("reward_tracking", type=float)
     max_train_seconds: float | None = _flag("stop training after this wall time, s, even if --total-timesteps is "
                                             "not reached (default: no limit)", type=float)
     max_fault_fraction: float | None = _flag("sb3: stop training with an error naming the fault when more than this "
@@ -176,11 +157,51 @@ class TrainConfig:
     no_progress: bool = _flag("no progress bars", False, action="store_true")
     debug: bool = _flag("on an error, show the traceback instead of one line", False, action="store_true")
 
+    # ------------------------------------------------------------------------------------------ the settings
+    @classmethod
+    def settings(cls) -> tuple[Setting, ...]:
+        """Every setting of a run, flat, in flag order: this class's own fields, with the fields of a nested
+        dataclass (``options``) in place of the field that holds it. Each is declared in exactly one of them."""
+        settings = []
+        for spec in fields(cls):
+            nested = spec.metadata.get("settings")
+            if nested is None:
+                settings.append(Setting(spec.name, cls, spec.default, dict(spec.metadata)))
+                continue
+            kinds = typing.get_type_hints(nested)
+            for option in fields(nested):
+                kind = kinds[option.name]
+                kind = next((k for k in typing.get_args(kind) if k is not type(None)), kind)  # Optional[x]: x
+                settings.append(_option_setting(option, kind))
+        return tuple(settings)
+
+    def values(self) -> dict[str, Any]:
+        """Every setting's value, flat by name (:meth:`settings`' order)."""
+        merged = {**{spec.name: getattr(self, spec.name) for spec in fields(self)},
+                  **{spec.name: getattr(self.options, spec.name) for spec in fields(self.options)}}
+        return {setting.name: merged[setting.name] for setting in self.settings()}
+
+    def with_settings(self, values: Mapping[str, Any]) -> "TrainConfig":
+        """A copy with the settings ``values`` (flat names, as the flags and config.json name them) replaced,
+        each in the dataclass that owns it. Raises ``ValueError`` naming an unknown name, or the flag of an
+        option its owner refuses (the options are checked together)."""
+        owners = {setting.name: setting.owner for setting in self.settings()}
+        unknown = [name for name in values if name not in owners]
+        if unknown:
+            raise ValueError(f"unknown setting(s) {', '.join(map(repr, unknown))}")
+        own = {name: value for name, value in values.items() if owners[name] is not TrainingOptions}
+        options = {name: value for name, value in values.items() if owners[name] is TrainingOptions}
+        try:
+            replaced = dataclasses.replace(self.options, **options) if options else self.options
+        except (TypeError, ValueError) as error:
+            raise _flag_error(error) from None
+        return dataclasses.replace(self, options=replaced, **own)
+
     # ------------------------------------------------------------------------------------------ presets
     @property
     def registered_mode(self) -> Any:
-        """The registered training mode of ``mode``."""
-        return training_mode(self.mode)
+        """The registered training mode of the options' ``mode``."""
+        return self.options.training_mode
 
     @property
     def preset(self) -> ModePreset:
@@ -196,11 +217,7 @@ class TrainConfig:
 
     def resolved(self) -> "TrainConfig":
         """A copy with every ``None`` field filled from the mode's preset, checked: raises ``ValueError``
-        naming the flag of the first setting out of range."""
-        try:
-            training_mode(self.mode)
-        except ValueError as error:
-            raise ValueError(f"--{error}") from None
+        naming the flag of the first setting out of range (the options checked themselves when made)."""
         config = dataclasses.replace(self)
         preset = config.preset
         if config.imitate is None:
@@ -208,14 +225,13 @@ class TrainConfig:
         imitating = config.imitate != "none"
         if config.total_timesteps is None and not config.resume:  # a resumed run keeps its saved budget unless given
             config.total_timesteps = IMITATION_TIMESTEPS if imitating else preset.total_timesteps
-        if config.obs_features is None:  # an imitated policy sees what its reference sees
-            config.obs_features = reference_features(config.imitate) if imitating else preset.obs_features
-        for name in ("train_episode_seconds", "gamma", "log_std_init", "hold_penalty", "n_envs", "n_steps",
-                     "n_workers", "max_fault_fraction", "fault_guard_start"):
+        if config.options.obs_features is None and imitating:  # an imitated policy sees what its reference sees
+            config = config.with_settings({"obs_features": reference_features(config.imitate)})
+        config.options = config.options.resolved()  # the options' preset fields (PRESET_FIELDS)
+        for name in ("gamma", "log_std_init", "n_envs", "n_steps", "n_workers", "max_fault_fraction",
+                     "fault_guard_start"):
             if getattr(config, name) is None:
                 setattr(config, name, getattr(preset, name))
-        if config.train_initial_q_noise is None:
-            config.train_initial_q_noise = preset.train_initial_q_noise
         if config.in_process_envs is None:  # the mode's share, where it leaves the workers envs to step
             share = preset.in_process_envs
             config.in_process_envs = share if config.n_workers > 0 and share < config.n_envs else 0
@@ -223,12 +239,13 @@ class TrainConfig:
         return config
 
     def check(self) -> None:
-        """Raise ``ValueError`` naming the flag of the first setting out of range (a resolved configuration)."""
+        """Raise ``ValueError`` naming the flag of the first setting out of range (a resolved configuration): this
+        class's own settings and how they go with the options (which check themselves)."""
         imitating = self.imitate != "none"
         for name in ("out", "resume", "eval_only"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, (str, Path)) or not str(value).strip()):
-                raise ValueError(f"--{name.replace('_', '-')}: expected a folder path, got {value!r}")
+                raise ValueError(f"{flag_of(name)}: expected a folder path, got {value!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise TypeError(f"--seed: expected an integer, got {self.seed!r}")
         if not 0 <= self.seed < HELD_OUT_SEED_OFFSET:
@@ -243,13 +260,9 @@ class TrainConfig:
             raise ValueError("--n-envs, --n-steps and --eval-episodes must be >= 1")
         if not isinstance(self.imitate, str):
             raise TypeError(f"--imitate: expected a reference law's name, a run folder or none, got {self.imitate!r}")
-        if self.imitate in MODEL_BASED_POLICIES and self.obs_features != "none":
+        if self.imitate in MODEL_BASED_POLICIES and self.options.obs_features != "none":
             raise ValueError("--obs-features: expected none with --imitate of a law (the policy sees what its "
                              "reference sees)")
-        if not 0 < self.residual_scale <= 1:
-            raise ValueError("--residual-scale: expected a value in (0, 1]")
-        if not (math.isfinite(self.action_acceleration) and self.action_acceleration > 0):
-            raise ValueError("--action-acceleration: expected a finite value > 0 (rad/s^2)")
         if imitating and (not self.registered_mode.imitation or self.backend != "sb3" or self.algo != "ppo"):
             imitating_modes = [name for name in mode_names() if training_mode(name).imitation]
             raise ValueError(f"--imitate: expected none, except with --mode {' or '.join(imitating_modes)}, "
@@ -266,21 +279,15 @@ class TrainConfig:
             raise ValueError("--n-workers and --eval-workers must be >= 0")
         if self.in_process_envs and not (self.n_workers > 0 and 0 < self.in_process_envs < self.n_envs):
             raise ValueError("--in-process-envs: expected 0, or with --n-workers >= 1 a number below --n-envs")
-        if self.policy_network == "set" and (self.backend != "sb3" or self.algo != "ppo" or imitating):
+        if self.options.policy_network == "set" and (self.backend != "sb3" or self.algo != "ppo" or imitating):
             raise ValueError("--policy-network: set trains with --backend sb3 and --algo ppo, without --imitate")
         if self.backend == "rllib" and self.algo != "ppo":
             raise ValueError("--backend rllib supports --algo ppo only")
         if self.backend == "rllib" and self.n_workers > 0 and self.n_envs % self.n_workers:
             raise ValueError(f"--n-envs: --backend rllib gives each of its --n-workers {self.n_workers} env runners "
                              f"the same number of copies; expected a multiple of {self.n_workers}, got {self.n_envs}")
-        if not 0 <= self.correction_penalty <= 1:
-            raise ValueError("--correction-penalty: expected a value in [0, 1]")
         if not 0 < self.gamma <= 1:
             raise ValueError("--gamma: expected a value in (0, 1]")
-        if not 0 <= self.hold_penalty <= 1:
-            raise ValueError("--hold-penalty: expected a value in [0, 1]")
-        if not (math.isfinite(self.contact_penalty) and self.contact_penalty >= 0):
-            raise ValueError("--contact-penalty: expected a finite value >= 0")
         if not 0 < self.max_fault_fraction <= 1:
             raise ValueError("--max-fault-fraction: expected a value in (0, 1]")
         if not 0 <= self.fault_guard_start < 1:
@@ -295,26 +302,14 @@ class TrainConfig:
             raise ValueError("--sde-sample-freq: expected -1, 0 or a number of steps >= 1, got "
                              f"{self.sde_sample_freq}")
         if self.sde_sample_freq and (self.backend != "sb3" or self.algo != "ppo" or imitating
-                                     or self.policy_network == "set"):
+                                     or self.options.policy_network == "set"):
             raise ValueError("--sde-sample-freq: gSDE trains with --backend sb3 and --algo ppo, an MLP policy and "
                              "no --imitate (0: off)")
-        if (self.train_initial_q_noise is not None and self.train_initial_q_noise < 0) or self.train_episode_seconds <= 0:
-            raise ValueError("--train-initial-q-noise must be >= 0 and --train-episode-seconds > 0")
-        try:  # the training options' own checks (the mode's included), named by flag
-            self.training_options()
-        except (TypeError, ValueError) as error:
-            name, _, rest = str(error).partition(": ")
-            raise ValueError(f"--{name.replace('_', '-')}: {rest}") from None
 
     # ------------------------------------------------------------------------------------------ the env
-    def training_options(self) -> TrainingOptions:
-        """The training options of this configuration (its fields of the same names): what the training env
-        and the evaluated policy are built from. Raises naming the field of a bad value."""
-        return TrainingOptions(**{name: getattr(self, name) for name in TrainingOptions.fields()})
-
     def training_overrides(self) -> dict[str, Any]:
         """Scenario overrides of the training env (:meth:`TrainingOptions.training_overrides`)."""
-        return self.training_options().training_overrides()
+        return self.options.training_overrides()
 
     # ------------------------------------------------------------------------------------------ files
     #: Fields that say where a run is or how this command behaves, not what the run is: not in its config.json.
@@ -323,15 +318,16 @@ class TrainConfig:
     EVALUATION_FIELDS = ("eval_episodes", "eval_workers", "eval_seconds", "no_progress")
 
     def to_dict(self) -> dict[str, Any]:
-        """The saved settings (every field but :data:`UNSAVED_FIELDS`), JSON-ready."""
-        return {spec.name: getattr(self, spec.name) for spec in fields(self) if spec.name not in self.UNSAVED_FIELDS}
+        """The saved settings (every setting but :data:`UNSAVED_FIELDS`), flat by name, JSON-ready."""
+        return {name: value for name, value in self.values().items() if name not in self.UNSAVED_FIELDS}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "TrainConfig":
         """The configuration a run saved (extra keys such as ``scenario_data`` and ``versions`` are ignored;
-        settings a run saved before they existed take their defaults). Unchecked: :meth:`from_saved` checks."""
-        names = {spec.name for spec in fields(cls)}
-        return cls(**{key: value for key, value in data.items() if key in names})
+        settings a run saved before they existed take their defaults). Only the options are checked (by their
+        owner, named by flag): :meth:`from_saved` checks the whole."""
+        names = {setting.name for setting in cls.settings()}
+        return cls().with_settings({key: value for key, value in data.items() if key in names})
 
     #: Saved settings that a run's ``config.json`` may lack: added after the first saved runs, their defaults
     #: are what those runs trained with. Every other saved setting must be in the file.
@@ -346,18 +342,21 @@ class TrainConfig:
     @classmethod
     def from_saved(cls, data: Any, source: str = "config.json") -> "TrainConfig":
         """The configuration a run saved, checked before use: a JSON object holding every saved setting (but
-        :data:`LATER_SAVED_FIELDS`), each of its field's type, the whole in range as :meth:`resolved` checks
+        :data:`LATER_SAVED_FIELDS`), each of its setting's type, the whole in range as :meth:`resolved` checks
         it. A fault is a ``ValueError`` naming ``source`` and the key."""
         fix = "restore the config.json the run wrote (its sha256 is in the run's SHA256SUMS)"
         if not isinstance(data, Mapping):
             raise ValueError(f"{source}: expected a JSON object of settings, got {type(data).__name__}: {fix}")
-        saved = [spec for spec in fields(cls) if spec.name not in cls.UNSAVED_FIELDS]
-        missing = [spec.name for spec in saved if spec.name not in data and spec.name not in cls.LATER_SAVED_FIELDS]
+        saved = [setting for setting in cls.settings() if setting.name not in cls.UNSAVED_FIELDS]
+        missing = [s.name for s in saved if s.name not in data and s.name not in cls.LATER_SAVED_FIELDS]
         if missing:
             raise ValueError(f"{source}: {', '.join(missing)} missing (every setting of the run is saved): {fix}")
-        for spec in saved:
-            if spec.name in data and not _saved_value_fits(spec, data[spec.name]):
-                raise ValueError(f"{source}: {spec.name}: {_expected(spec)}, got {data[spec.name]!r}: {fix}")
+        for setting in saved:
+            value = data.get(setting.name)
+            nullable = setting.name in cls.NULLABLE_SAVED_FIELDS
+            if setting.name in data and not (setting.fits(value) if value is not None else nullable):
+                null = " or null" if nullable else ""
+                raise ValueError(f"{source}: {setting.name}: {setting.expected()}{null}, got {value!r}: {fix}")
         try:
             return cls.from_dict(data).resolved()
         except (TypeError, ValueError) as error:
@@ -371,26 +370,32 @@ class TrainConfig:
     # ------------------------------------------------------------------------------------------ the CLI
     @classmethod
     def add_arguments(cls, parser: argparse.ArgumentParser, defaults: bool = True) -> None:
-        """One flag per field (``--n-envs`` for ``n_envs``), with the field's help, type and choices; with
-        ``defaults`` False a flag not given takes the parser's ``argument_default``."""
-        for spec in fields(cls):
-            kwargs = {key: value for key, value in spec.metadata.items()}
+        """One flag per setting (``--n-envs`` for ``n_envs``), with its help, type and choices, and ``--config``
+        and ``--set``, which read settings from a file or one ``key=value``; with ``defaults`` False a flag not
+        given takes the parser's ``argument_default``."""
+        for setting in cls.settings():
+            kwargs = dict(setting.flag)
             if defaults and kwargs.get("action") != "store_true":
-                kwargs["default"] = spec.default
-            parser.add_argument("--" + spec.name.replace("_", "-"), **kwargs)
+                kwargs["default"] = setting.default
+            parser.add_argument(flag_of(setting.name), **kwargs)
+        parser.add_argument("--config", metavar="FILE", help="a YAML or JSON file of settings, flat by name as a run's "
+                            "config.json writes them (n_envs: 8); a flag or --set given beside it wins")
+        parser.add_argument("--set", action="append", metavar="KEY=VALUE", help="one setting by name, its value as "
+                            "its flag reads it (repeatable; null: its default); a flag given beside it wins, and it "
+                            "wins over --config")
 
     @classmethod
     def flags_table(cls) -> str:
-        """Every flag with its default and meaning, as a Markdown table (docs/training.md shows it)."""
+        """Every setting's flag with its default and meaning, as a Markdown table (docs/training.md shows it)."""
         lines = ["| flag | default | meaning |", "|---|---|---|"]
-        for spec in fields(cls):
-            flag = "--" + spec.name.replace("_", "-")
-            if spec.metadata.get("action") is argparse.BooleanOptionalAction:
-                flag = f"{flag}` / `--no-{spec.name.replace('_', '-')}"
-            default = "mode preset" if spec.default is None and spec.name in ModePreset.__dataclass_fields__ else (
-                "-" if spec.default is None else spec.default)
-            meaning = spec.metadata["help"].replace("|", "\\|")
-            choices = spec.metadata.get("choices")
+        for setting in cls.settings():
+            flag = flag_of(setting.name)
+            if setting.flag.get("action") is argparse.BooleanOptionalAction:
+                flag = f"{flag}` / `--no-{flag[2:]}"
+            default = "mode preset" if setting.default is None and setting.name in ModePreset.__dataclass_fields__ else (
+                "-" if setting.default is None else setting.default)
+            meaning = setting.flag["help"].replace("|", "\\|")
+            choices = setting.flag.get("choices")
             if choices:
                 meaning += f" (one of: {', '.join(map(str, choices))})"
             lines.append(f"| `{flag}` | {default} | {meaning} |")
@@ -405,15 +410,17 @@ class TrainConfig:
     #: Fields that ``--resume`` may set besides the evaluation fields: the budget (a new one, not below the agent
     #: steps done: a finished run is extended).
     RESUME_FIELDS = ("total_timesteps",)
+    #: The flags that say where settings come from rather than set one (:meth:`add_arguments`).
+    SOURCE_FLAGS = ("config", "set")
 
     def with_recipe(self, given: Collection[str]) -> "TrainConfig":
         """This configuration with its scenario's recipe (:mod:`~ee_formation_env.baselines.learned.recipes`)
-        for every field not in ``given`` (the fields the command line set); itself where no recipe applies."""
+        for every setting not in ``given`` (those the command line, --set or --config set); itself where no
+        recipe applies."""
         recipe = recipe_for(self.scenario) if self.recipe == "board" else None
-        if recipe is None or ("mode" in given and self.mode != recipe.mode):
+        if recipe is None or ("mode" in given and self.options.mode != recipe.mode):
             return self
-        return dataclasses.replace(self, **{name: value for name, value in recipe.settings.items()
-                                            if name not in given})
+        return self.with_settings({name: value for name, value in recipe.settings.items() if name not in given})
 
     def recipe_used(self) -> str:
         """Which settings this configuration trains with, in words: its scenario's recipe (:meth:`with_recipe`
@@ -423,78 +430,56 @@ class TrainConfig:
             return "flat defaults (no recipe for this scenario)"
         if self.recipe == "none":
             return "flat defaults (--recipe none)"
-        if self.mode != recipe.mode:
-            return f"flat defaults (--mode {self.mode} is not the mode of its recipe, {recipe.method})"
+        if self.options.mode != recipe.mode:
+            return f"flat defaults (--mode {self.options.mode} is not the mode of its recipe, {recipe.method})"
         return f"{recipe.method} (the board's recipe for {self.scenario})"
 
     @classmethod
     def _given(cls, argv: Sequence[str] | None) -> set[str]:
-        """The fields ``argv`` sets (parsed as :meth:`from_args` parses it, defaults left out)."""
+        """The settings ``argv``'s flags set (parsed as :meth:`from_args` parses it, defaults left out)."""
         parser = argparse.ArgumentParser(argument_default=argparse.SUPPRESS, add_help=False)
         cls.add_arguments(parser, defaults=False)
-        return set(vars(parser.parse_known_args(argv)[0]))
+        return set(vars(parser.parse_known_args(argv)[0])) - set(cls.SOURCE_FLAGS)
 
     @classmethod
     def from_args(cls, argv: Sequence[str] | None = None, prog: str = "train.py",
                   description: str | None = None) -> "TrainConfig":
-        """Parse command-line flags into a resolved configuration; a bad value is a parser error naming its flag."""
+        """Parse command-line flags into a resolved configuration; a bad value is a parser error naming its flag
+        (and the ``--config`` file or ``--set`` it came from). A flag wins over ``--set``, which wins over
+        ``--config``, which wins over the recipe and the mode's preset."""
         parser = cls.parser(prog, description)
-        namespace = parser.parse_args(argv)
+        namespace = vars(parser.parse_args(argv))
+        path, assignments = namespace.pop("config"), namespace.pop("set") or []
+        sources: dict[str, str] = {}  # setting -> the --config file or --set that gave its value
         try:
-            config = cls(**vars(namespace))
+            given, settings = cls._given(argv), {setting.name: setting for setting in cls.settings()}
+            written = read_settings_file(path, settings) if path is not None else {}
+            sources.update((name, f"--config {path}") for name in written)
+            for text in assignments:  # in order: a later --set of a name wins
+                name, value = parse_assignment(text, settings)
+                written[name], sources[name] = value, f"--set {text}"
+            sources = {name: source for name, source in sources.items() if name not in given}
+            values = {**namespace, **{name: written[name] for name in sources}}
+            config = cls().with_settings(values)
             if not (config.resume or config.eval_only):
-                config = config.with_recipe(cls._given(argv))
+                config = config.with_recipe(given | set(sources))
             if config.resume or config.eval_only:  # the saved run's settings decide; only evaluation flags may change
                 defaults = vars(parser.parse_args([]))
                 allowed = (*cls.UNSAVED_FIELDS, *cls.EVALUATION_FIELDS, *(cls.RESUME_FIELDS if config.resume else ()))
-                given = [name for name, value in vars(namespace).items() if value != defaults[name]
-                         and name not in allowed]
-                if given:
+                changed = [name for name, value in values.items() if value != defaults[name] and name not in allowed]
+                if changed:
                     flag = "--resume" if config.resume else "--eval-only"
                     raise ValueError(f"{flag}: the run's saved configuration is used; drop "
-                                     + ", ".join("--" + name.replace("_", "-") for name in given))
+                                     + ", ".join(flag_of(name) for name in changed))
             return config.resolved()
         except ValueError as error:
-            parser.error(str(error))
+            parser.error(_with_source(str(error), sources))
             raise  # parser.error exits; this line is never reached
 
 
-def _saved_value_fits(spec: Any, value: Any) -> bool:
-    """Whether a saved ``value`` has the type of the field ``spec`` (its flag's ``type``, its choices, a
-    boolean flag's bool; ``None`` where the field's default is ``None``)."""
-    if value is None:
-        return spec.name in TrainConfig.NULLABLE_SAVED_FIELDS
-    kind = _saved_type(spec)
-    if spec.name == "scenario":
-        return isinstance(value, (str, dict))
-    if spec.metadata.get("action") in ("store_true", argparse.BooleanOptionalAction):
-        return isinstance(value, bool)
-    if kind is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if kind is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if spec.metadata.get("choices") is not None and spec.name != "mode":
-        return value in spec.metadata["choices"]
-    return isinstance(value, str)
-
-
-def _saved_type(spec: Any) -> Any:
-    """The type a field's saved value has: its flag's ``type`` (an integer for a budget read by
-    :func:`agent_steps`)."""
-    kind = spec.metadata.get("type")
-    return int if kind is agent_steps else kind
-
-
-def _expected(spec: Any) -> str:
-    kind = _saved_type(spec)
-    if spec.metadata.get("action") in ("store_true", argparse.BooleanOptionalAction):
-        what = "true or false"
-    elif kind in (int, float):
-        what = "an integer" if kind is int else "a finite number"
-    elif spec.metadata.get("choices") is not None and spec.name != "mode":
-        what = "one of " + ", ".join(map(str, spec.metadata["choices"]))
-    elif spec.name == "scenario":
-        what = "a scenario name, file or object"
-    else:
-        what = "a string"
-    return f"expected {what}" + (" or null" if spec.name in TrainConfig.NULLABLE_SAVED_FIELDS else "")
+def _with_source(message: str, sources: Mapping[str, str]) -> str:
+    """``message`` (starting with the flag it is about) prefixed with the ``--config`` file or ``--set`` that
+    gave that setting its value, if one did."""
+    match = re.match(r"--([a-z0-9-]+)", message)
+    name = match.group(1).replace("-", "_") if match else None
+    return f"{sources[name]}: {message}" if name in sources else message

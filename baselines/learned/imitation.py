@@ -77,15 +77,15 @@ def check_reference_run(run: SavedRun, config: "TrainConfig", scenario: Any) -> 
     if load_scenario(run.scenario).to_dict() != scenario.to_dict():
         raise ValueError(f"--imitate: {run.run_dir} trained on scenario {run.scenario_name!r}, not on this run's "
                          f"{scenario.name!r} as given: a reference run must have trained on the same scenario")
-    theirs, ours = run.env_overrides(), config.training_options().env_overrides()
+    theirs, ours = run.env_overrides(), config.options.env_overrides()
     if theirs != ours:
         raise ValueError(f"--imitate: {run.run_dir} acts with env settings {theirs}, this run with {ours}: the "
                          "labels would be torques for another plant (give --gravity-compensation to match a "
                          "position or velocity run)")
     features = run.options.resolved().obs_features
-    if config.obs_features != features:
+    if config.options.obs_features != features:
         raise ValueError(f"--imitate: {run.run_dir} saw --obs-features {features}; its copy sees the same, got "
-                         f"{config.obs_features}")
+                         f"{config.options.obs_features}")
 
 
 def reference_policies(reference: str | SavedRun, env: Any) -> dict[str, Any]:
@@ -158,8 +158,8 @@ def imitate(model: Any, args: "TrainConfig", out_dir: Path) -> None:
     from ee_formation_env.baselines.learned.training_env import EVAL_SEED_OFFSET, ParallelTrainingEnv
 
     venv = model.get_env()  # VecNormalize: the policy sees normalized observations
-    env = ParallelTrainingEnv(args.scenario, args.training_overrides(), args.training_options())
-    scales = rescaling(env.task, args.action_acceleration)  # the learned actions' per-joint scales, if any
+    env = ParallelTrainingEnv(args.scenario, args.training_overrides(), args.options)
+    scales = rescaling(env.task, args.options.action_acceleration)  # the learned actions' per-joint scales, if any
     scales = None if scales is None else np.stack([scales[agent] for agent in env.possible_agents])
     reference = reference_run(args.imitate) or args.imitate
     rng = np.random.default_rng(args.seed)

@@ -29,10 +29,10 @@ SAVED_RUN_DEFAULTS = {"residual_gate": False, "obs_features": "none", "hold_pena
                       "action_acceleration": DEFAULT_ACTION_ACCELERATION, "policy_network": "mlp"}
 
 
-def _option(default: Any, unit: str, meaning: str) -> Any:
-    """A field of :class:`TrainingOptions`: its unit ("" if none) and meaning travel in its metadata (the
-    options table and ``train.py``'s flag help)."""
-    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning})
+def _option(default: Any, unit: str, meaning: str, choices: tuple[str, ...] | None = None) -> Any:
+    """A field of :class:`TrainingOptions`: its unit ("" if none), meaning and, for a name among a fixed few, its
+    choices travel in its metadata (the options table and ``train.py``'s flag)."""
+    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning, "choices": choices})
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class TrainingOptions:
                         "(joint target angles, held by a PD loop with gravity compensation); any "
                         "registered mode (modes.py)")
     reference: str = _option("adaptive_jacobian", "", "residual mode: the reference controller (a model-based one: "
-                             + ", ".join(MODEL_BASED_POLICIES) + ")")
+                             + ", ".join(MODEL_BASED_POLICIES) + ")", MODEL_BASED_POLICIES)
     residual_scale: float = _option(0.3, "", "residual mode: the correction's share of one unit of learned action, "
                                     "in (0, 1]")
     residual_gate: bool = _option(True, "", "residual mode: scale the correction by min(1, the agent's error in "
@@ -57,7 +57,7 @@ class TrainingOptions:
     correction_penalty: float = _option(0.5, "", "residual mode: each agent's reward is multiplied by 1 - this * "
                                         "mean(correction^2), in [0, 1]")
     obs_features: Optional[str] = _option(None, "", "features appended to each agent's observation, from it alone "
-                                          "(features.py): " + " or ".join(FEATURE_SETS))
+                                          "(features.py): " + " or ".join(FEATURE_SETS), FEATURE_SETS)
     hold_penalty: Optional[float] = _option(None, "reward per step", "training only: subtract this times "
                                             f"min(1, joint speed / {SPEED_SCALE} rad/s) from an in-formation agent's "
                                             "reward (shaping.py), in [0, 1]")
@@ -93,7 +93,7 @@ class TrainingOptions:
     policy_network: str = _option("mlp", "", "the shared policy network: mlp (SB3's MLP on the whole observation, "
                                   "one team size) or set (a slot encoder shared over the neighbour slots, masked "
                                   "mean and max pooling and an own-state encoder: one policy for any team size of "
-                                  "the same robot, set_network.py); set needs obs_features none")
+                                  "the same robot, set_network.py); set needs obs_features none", POLICY_NETWORKS)
     train_initial_q_noise: Optional[float] = _option(None, "rad", "half-width of the uniform noise on the initial "
                                                      "joint positions while training (None in a preset: the "
                                                      "scenario's; evaluation: the scenario's)")

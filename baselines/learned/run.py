@@ -59,7 +59,7 @@ def require_training_extras(config: TrainConfig, saved: dict[str, Any] | None = 
 def run_name(config: TrainConfig) -> str:
     """``<scenario>-<mode>-<algo>-<backend>-seed<seed>-<date>-<time>``: the default folder name under ``runs/``."""
     scenario = Path(str(config.scenario)).stem
-    return (f"{scenario}-{config.mode}-{config.algo}-{config.backend}-seed{config.seed}-"
+    return (f"{scenario}-{config.options.mode}-{config.algo}-{config.backend}-seed{config.seed}-"
             f"{time.strftime('%Y%m%d-%H%M%S')}")
 
 
@@ -92,7 +92,7 @@ def train(config: TrainConfig) -> Path:
                 write_saved_config(run_dir, saved)
             except OSError as error:
                 raise RunStopped(f"training: {refused(run_dir / 'config.json', error)}") from None
-            print(f"training {config.algo} ({config.backend}, mode {config.mode}) on {config.scenario} for "
+            print(f"training {config.algo} ({config.backend}, mode {config.options.mode}) on {config.scenario} for "
                   f"{config.total_timesteps} agent steps -> {run_dir}")
             print(f"recipe: {config.recipe_used()}; reference laws: {reference_gains(scenario)}", flush=True)
             return _train_and_compare(config, saved, run_dir, started)
@@ -185,12 +185,12 @@ def _validated_scenario(config: TrainConfig) -> tuple[Any, TeamPadding | None]:
             if reference == out or reference in out.parents or out in reference.parents:
                 raise ValueError(f"--imitate: {run.run_dir} is --out {config.out} or holds it (or is inside it): "
                                  "the reference run would be removed before it is read; choose another --out")
-    if config.policy_network == "set":  # one robot and layout, slots kept by the features: refused here
+    if config.options.policy_network == "set":  # one robot and layout, slots kept by the features: refused here
         if padding is not None:
             raise ValueError(f"--policy-network: set shares one network over agents of one robot and layout; "
                              f"scenario {scenario.name} is a mixed team ({', '.join(padding.kinds)})")
         try:
-            set_description(scenario, config.obs_features)
+            set_description(scenario, config.options.obs_features)
         except ValueError as error:
             raise ValueError(f"--policy-network: {str(error).partition(': ')[2]}") from None
     slots = config.n_envs * scenario.n_agents

@@ -61,8 +61,8 @@ def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
         kwargs["log_std_init"] = args.log_std_init
     if args.sde_sample_freq:  # gSDE's noise matrix is a parameter of the network (latent x action)
         kwargs["use_sde"] = True
-    if args.policy_network == "set":
-        kwargs["set_network"] = set_description(args.scenario, args.obs_features)
+    if args.options.policy_network == "set":
+        kwargs["set_network"] = set_description(args.scenario, args.options.obs_features)
     return kwargs
 
 

@@ -43,7 +43,7 @@ def batched_env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | No
     noise)."""
     return functools.partial(BatchedTrainingEnv, config.scenario,
                              config.training_overrides() if overrides is None else dict(overrides),
-                             config.training_options())
+                             config.options)
 
 
 def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = None) -> Callable[[], "ParallelTrainingEnv"]:
@@ -51,7 +51,7 @@ def env_factory(config: "TrainConfig", overrides: Mapping[str, Any] | None = Non
     ``overrides`` as for :func:`batched_env_factory`."""
     return functools.partial(ParallelTrainingEnv, config.scenario,
                              config.training_overrides() if overrides is None else dict(overrides),
-                             config.training_options())
+                             config.options)
 
 
 class BatchedTrainingEnv:

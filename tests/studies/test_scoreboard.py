@@ -305,7 +305,7 @@ def test_an_invariant_method_runs_on_arms_turning_about_their_base_z_only(name):
     assert method.unavailable("planar_square_rotated") is None
     assert "base z axis" in method.unavailable("spatial_tetrahedron")  # the PERA arm's first joint is not
     config = TrainConfig.from_args(list(method.train_flags))
-    assert (config.mode, config.obs_features) == (name.split("-")[0], "invariant")
+    assert (config.options.mode, config.options.obs_features) == (name.split("-")[0], "invariant")
 
 
 @pytest.mark.parametrize("name", [name for name, method in scoreboard_methods.METHODS.items()
@@ -316,7 +316,7 @@ def test_every_sb3_method_is_a_valid_train_py_configuration(name):
 
     flags = scoreboard_methods.METHODS[name].train_flags
     config = TrainConfig.from_args(list(flags))
-    assert config.mode == flags[flags.index("--mode") + 1]
+    assert config.options.mode == flags[flags.index("--mode") + 1]
 
 
 def test_the_wide_reward_methods_widen_the_training_reward_only():

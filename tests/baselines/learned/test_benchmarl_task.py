@@ -57,7 +57,7 @@ def test_bad_options_raise_naming_the_field_before_any_env_is_built(config, fiel
 def test_defaults_are_train_configs_and_none_takes_the_mode_preset():
     options = TrainingTaskOptions()
     for name in ("reference", "residual_scale", "residual_gate", "correction_penalty", "action_acceleration"):
-        assert getattr(options, name) == getattr(TrainConfig(), name), name
+        assert getattr(options, name) == getattr(TrainConfig().options, name), name
     for mode in ("torque", "residual"):
         resolved = TrainingTaskOptions(mode=mode).resolved()
         for name in ("obs_features", "hold_penalty", "train_episode_seconds", "train_initial_q_noise"):

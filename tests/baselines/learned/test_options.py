@@ -16,9 +16,9 @@ DOCS = Path(__file__).parents[3] / "docs"
 
 
 def test_train_py_flags_default_to_the_options():
-    config = TrainConfig()
+    defaults = vars(TrainConfig.parser().parse_args([]))
     for name in TrainingOptions.fields():
-        assert getattr(config, name) == getattr(TrainingOptions(), name), name
+        assert defaults[name] == getattr(TrainingOptions(), name) == getattr(TrainConfig().options, name), name
     assert (TrainingOptions().mode, TrainingOptions().residual_scale, TrainingOptions().residual_gate) == (
         "residual", 0.3, True)  # the settings the committed results were produced with
 
@@ -28,8 +28,8 @@ def test_both_env_factories_carry_the_runs_options_and_pickle(argv):
     config = TrainConfig.from_args(["--no-progress", *argv])
     for factory in (batched_env_factory(config), env_factory(config)):
         again = pickle.loads(pickle.dumps(factory))  # into worker processes
-        assert again.args[2] == config.training_options()
-        assert again.args[2].residual_scale == config.residual_scale
+        assert again.args[2] == config.options
+        assert again.args[2].residual_scale == config.options.residual_scale
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -51,7 +51,7 @@ def test_saved_runs_read_back_with_the_options_they_had():
     for name, value in SAVED_RUN_DEFAULTS.items():
         assert getattr(options, name) == value, name
     saved = TrainConfig.from_args(["--mode", "torque"]).to_dict()
-    assert TrainingOptions.from_saved(saved) == TrainConfig.from_dict(saved).training_options()
+    assert TrainingOptions.from_saved(saved) == TrainConfig.from_dict(saved).options
 
 
 def test_the_training_page_shows_the_generated_options_table():

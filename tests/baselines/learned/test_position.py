@@ -128,7 +128,7 @@ def test_bad_position_options_name_the_field(field, value, error):
 def test_train_py_flags_carry_the_position_options():
     config = TrainConfig.from_args(["--mode", "position", "--joint-reach", "0.5", "--position-gain", "8",
                                     "--target-smoothing", "0.05", "--no-progress"])
-    options = config.training_options()
+    options = config.options
     assert (options.mode, options.joint_reach, options.position_gain, options.target_smoothing) == (
         "position", 0.5, 8.0, 0.05)
     assert config.training_overrides()["gravity_compensation"] is True

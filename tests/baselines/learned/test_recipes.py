@@ -33,15 +33,15 @@ def test_a_recipe_is_its_scoreboard_methods_flags_on_a_builtin(scenario):
 
 
 def test_flags_given_win_over_the_recipe_and_another_mode_takes_no_recipe():
-    assert _config().reference == "gradient"  # planar_square's recipe: the default run
-    assert _config("--reference", "adaptive_jacobian").reference == "adaptive_jacobian"
-    assert _config("--reference", "gradient", "--recipe", "none").reference == "gradient"
-    assert _config("--recipe", "none").reference == "adaptive_jacobian"
+    assert _config().options.reference == "gradient"  # planar_square's recipe: the default run
+    assert _config("--reference", "adaptive_jacobian").options.reference == "adaptive_jacobian"
+    assert _config("--reference", "gradient", "--recipe", "none").options.reference == "gradient"
+    assert _config("--recipe", "none").options.reference == "adaptive_jacobian"
     torque = _config("--mode", "torque")
-    assert (torque.mode, torque.reference) == ("torque", "adaptive_jacobian")
+    assert (torque.options.mode, torque.options.reference) == ("torque", "adaptive_jacobian")
     displacement = _config("--scenario", "planar_square_displacement", "--total-timesteps", "10")
-    assert (displacement.obs_features, displacement.total_timesteps) == ("invariant", 10)
-    assert _config("--scenario", "planar_random").reference == "adaptive_jacobian"  # no recipe: the flat defaults
+    assert (displacement.options.obs_features, displacement.total_timesteps) == ("invariant", 10)
+    assert _config("--scenario", "planar_random").options.reference == "adaptive_jacobian"  # no recipe: the flat defaults
 
 
 def test_a_scenario_file_takes_no_recipe(tmp_path):
@@ -49,7 +49,7 @@ def test_a_scenario_file_takes_no_recipe(tmp_path):
 
     path = tmp_path / "planar_square.yaml"
     path.write_text(yaml.safe_dump(builtin_scenario("planar_square")))
-    assert _config("--scenario", str(path)).reference == "adaptive_jacobian"
+    assert _config("--scenario", str(path)).options.reference == "adaptive_jacobian"
 
 
 def test_the_settings_a_run_trains_with_are_said_in_words(tmp_path):

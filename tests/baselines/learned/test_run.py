@@ -141,12 +141,12 @@ def test_max_train_seconds_stops_training_early(tmp_path):
 
 def test_mode_defaults_and_explicit_values():
     torque = TrainConfig.from_args(["--mode", "torque"])
-    assert (torque.obs_features, torque.gamma, torque.log_std_init, torque.hold_penalty) == (
+    assert (torque.options.obs_features, torque.gamma, torque.log_std_init, torque.options.hold_penalty) == (
         PRESETS["torque"].obs_features, PRESETS["torque"].gamma, PRESETS["torque"].log_std_init,
         PRESETS["torque"].hold_penalty)
     residual = TrainConfig.from_args(["--obs-features", "log-error", "--gamma", "0.9", "--log-std-init", "-2",
                                  "--hold-penalty", "0.25"])
-    assert (residual.obs_features, residual.gamma, residual.log_std_init, residual.hold_penalty) == (
+    assert (residual.options.obs_features, residual.gamma, residual.log_std_init, residual.options.hold_penalty) == (
         "log-error", 0.9, -2.0, 0.25)
     # The learner steps its share of the envs only beside worker processes.
     assert residual.in_process_envs == PRESETS["residual"].in_process_envs > 0 and torque.in_process_envs == 0

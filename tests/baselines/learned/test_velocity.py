@@ -97,6 +97,6 @@ def test_bad_velocity_options_name_the_field(field, value, error):
 def test_train_py_flags_carry_the_velocity_options():
     config = TrainConfig.from_args(["--mode", "velocity", "--joint-speed", "2", "--velocity-gain", "5",
                                     "--no-progress"])
-    options = config.training_options()
+    options = config.options
     assert (options.mode, options.joint_speed, options.velocity_gain) == ("velocity", 2.0, 5.0)
     assert config.training_overrides()["gravity_compensation"] is True
