@@ -94,9 +94,9 @@ class TrainConfig:
     mode's preset (:meth:`resolved`)."""
 
     scenario: Any = _flag("built-in name or YAML/JSON scenario file", "planar_square")
-    recipe: str = _flag("board: a built-in scenario's recipe (the learned method leading its scoreboard, "
-                        "recipes.py) sets every training flag not given, unless --mode names another mode; none: "
-                        "the flat defaults", "board", choices=RECIPE_CHOICES)
+    recipe: str = _flag("board: a built-in scenario's preset (scenario_presets.yaml) sets every training flag not "
+                        "given, unless --mode names another mode; none: the flat defaults", "board",
+                        choices=RECIPE_CHOICES)
     #: The training options (mode, features, shaping, action scale): their own dataclass, which declares and
     #: checks them; their flags sit here, in its field order (:meth:`settings`).
     options: TrainingOptions = field(default_factory=TrainingOptions, metadata={"settings": TrainingOptions})
@@ -427,12 +427,12 @@ class TrainConfig:
         applied it: the recipe is set and the mode is the recipe's) or the flat defaults, and why."""
         recipe = recipe_for(self.scenario)
         if recipe is None:
-            return "flat defaults (no recipe for this scenario)"
+            return "flat defaults (no preset for this scenario)"
         if self.recipe == "none":
             return "flat defaults (--recipe none)"
         if self.options.mode != recipe.mode:
-            return f"flat defaults (--mode {self.options.mode} is not the mode of its recipe, {recipe.method})"
-        return f"{recipe.method} (the board's recipe for {self.scenario})"
+            return f"flat defaults (--mode {self.options.mode} is not the mode of its preset, {recipe.describe()})"
+        return f"{self.scenario}'s preset ({recipe.describe()})"
 
     @classmethod
     def _given(cls, argv: Sequence[str] | None) -> set[str]:

@@ -202,7 +202,7 @@ def test_a_run_says_its_settings_reference_gains_and_tensorboard_folder_at_its_s
     assert train_command(["--scenario", str(path), "--out", str(run_dir), "--mode", "torque",
                           "--total-timesteps", "200", *FAST]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert ("recipe: flat defaults (no recipe for this scenario); reference laws: default gains (no tuned file "
+    assert ("recipe: flat defaults (no preset for this scenario); reference laws: default gains (no tuned file "
             "for this scenario)") in lines
     logs = run_dir / "tensorboard"
     assert f"TensorBoard logs: {logs} (watch with `tensorboard --logdir {logs}`)" in lines and logs.is_dir()
