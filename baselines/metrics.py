@@ -28,6 +28,7 @@ from ee_formation_env.baselines.reference.team import PolicyTeam, RandomPolicy, 
 from ee_formation_env.env import FormationEnv
 from ee_formation_env.vector import BatchedStep, VectorFormationEnv
 from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
+from ee_formation_env.reward import edge_length_errors as reward_edge_length_errors
 
 
 class Policy(Protocol):
@@ -44,13 +45,10 @@ STEADY_STATE_SECONDS = 1.0  # s: the steady-state errors are taken over the epis
 def edge_length_errors(formation: Any, edge_errors: np.ndarray) -> np.ndarray:
     """Each edge's length error in metres from its edge errors ``e_k`` (..., E) m^2 or (..., E, dim) m of a
     :class:`~ee_formation_env.formation.Formation` (or anything with a ``formation``): ``| |z_k| - d_k |`` for
-    distance formations (``|z_k| = sqrt(e_k + d_k^2)``), ``|z_k - z*_k|`` for displacement ones. (..., E)."""
+    distance formations, ``|z_k - z*_k|`` for displacement ones (:func:`ee_formation_env.reward.edge_length_errors`).
+    (..., E)."""
     formation = getattr(formation, "formation", formation)
-    errors = np.asarray(edge_errors, dtype=np.float64)
-    if formation.kind == "distance":
-        lengths = np.linalg.norm(formation.desired_vectors, axis=1)
-        return np.abs(np.sqrt(np.maximum(errors + lengths**2, 0.0)) - lengths)
-    return np.linalg.norm(errors, axis=-1)
+    return reward_edge_length_errors(formation.kind, np.linalg.norm(formation.desired_vectors, axis=1), edge_errors)
 
 
 def settle(errors: Sequence[float] | np.ndarray, tolerance: float, dt: float,

@@ -24,7 +24,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
-from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_tolerances
+from ee_formation_env.reward import DEFAULT_POSITION_TOLERANCE, edge_length_errors, edge_tolerances
 from ee_formation_env.task import FormationTask
 
 # (entry, size, meaning (unit)): the slot entries in order, then the joint entries.
@@ -119,6 +119,16 @@ class ObservationLayout:
         real = parts.mask > 0.5
         ratios = parts.edge_errors / self.slot_tolerances(parts, position_tolerance)[..., None]
         return np.where(real[..., None], ratios, 0.0), real
+
+    def length_errors(self, observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each neighbour slot's edge length error in metres as the agent sees it
+        (:func:`~ee_formation_env.reward.edge_length_errors` of the slot's error and desired length),
+        ``(n_slots,)`` (0 for padding; with a leading k axis for a stack), and the mask of real slots."""
+        parts = self.split(observation)
+        real = parts.mask > 0.5
+        errors = parts.edge_errors[..., 0] if self.formation_kind == "distance" else parts.edge_errors
+        lengths = edge_length_errors(self.formation_kind, parts.desired[..., 0], errors)
+        return np.where(real, lengths, 0.0), real
 
     def split(self, observation: np.ndarray) -> ObservationParts:
         """Parts of one observation (size,), or of a stack of observations (k, size) with a leading k axis."""

@@ -103,6 +103,20 @@ def edge_tolerances(kind: str, desired_lengths: np.ndarray, position_tolerance: 
     raise ValueError(f"kind: expected 'distance' or 'displacement', got {excerpt(kind)}")
 
 
+def edge_length_errors(kind: str, desired_lengths: np.ndarray, edge_errors: np.ndarray) -> np.ndarray:
+    """Each edge's length error in metres from its edge error ``e_k``: ``| |z_k| - d*_k |`` for
+    ``kind="distance"`` (``e_k = |z_k|^2 - d*_k^2`` m^2, so ``|z_k| = sqrt(e_k + d*_k^2)``), ``|z_k - z*_k|`` for
+    ``"displacement"`` (``e_k`` the error vector, m, on the last axis). ``desired_lengths``: ``d*_k`` (m),
+    broadcast against ``edge_errors`` (..., E) or (..., E, dim). (..., E) m."""
+    errors = np.asarray(edge_errors, dtype=np.float64)
+    if kind == "distance":
+        lengths = np.asarray(desired_lengths, dtype=np.float64)
+        return np.abs(np.sqrt(np.maximum(errors + lengths**2, 0.0)) - lengths)
+    if kind == "displacement":
+        return np.linalg.norm(errors, axis=-1)
+    raise ValueError(f"kind: expected 'distance' or 'displacement', got {excerpt(kind)}")
+
+
 def agent_error_ratios(edge_abs_errors: np.ndarray, tolerances: np.ndarray, slot_edges: np.ndarray,
                        slot_starts: np.ndarray, degrees: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per agent: the mean over its incident edges of ``|e_k| / tol_k``, and whether all are ``<= tol_k``.

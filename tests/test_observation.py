@@ -84,3 +84,28 @@ def test_observations_gather_each_agents_slots_and_pad_the_rest():
             np.testing.assert_allclose(parts.desired[s, 0], task.formation.desired[neighbor.edge], atol=1e-6)
         np.testing.assert_allclose(parts.q, q[2 * i:2 * i + 2], atol=1e-7)
         np.testing.assert_allclose(parts.dq, -q[2 * i:2 * i + 2], atol=1e-7)
+
+
+@pytest.mark.parametrize("name", ["planar_square", "planar_square_displacement", "spatial_tetrahedron"])
+def test_length_errors_are_each_neighbour_edges_error_in_metres(name):
+    """| |p_j - p_i| - d_ij | (distance) or |(p_j - p_i) - z*_ij| (displacement), from the end-effector positions,
+    is what an agent's slots give in metres (the precision bonus and metrics read the same length)."""
+    import ee_formation_env
+
+    env = ee_formation_env.parallel_env(name)
+    observations, _ = env.reset(seed=3)
+    positions = np.asarray(env.end_effector_positions())[:, :env.dim]
+    shape = np.asarray(env.scenario.shape, dtype=np.float64)
+    for i, agent in enumerate(env.possible_agents):
+        errors, real = env.observation_layout(agent).length_errors(observations[agent])
+        expected = []
+        for a, b in np.asarray(env.graph.edges):
+            if i in (a, b):
+                j = b if a == i else a
+                actual, desired = positions[j] - positions[i], shape[j] - shape[i]
+                expected.append(abs(np.linalg.norm(actual) - np.linalg.norm(desired))
+                                if env.observation_layout(agent).formation_kind == "distance"
+                                else np.linalg.norm(actual - desired))
+        assert sorted(errors[real]) == pytest.approx(sorted(expected), abs=1e-6)  # float32 observations
+        assert np.all(errors[~real] == 0.0)
+    env.close()

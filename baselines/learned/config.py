@@ -79,13 +79,17 @@ def _option_setting(spec: dataclasses.Field, kind: Any) -> Setting:
         flag["type"] = kind
     if spec.metadata["choices"]:
         flag["choices"] = spec.metadata["choices"]
+    if not spec.metadata["flag"]:
+        flag["by_name_only"] = True
     return Setting(spec.name, TrainingOptions, spec.default, flag)
 
 
 def _flag_error(error: Exception) -> ValueError:
-    """An owner's ``field: message`` error as the command line names it: ``--field: message``."""
+    """An owner's ``field: message`` error as the command line names it: ``--field: message`` (``field`` for a
+    setting set by name only)."""
     name, _, rest = str(error).partition(": ")
-    return ValueError(f"{flag_of(name)}: {rest}")
+    by_name = {setting.name for setting in TrainConfig.settings() if not setting.has_flag}
+    return ValueError(f"{name if name in by_name else flag_of(name)}: {rest}")
 
 
 @dataclass
@@ -334,7 +338,8 @@ class TrainConfig:
     LATER_SAVED_FIELDS = ("action_acceleration", "gravity_compensation", "contact_penalty", "max_fault_fraction",
                           "residual_gate_power", "joint_speed", "velocity_gain", "recipe", "policy_network",
                           "joint_reach", "position_gain", "target_smoothing", "reward_error_ceiling",
-                          "reward_tracking", "fault_guard_start", "sde_sample_freq")
+                          "reward_tracking", "fault_guard_start", "sde_sample_freq", "precision_bonus",
+                          "precision_band")
     #: Saved settings that may be null in a resolved configuration (every other one has a value).
     NULLABLE_SAVED_FIELDS = ("train_initial_q_noise", "max_train_seconds", "eval_seconds", "address",
                              "reward_error_ceiling", "reward_tracking")
@@ -374,6 +379,8 @@ class TrainConfig:
         and ``--set``, which read settings from a file or one ``key=value``; with ``defaults`` False a flag not
         given takes the parser's ``argument_default``."""
         for setting in cls.settings():
+            if not setting.has_flag:
+                continue
             kwargs = dict(setting.flag)
             if defaults and kwargs.get("action") != "store_true":
                 kwargs["default"] = setting.default
@@ -389,7 +396,7 @@ class TrainConfig:
         """Every setting's flag with its default and meaning, as a Markdown table (docs/training.md shows it)."""
         lines = ["| flag | default | meaning |", "|---|---|---|"]
         for setting in cls.settings():
-            flag = flag_of(setting.name)
+            flag = flag_of(setting.name) if setting.has_flag else f"--set {setting.name}=..."
             if setting.flag.get("action") is argparse.BooleanOptionalAction:
                 flag = f"{flag}` / `--no-{flag[2:]}"
             default = "mode preset" if setting.default is None and setting.name in ModePreset.__dataclass_fields__ else (

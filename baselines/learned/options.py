@@ -5,7 +5,7 @@
 (:mod:`~ee_formation_env.baselines.learned.benchmarl_task`) and the RLlib and SB3 builders all read it; the
 training env (:class:`~ee_formation_env.baselines.learned.training_env.BatchedTrainingEnv`) and the evaluated
 policy (:mod:`~ee_formation_env.baselines.learned.policy`) are built from it. Fields left ``None`` take the
-mode's preset (:meth:`TrainingOptions.resolved`). The table of docs/training.md is :meth:`options_table`.
+mode's preset (:meth:`TrainingOptions.resolved`). docs/training.md's flags table lists them.
 """
 
 from __future__ import annotations
@@ -26,13 +26,17 @@ from ee_formation_env.baselines.learned.shaping import SPEED_SCALE
 #: The fields a run's config.json may lack (saved before the option existed), and the value the run had then:
 #: no gate, no features, the default action acceleration (which leaves the built-in robots as they were).
 SAVED_RUN_DEFAULTS = {"residual_gate": False, "obs_features": "none", "hold_penalty": 0.0, "contact_penalty": 0.0,
-                      "action_acceleration": DEFAULT_ACTION_ACCELERATION, "policy_network": "mlp"}
+                      "action_acceleration": DEFAULT_ACTION_ACCELERATION, "policy_network": "mlp",
+                      "precision_bonus": 0.0}
 
 
-def _option(default: Any, unit: str, meaning: str, choices: tuple[str, ...] | None = None) -> Any:
+def _option(default: Any, unit: str, meaning: str, choices: tuple[str, ...] | None = None,
+            flag: bool = True) -> Any:
     """A field of :class:`TrainingOptions`: its unit ("" if none), meaning and, for a name among a fixed few, its
-    choices travel in its metadata (the options table and ``train.py``'s flag)."""
-    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning, "choices": choices})
+    choices travel in its metadata (the options table and ``train.py``'s flag); ``flag`` False: set by name only
+    (``train.py --set name=value`` or ``--config``), with no flag of its own."""
+    return dataclasses.field(default=default, metadata={"unit": unit, "meaning": meaning, "choices": choices,
+                                                        "flag": flag})
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,12 @@ class TrainingOptions:
                                             "reward (shaping.py), in [0, 1]")
     contact_penalty: float = _option(0.0, "reward per step", "training only: subtract this from an agent's reward on "
                                      "every step its arm touches another arm (shaping.py), >= 0")
+    precision_bonus: float = _option(0.0, "reward per step", "training only: add this to an agent's reward on every "
+                                     "step each of its edges is within precision_band of its length, a tight-band "
+                                     "bonus that values precision beyond the success band (shaping.py; 0: off), "
+                                     ">= 0", flag=False)
+    precision_band: float = _option(1e-3, "m", "training only: the edge length error within which the precision "
+                                    "bonus is paid, > 0", flag=False)
     reward_error_ceiling: Optional[float] = _option(None, "success tolerances", "training only: the error at which "
                                                     "the training reward's log term reaches 0 (None: the scenario's "
                                                     "reward.error_ceiling, 100 by default); a start farther out "
@@ -119,6 +129,8 @@ class TrainingOptions:
         self._number("correction_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1]")
         self._number("hold_penalty", lambda x: 0 <= x <= 1, "a value in [0, 1] or None", optional=True)
         self._number("contact_penalty", lambda x: x >= 0, "a finite value >= 0")
+        self._number("precision_bonus", lambda x: x >= 0, "a finite value >= 0")
+        self._number("precision_band", lambda x: x > 0, "a length > 0 m")
         self._number("reward_error_ceiling", lambda x: x > 1, "a value > 1 or None", optional=True)
         self._number("reward_tracking", lambda x: x >= 0, "a weight >= 0 or None", optional=True)
         object.__setattr__(self, "action_acceleration", check_action_acceleration(self.action_acceleration))
@@ -201,18 +213,6 @@ class TrainingOptions:
         for name, value in SAVED_RUN_DEFAULTS.items():
             values.setdefault(name, value)
         return cls(**values)
-
-    @classmethod
-    def options_table(cls) -> str:
-        """Every option with its default, unit and meaning, as a Markdown table (docs/training.md shows it)."""
-        lines = ["| option | default | unit | meaning |", "|---|---|---|---|"]
-        for spec in dataclasses.fields(cls):
-            default = f"`{spec.default!r}`" if isinstance(spec.default, str) else f"`{spec.default}`"
-            if spec.name in PRESET_FIELDS:
-                default = "mode preset (" + ", ".join(
-                    f"{mode}: `{getattr(training_mode(mode).preset, spec.name)}`" for mode in mode_names()) + ")"
-            lines.append(f"| `{spec.name}` | {default} | {spec.metadata['unit'] or '-'} | {spec.metadata['meaning']} |")
-        return "\n".join(lines)
 
 
 #: The options a mode's preset fills where they are ``None``.

@@ -53,6 +53,11 @@ class Setting:
     flag: Mapping[str, Any]
 
     @property
+    def has_flag(self) -> bool:
+        """Whether it has a flag of its own; False: set by name only (``--set name=value``, ``--config``)."""
+        return not self.flag.get("by_name_only", False)
+
+    @property
     def boolean(self) -> bool:
         return self.flag.get("action") in ("store_true", argparse.BooleanOptionalAction)
 

@@ -173,7 +173,8 @@ class BatchedTrainingEnv:
             self.action_rows.reset(self._copy_rows(ended))
         final = self._rows(result.infos["final_observation"])
         rewards = shaped_rewards(rewards, final, result.infos["contacts"], self._layout_rows,
-                                 self.options.hold_penalty, self.options.contact_penalty)
+                                 self.options.hold_penalty, self.options.contact_penalty,
+                                 self.options.precision_bonus, self.options.precision_band)
         self._raw = self._rows(result.observations)
         observations = self._featured(self._raw)
         # A copy that did not end ended its step in the observation it returns: only ended copies differ.

@@ -312,14 +312,3 @@ def test_export_of_per_agent_parameters_and_a_plain_normal_actor(tmp_path):
     np.testing.assert_allclose(actor.act(observations.numpy()), expected, atol=1e-6, rtol=0)
     for j, agent in enumerate(actor.agents):
         np.testing.assert_allclose(actor.predict(agent)(observations[:, j].numpy()), expected[:, j], atol=1e-6, rtol=0)
-
-
-def test_the_training_page_shows_the_options_table():
-    from pathlib import Path
-    import re
-
-    page = (Path(__file__).resolve().parents[3] / "docs" / "training.md").read_text(encoding="utf-8")
-    match = re.search(r"<!-- generated: training_task_options -->\n(.*?)\n<!-- end generated -->", page, re.S)
-    assert match, "docs/training.md has no generated block 'training_task_options'"
-    assert match.group(1).strip() == TrainingTaskOptions.options_table(), (
-        "docs/training.md: paste this table:\n" + TrainingTaskOptions.options_table())

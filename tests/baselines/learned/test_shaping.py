@@ -9,7 +9,7 @@ import pytest
 
 from conftest import CLOSING, two_planar_arms
 from ee_formation_env.baselines.learned.options import TrainingOptions
-from ee_formation_env.baselines.learned.shaping import SPEED_SCALE, hold_penalty_factors
+from ee_formation_env.baselines.learned.shaping import SPEED_SCALE, hold_penalty_factors, precision_factors, shaped_rewards
 from ee_formation_env.baselines.learned.training_env import BatchedTrainingEnv, ParallelTrainingEnv
 
 
@@ -136,3 +136,57 @@ def test_the_tracking_weight_reaches_the_training_reward_only_and_merges_with_th
 def test_a_bad_reward_tracking_names_the_field(weight, error):
     with pytest.raises(error, match="reward_tracking"):
         TrainingOptions(reward_tracking=weight)
+
+
+def test_the_precision_bonus_is_paid_only_while_every_edge_of_the_agent_is_within_its_band(make_env):
+    env = make_env("planar_square")  # distance formation: a slot's error is |z|^2 - d^2 (m^2)
+    agent = env.possible_agents[0]
+    layout, at_goal = _observation_at_goal(env, agent, [0.0, 0.0])
+    desired = layout.split(at_goal).desired[0, 0]  # m: the first slot's edge length
+
+    def off_by(metres):  # the first edge `metres` longer than its length, the others exact
+        observation = at_goal.copy()
+        observation[layout.slot_size - 1] = (desired + metres) ** 2 - desired**2
+        return observation
+
+    stack = np.stack([at_goal, off_by(0.5e-3), off_by(2e-3), off_by(-2e-3)])
+    assert list(precision_factors(layout, stack, 1e-3)) == [1.0, 1.0, 0.0, 0.0]
+    assert list(precision_factors(layout, stack, 3e-3)) == [1.0, 1.0, 1.0, 1.0]
+    rewards = np.array([[0.25, 0.5], [0.75, 1.0]])  # K = 2 copies of 2 agents: the four rows above
+    rows = [(layout, np.arange(4))]
+    contacts = np.zeros((2, 2))
+    bonus = shaped_rewards(rewards, stack, contacts, rows, 0.0, 0.0, precision_bonus=2.0, precision_band=1e-3)
+    assert bonus.tolist() == [[2.25, 2.5], [0.75, 1.0]]
+    assert shaped_rewards(rewards, stack, contacts, rows, 0.0, 0.0).tolist() == rewards.tolist()  # off by default
+
+
+def test_the_precision_bonus_pays_nothing_far_from_the_formation(make_env, closer):
+    plain = make_env("planar_square")
+    shaped = closer(ParallelTrainingEnv("planar_square", None, TrainingOptions(
+        mode="torque", obs_features="none", hold_penalty=0.0, precision_bonus=5.0)))
+    plain.reset(seed=2)
+    shaped.reset(seed=2)
+    for _ in range(3):
+        actions = {agent: np.full(2, 0.2, dtype=np.float32) for agent in plain.possible_agents}
+        assert shaped.step(actions)[1] == plain.step(actions)[1]
+
+
+@pytest.mark.parametrize("field, value, error", [("precision_bonus", -1.0, "precision_bonus: expected a finite value >= 0"),
+                                                 ("precision_band", 0.0, "precision_band: expected a length > 0 m")])
+def test_a_bad_precision_setting_names_the_field(field, value, error):
+    with pytest.raises(ValueError, match=error):
+        TrainingOptions(**{field: value})
+
+
+def test_the_precision_settings_are_set_by_name_and_have_no_flag(capsys):
+    from ee_formation_env.baselines.learned.config import TrainConfig
+
+    config = TrainConfig.from_args(["--set", "precision_bonus=0.5", "--set", "precision_band=0.002", "--no-progress"])
+    assert (config.options.precision_bonus, config.options.precision_band) == (0.5, 0.002)
+    assert TrainConfig().options.precision_bonus == 0.0  # off by default
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--set", "precision_bonus=-1", "--no-progress"])
+    assert "precision_bonus: expected a finite value >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        TrainConfig.from_args(["--precision-bonus", "0.5"])
+    assert "unrecognized arguments: --precision-bonus" in capsys.readouterr().err
