@@ -20,7 +20,7 @@ from ee_formation_env.robot import Arm, ArmSet
 from ee_formation_env.scenario import Scenario
 from ee_formation_env.task import FormationTask
 from ee_formation_env.vector import AutoresetMode, VectorFormationEnv
-from ee_formation_env.world import PhysicsWorld
+from ee_formation_env.world import Engine
 
 __all__ = ["FormationEnv", "PHYSICS_FAULTS"]
 
@@ -158,8 +158,8 @@ class FormationEnv(ParallelEnv):
         return self.task.torque_limits
 
     @property
-    def world(self) -> PhysicsWorld:
-        """The PyBullet client."""
+    def world(self) -> Engine:
+        """The physics world (the scenario's engine; PyBullet by default)."""
         return self.batch._worlds[0]
 
     @property
