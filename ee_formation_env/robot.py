@@ -194,7 +194,7 @@ def build_world(task: FormationTask, render_mode: str | None = None) -> tuple[En
     """One world of the scenario's ``engine`` holding the task's arms at their initial configurations (start contacts refused
     while ``arm_collisions`` is on), its state saved for :func:`reset_world`: one copy of the env."""
     scenario = task.scenario
-    world = make_world("pybullet", scenario.physics_hz, scenario.gravity, render_mode)
+    world = make_world(scenario.engine, scenario.physics_hz, scenario.gravity, render_mode)
     try:  # a refusal after connecting (a URDF the engine rejects, arms in contact) leaves no client behind
         arm_set = ArmSet(world, task)
         arm_set.reset(list(task.initial_q))

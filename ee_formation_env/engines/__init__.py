@@ -55,10 +55,10 @@ def rigid_body_model(name: str, urdf: str, chain_joints: Sequence[str],
 def check_engine(engine: str, num_envs: int, render_mode: str | None) -> None:
     """Refuse what the scenario's engine cannot do yet, before any world starts: MuJoCo runs one copy (the
     parallel env) without frames; its package missing is an ``ImportError`` naming the extra."""
-    require_engine(engine)
     if engine != "pybullet" and num_envs != 1:
         raise ValueError(f"num_envs: the batched env runs on PyBullet only for now; engine {engine!r} takes "
                          f"num_envs=1 (the parallel env), got {num_envs}")
     if engine != "pybullet" and render_mode is not None:
         raise ValueError(f"render_mode: frames are PyBullet's only for now; engine {engine!r} takes render_mode=None, "
                          f"got {render_mode!r}")
+    require_engine(engine)
