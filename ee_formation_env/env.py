@@ -73,7 +73,8 @@ class FormationEnv(ParallelEnv):
     attribute :attr:`batch`) at K = 1 with autoreset disabled, seen through per-agent dicts: the action check,
     the step, the reset, the measurement, the observations, rewards and infos are the batched env's, row 0.
     Its parts: :class:`~ee_formation_env.task.FormationTask` (everything derived from the scenario),
-    :class:`~ee_formation_env.world.PhysicsWorld` (the PyBullet client), :class:`~ee_formation_env.robot.ArmSet`
+    :class:`~ee_formation_env.engines.base.Engine` (the physics world: PyBullet's, or MuJoCo's with the scenario
+    key ``engine``), :class:`~ee_formation_env.robot.ArmSet`
     (the arms, their torques and joint states), :class:`~ee_formation_env.observation.ObservationBuilder`
     (layouts, spaces, observations), :class:`~ee_formation_env.measurement.Measurement` (what a state read found).
 
