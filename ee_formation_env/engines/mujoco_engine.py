@@ -4,8 +4,8 @@ into one model (``MjSpec``), driven by generalized forces.
 What is matched to the PyBullet path (``docs/physics.md``, "Engines"):
 
 - each arm is its URDF attached at its base pose (prefix ``arm<i>/``), its root link welded to the world;
-  inertias from the URDF, collision shapes only (visuals dropped), static bodies kept (not fused) so that a
-  base can move;
+  inertias from the URDF, collision shapes only (visuals dropped), mesh paths (``package://`` ones too) from
+  the URDF's folder, static bodies kept (not fused) so that a base can move;
 - torques are ``qfrc_applied`` on the chain joints, unclipped (the env clips), held for ``steps`` steps of
   ``1 / physics_hz``; no motors, no armature, no joint friction, joint damping the scenario's; URDF joint
   limits enforced; no velocity clamp;
@@ -20,6 +20,7 @@ integrator (implicit in the damping) against PyBullet's semi-implicit one; the p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import mujoco
@@ -40,10 +41,15 @@ def _quaternion(rpy: Sequence[float]) -> np.ndarray:
 
 
 def _urdf_spec(urdf: str) -> mujoco.MjSpec:
+    """``urdf`` parsed, its mesh paths resolved as PyBullet resolves them: ``package://`` and relative paths
+    from the URDF's folder (MuJoCo reads no ``package://``)."""
     try:
-        return mujoco.MjSpec.from_file(urdf)
-    except ValueError as error:  # MuJoCo's parse or asset errors
+        text = Path(urdf).read_text(encoding="utf-8").replace("package://", "")
+        spec = mujoco.MjSpec.from_string(text)
+    except (OSError, UnicodeDecodeError, ValueError) as error:  # unreadable, or MuJoCo's parse errors
         raise URDFLoadError(str(error).strip()) from None
+    spec.meshdir = str(Path(urdf).resolve().parent)
+    return spec
 
 
 @dataclass
@@ -214,7 +220,10 @@ class MuJoCoModel:
     the origin; gravity torques are ``qfrc_bias`` at rest, the mass matrix ``mj_fullM`` (no armature)."""
 
     def __init__(self, urdf: str, chain_joints: Sequence[str], held: dict[str, float] | None = None):
-        model = _urdf_spec(urdf).compile()
+        try:
+            model = _urdf_spec(urdf).compile()
+        except ValueError as error:  # a mesh MuJoCo cannot read
+            raise URDFLoadError(str(error).strip()) from None
         model.dof_armature[:] = 0.0
         self._model, self._data = model, mujoco.MjData(model)
         self._chain = np.array([model.joint(name).qposadr[0] for name in chain_joints], dtype=np.intp)
