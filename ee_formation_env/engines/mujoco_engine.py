@@ -40,6 +40,11 @@ def _quaternion(rpy: Sequence[float]) -> np.ndarray:
     return quaternion
 
 
+def _refusal(error: Exception) -> URDFLoadError:
+    """MuJoCo's error on one line (its messages add the element on a line of their own)."""
+    return URDFLoadError(" ".join(str(error).split()))
+
+
 def _urdf_spec(urdf: str) -> mujoco.MjSpec:
     """``urdf`` parsed, its mesh paths resolved as PyBullet resolves them: ``package://`` and relative paths
     from the URDF's folder (MuJoCo reads no ``package://``)."""
@@ -47,7 +52,7 @@ def _urdf_spec(urdf: str) -> mujoco.MjSpec:
         text = Path(urdf).read_text(encoding="utf-8").replace("package://", "")
         spec = mujoco.MjSpec.from_string(text)
     except (OSError, UnicodeDecodeError, ValueError) as error:  # unreadable, or MuJoCo's parse errors
-        raise URDFLoadError(str(error).strip()) from None
+        raise _refusal(error) from None
     spec.meshdir = str(Path(urdf).resolve().parent)
     return spec
 
@@ -132,7 +137,7 @@ class MuJoCoEngine:
             self._compile()
         except ValueError as error:
             self._arms.pop()
-            raise URDFLoadError(str(error).strip()) from None
+            raise _refusal(error) from None
         model = self._model
         return LoadedArm(index, tuple(int(model.joint(name).qposadr[0]) for name in chain),
                          tuple(int(model.joint(name).qposadr[0]) for name in extra),
@@ -223,7 +228,7 @@ class MuJoCoModel:
         try:
             model = _urdf_spec(urdf).compile()
         except ValueError as error:  # a mesh MuJoCo cannot read
-            raise URDFLoadError(str(error).strip()) from None
+            raise _refusal(error) from None
         model.dof_armature[:] = 0.0
         self._model, self._data = model, mujoco.MjData(model)
         self._chain = np.array([model.joint(name).qposadr[0] for name in chain_joints], dtype=np.intp)

@@ -129,3 +129,27 @@ def test_pybullet_data_robots_load_with_their_package_meshes_and_held_fingers():
                 env.step(actions)
             states.append(np.concatenate([np.concatenate(arm.read_state_lists()) for arm in env.arms]))
     np.testing.assert_allclose(states[1], states[0], rtol=0, atol=1e-4)
+
+
+def test_a_urdf_mujoco_cannot_read_is_refused_in_one_line_naming_the_arm(tmp_path):
+    """A Collada mesh (PyBullet reads it, MuJoCo has no decoder for it): a ValueError naming the arm and the
+    file, on one line."""
+    (tmp_path / "part.dae").write_text("")
+    inertial = '<inertial><origin xyz="0.5 0 0"/><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.1" iyz="0" izz="0.1"/></inertial>'
+    (tmp_path / "arm.urdf").write_text(f"""<robot name="dae_arm">
+  <link name="base_link">{inertial}</link>
+  <joint name="j1" type="continuous"><parent link="base_link"/><child link="l1"/><axis xyz="0 0 1"/></joint>
+  <link name="l1">{inertial}<collision><geometry><mesh filename="part.dae"/></geometry></collision></link>
+  <joint name="j2" type="continuous"><parent link="l1"/><child link="l2"/><origin xyz="1 0 0"/><axis xyz="0 0 1"/></joint>
+  <link name="l2">{inertial}</link>
+  <joint name="tip" type="fixed"><parent link="l2"/><child link="ee"/><origin xyz="1 0 0"/></joint>
+  <link name="ee"/>
+</robot>""")
+    arms = [{"urdf": str(tmp_path / "arm.urdf"), "ee_link": "ee", "base_position": [x, 0.0, 0.0], "initial_q": [0.3, 0.5]}
+            for x in (0.0, 3.0)]
+    scenario = {"arms": arms, "edges": [[0, 1]], "shape": [[1.6, 1.0], [4.4, 1.0]], "dim": 2, "arm_collisions": False,
+                "torque_limits": 5.0}
+    with pytest.raises(ValueError, match=r"^arms\[0\]\.urdf: MuJoCo could not load .*arm\.urdf \(.*no decoder found "
+                                         r"for mesh file .*part\.dae") as caught:
+        ee_formation_env.parallel_env(scenario, engine="mujoco")
+    assert "\n" not in str(caught.value)
