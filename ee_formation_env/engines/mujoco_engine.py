@@ -61,7 +61,6 @@ def _urdf_spec(urdf: str) -> mujoco.MjSpec:
 class _ArmRecord:
     """What one loaded arm needs once the model is (re)compiled."""
 
-    prefix: str
     root: str  # the root body's name in the model
     chain: tuple[str, ...]  # chain joint names, prefixed
     extra: tuple[str, ...]  # other movable joints, prefixed
@@ -95,15 +94,6 @@ class MuJoCoEngine:
     def connected(self) -> bool:
         return self._open
 
-    @property
-    def model(self) -> mujoco.MjModel:
-        """The compiled model (read-only use: tests, benchmarks)."""
-        return self._model
-
-    @property
-    def data(self) -> mujoco.MjData:
-        return self._data
-
     # -------------------------------------------------------------------------------------------- loading
     def load_arm(self, urdf: str, position: Sequence[float], rpy: Sequence[float], chain_joints: Sequence[str],
                  joint_damping: np.ndarray, collide_with_other_arms: bool) -> LoadedArm:
@@ -131,12 +121,11 @@ class MuJoCoEngine:
         for name in extra:  # held at 0, where it is loaded
             equality = self._spec.add_equality(type=mujoco.mjtEq.mjEQ_JOINT, objtype=mujoco.mjtObj.mjOBJ_JOINT)
             equality.name1 = name
-        self._arms.append(_ArmRecord(prefix, attached.name, chain, extra, np.asarray(joint_damping, dtype=np.float64),
+        self._arms.append(_ArmRecord(attached.name, chain, extra, np.asarray(joint_damping, dtype=np.float64),
                                      tuple(body.name for body in bodies)))
         try:
             self._compile()
-        except ValueError as error:
-            self._arms.pop()
+        except ValueError as error:  # e.g. a mesh MuJoCo cannot decode; the caller closes this world
             raise _refusal(error) from None
         model = self._model
         return LoadedArm(index, tuple(int(model.joint(name).qposadr[0]) for name in chain),
