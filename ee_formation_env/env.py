@@ -20,7 +20,7 @@ from ee_formation_env.robot import Arm, ArmSet
 from ee_formation_env.scenario import Scenario
 from ee_formation_env.task import FormationTask
 from ee_formation_env.vector import AutoresetMode, VectorFormationEnv
-from ee_formation_env.world import PhysicsWorld
+from ee_formation_env.world import Engine
 
 __all__ = ["FormationEnv", "PHYSICS_FAULTS"]
 
@@ -73,7 +73,8 @@ class FormationEnv(ParallelEnv):
     attribute :attr:`batch`) at K = 1 with autoreset disabled, seen through per-agent dicts: the action check,
     the step, the reset, the measurement, the observations, rewards and infos are the batched env's, row 0.
     Its parts: :class:`~ee_formation_env.task.FormationTask` (everything derived from the scenario),
-    :class:`~ee_formation_env.world.PhysicsWorld` (the PyBullet client), :class:`~ee_formation_env.robot.ArmSet`
+    :class:`~ee_formation_env.engines.base.Engine` (the physics world: PyBullet's, or MuJoCo's with the scenario
+    key ``engine``), :class:`~ee_formation_env.robot.ArmSet`
     (the arms, their torques and joint states), :class:`~ee_formation_env.observation.ObservationBuilder`
     (layouts, spaces, observations), :class:`~ee_formation_env.measurement.Measurement` (what a state read found).
 
@@ -158,8 +159,8 @@ class FormationEnv(ParallelEnv):
         return self.task.torque_limits
 
     @property
-    def world(self) -> PhysicsWorld:
-        """The PyBullet client."""
+    def world(self) -> Engine:
+        """The physics world (the scenario's engine; PyBullet by default)."""
         return self.batch._worlds[0]
 
     @property

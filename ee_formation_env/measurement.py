@@ -15,7 +15,7 @@ import numpy as np
 
 from ee_formation_env.observation import ObservationBuilder
 from ee_formation_env.reward import agent_error_ratios, rewards_from_ratios
-from ee_formation_env.robot import PYBULLET_MAX_JOINT_VELOCITY
+from ee_formation_env.engines.pybullet_engine import PYBULLET_MAX_JOINT_VELOCITY
 
 # ``info["physics_fault"]`` codes (0: none). The last fault's full reason (arm, speed) is ``env.physics_fault_reason``.
 PHYSICS_FAULTS: dict[int, str] = {0: "none", 1: "non-finite joint state", 2: "joint speed above max_joint_velocity"}

@@ -36,6 +36,7 @@ import numpy as np
 # Re-exported for compatibility (plain re-exports, defined once): the built-in scenarios live in
 # ee_formation_env.builtin, the robots in ee_formation_env.robots.
 from ee_formation_env.builtin import BUILTIN_SCENARIOS, builtin_scenario  # noqa: F401
+from ee_formation_env.engines.base import ENGINES
 from ee_formation_env.formation import FORMATION_KINDS
 from ee_formation_env.inputs import (MAX_ARMS, MAX_EPISODE_SECONDS, MAX_FRAME_SKIP, MAX_NEIGHBOUR_SLOTS, MAX_PHYSICS_HZ,
                                      check_known_keys, check_nesting, excerpt, is_real_number)
@@ -98,7 +99,9 @@ class Scenario:
     formation: str = _key("distance", '``"distance"`` (e_k = |z_k|^2 - d_k^2, m^2) or ``"displacement"`` '
                                       "(e_k = z_k - z*_k, m)")
     dim: int = _key(3, "2 (formation in the arms' base x-y plane; planar arms only) or 3")
-    physics_hz: float = _key(1000.0, "physics rate (PyBullet fixed step); at least 60", "Hz")
+    engine: str = _key("pybullet", '``"pybullet"`` or ``"mujoco"`` (the ``mujoco`` extra): the physics engine that '
+                                   "simulates the arms (:mod:`ee_formation_env.engines`)")
+    physics_hz: float = _key(1000.0, "physics rate (the engine's fixed step); at least 60", "Hz")
     frame_skip: int = _key(10, "physics steps per env step; control rate = physics_hz / frame_skip", "steps")
     episode_seconds: float = _key(30.0, "simulated time before truncation", "s")
     torque_limits: Any = _key(None, "``null`` = each URDF joint's effort; a number for every joint; a list "
@@ -180,6 +183,8 @@ class Scenario:
                 value = {f.name: getattr(value, f.name) for f in fields(value)}
             elif spec.name == "manoeuvre":
                 value = value.to_dict()  # None when inactive: a scenario without one reads back the same
+            elif spec.name == "engine" and value == _default("engine"):
+                continue  # left out on PyBullet: its scenarios read (and digest) as they did before engines
             data[spec.name] = _plain(value)
         return data
 
@@ -227,7 +232,8 @@ def scenario_keys_table() -> str:
 SCENARIO_FIELDS = {spec.name: spec for spec in fields(Scenario)}
 # Fields whose change leaves tuned controller gains valid: everything but the physics (robots, bases, shape,
 # graph, rates, torque limits, gravity, damping, contacts).
-GAIN_NEUTRAL_FIELDS = frozenset({"name", "episode_seconds", "initial_q_noise", "terminate_on_contact",
+# The engine is neutral: both simulate the same physics (tests/engines/test_parity.py bounds the difference).
+GAIN_NEUTRAL_FIELDS = frozenset({"name", "engine", "episode_seconds", "initial_q_noise", "terminate_on_contact",
                                  "max_joint_velocity", "neighbour_slots", "singularity_threshold", "reward", "model_mismatch",
                                  "sensing", "manoeuvre", "controller_gains"})
 __doc__ += "\n" + scenario_keys_table() + "\n"
@@ -347,6 +353,10 @@ def _parse(name: str, data: dict[str, Any], base_dir: Path) -> Scenario:
         )
 
     kwargs: dict[str, Any] = {}
+    engine = data.get("engine", _default("engine"))
+    if engine not in ENGINES:
+        raise ValueError(f"engine: expected one of {list(ENGINES)}, got {excerpt(engine)}")
+    kwargs["engine"] = engine
     kwargs["physics_hz"] = _positive("physics_hz", data.get("physics_hz", _default("physics_hz")))
     frame_skip = data.get("frame_skip", _default("frame_skip"))
     if not isinstance(frame_skip, (int, np.integer)) or isinstance(frame_skip, (bool, np.bool_)) or frame_skip < 1:

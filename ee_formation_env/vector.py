@@ -84,6 +84,7 @@ from ee_formation_env.measurement import PHYSICS_FAULTS, Measurement, measure, p
 from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.reward import task_edge_tolerances
+from ee_formation_env.engines import check_engine
 from ee_formation_env.robot import build_world, reset_world, start_problem
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.sensing import Sensor
@@ -137,6 +138,7 @@ class VectorFormationEnv:
         self.autoreset = autoreset_mode == AutoresetMode.SAME_STEP
         self.scenario = scenario = load_scenario(scenario, **overrides)
         self.task = build_task(self.scenario)  # validates: raises before any physics starts
+        check_engine(self.scenario.engine, K, render_mode)
         self.render_mode = render_mode
         self.possible_agents = self.task.agents
         self.agents = list(self.possible_agents)
@@ -593,3 +595,4 @@ class CopyView:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._env, name)
+

@@ -15,6 +15,7 @@ import pytest
 
 import ee_formation_env
 from ee_formation_env import rendering
+from ee_formation_env.engines.pybullet_engine import PyBulletEngine
 from ee_formation_env.formation import Formation, FormationGraph
 from ee_formation_env.rendering import GHOST_COLOR, frame_points, ghost_positions
 from ee_formation_env.rendering import project_points
@@ -114,7 +115,7 @@ def test_bad_render_options_raise_before_any_physics(monkeypatch, options, error
     def no_world(*args, **kwargs):
         raise AssertionError("a physics world was created")
 
-    monkeypatch.setattr(sys.modules["ee_formation_env.env"], "PhysicsWorld", no_world)
+    monkeypatch.setattr(PyBulletEngine, "__init__", no_world)
     with pytest.raises(error, match=field):
         ee_formation_env.parallel_env("planar_square", render_mode="rgb_array", **options)
 
