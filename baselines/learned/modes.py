@@ -33,7 +33,7 @@ BUILTIN_MODES = {"residual": "ee_formation_env.baselines.learned.residual",
                  "position": "ee_formation_env.baselines.learned.position"}
 
 #: The entry-point group of mode plugins: each entry point names a module that registers modes when imported.
-PLUGIN_GROUP = "ee_formation_env.training_modes"
+PLUGIN_GROUP = "ee_formation.training_modes"
 
 
 @dataclass(frozen=True)

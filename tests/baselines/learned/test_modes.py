@@ -168,7 +168,7 @@ def test_a_mode_of_another_package_is_one_file_and_trains_through_train_py(tmp_p
 def test_a_plugin_that_fails_to_load_is_named(tmp_path, monkeypatch):
     installed_plugin(tmp_path, monkeypatch, "broken_mode_plugin", "raise RuntimeError('no torque here')\n",
                      "broken")
-    with pytest.raises(ValueError, match=r"^mode: the plugin 'broken' \(ee_formation_env.training_modes: "
+    with pytest.raises(ValueError, match=r"^mode: the plugin 'broken' \(ee_formation.training_modes: "
                                          r"broken_mode_plugin\) failed to load: RuntimeError: no torque here$"):
         training_mode("broken_mode")
     with pytest.raises(ValueError, match=r"^mode: expected one of \['residual', "):  # tried once, then unknown
