@@ -39,8 +39,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-ALGORITHMS = ("mappo", "ippo", "masac")
-ON_POLICY = ("mappo", "ippo")
 
 
 @dataclass(frozen=True)
@@ -163,16 +161,16 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str, model: str 
         raise ValueError(f"model: expected one of {list(MODELS)}, got {model!r}")
     if model != "mlp" and settings != PROJECT_SETTINGS:
         raise ValueError(f"model: {model!r} is the project's model; it runs with settings {PROJECT_SETTINGS!r}")
-    from benchmarl.algorithms import IppoConfig, MappoConfig, MasacConfig
     from benchmarl.experiment import ExperimentConfig
     from benchmarl.models.mlp import MlpConfig
 
     from ee_formation_env.baselines.learned import benchmarl_configs
     from ee_formation_env.baselines.learned.modes import training_mode
 
+    on_policy = benchmarl_configs.benchmarl_algorithm(algorithm).on_policy
     if settings == PROJECT_SETTINGS:
         config = benchmarl_configs.experiment_config(algorithm)
-        decays = training_mode(mode).preset.ppo.learning_rate_decay and algorithm in ON_POLICY
+        decays = training_mode(mode).preset.ppo.learning_rate_decay and on_policy
         task = benchmarl_configs.task_config(mode)
         if model == "deepsets":
             task.update(observation_normalization=False, observation_sets=True,
@@ -183,14 +181,14 @@ def _configs(algorithm: str, mode: str, settings: RunSettings | str, model: str 
         raise ValueError(f"settings: expected a RunSettings or {PROJECT_SETTINGS!r}, got {settings!r}")
     config = ExperimentConfig.get_from_yaml()
     config.lr = settings.lr
-    if algorithm in ON_POLICY:
+    if on_policy:
         config.on_policy_n_envs_per_worker = settings.n_envs
         config.on_policy_collected_frames_per_batch = settings.frames_per_batch
         config.on_policy_n_minibatch_iters = settings.epochs
         config.on_policy_minibatch_size = settings.minibatch_frames
-    algorithm_config = {"mappo": MappoConfig, "ippo": IppoConfig, "masac": MasacConfig}[algorithm].get_from_yaml()
+    algorithm_config = benchmarl_configs.algorithm_config_class(algorithm, project=False).get_from_yaml()
     algorithm_config.scale_mapping = f"biased_softplus_{settings.initial_std}"
-    if algorithm in ON_POLICY:
+    if on_policy:
         algorithm_config.lmbda = settings.lmbda
     return (config, algorithm_config, MlpConfig.get_from_yaml(), {"mode": mode},
             settings.lr if settings.lr_decay else None)
@@ -370,10 +368,12 @@ def plot_runs(run_dirs: Sequence[Path], figure: Path, bands: bool = False) -> Pa
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from ee_formation_env.baselines.learned.algorithms import algorithm_names
     from ee_formation_env.scenario_sets import HELD_OUT_SEED_OFFSET
 
     parser = argparse.ArgumentParser(prog="python -m studies.benchmarl_runs", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--algorithm", default="mappo", choices=ALGORITHMS, help="the MARL algorithm (default mappo)")
+    parser.add_argument("--algorithm", default="mappo", choices=algorithm_names("benchmarl"),
+                        help="the MARL algorithm (default mappo)")
     parser.add_argument("--scenario", default="planar_square", help="built-in scenario")
     from ee_formation_env.baselines.learned.modes import mode_names
 

@@ -8,7 +8,8 @@
                             algorithm_config=algorithm_config("mappo"), model_config=model_config(),
                             critic_model_config=model_config(), seed=0, config=experiment_config("mappo"))
 
-The files lie in :data:`CONFIG_DIR` as BenchMARL lays out its own ``conf/``: ``algorithm/<name>.yaml``,
+The files lie in :data:`CONFIG_DIR` as BenchMARL lays out its own ``conf/``: ``algorithm/<name>.yaml`` (each
+algorithm's file, as the registry names it: :mod:`~ee_formation_env.baselines.learned.algorithms`),
 ``experiment/on_policy.yaml`` and ``off_policy.yaml`` (every field of BenchMARL's ``base_experiment.yaml``),
 ``model/layers/mlp.yaml`` and ``task/ee_formation_training/<mode>.yaml``; each loads with BenchMARL's own
 ``get_from_yaml(path)`` (the task's with the task member's). What they set and why: train.py's PPO settings
@@ -25,21 +26,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional, Type
 
+import benchmarl.algorithms
 import torch
 import yaml
-from benchmarl.algorithms import Ippo, IppoConfig, Mappo, MappoConfig, MasacConfig
+from benchmarl.algorithms import Ippo, IppoConfig, Mappo, MappoConfig
 from benchmarl.algorithms.common import AlgorithmConfig
 from benchmarl.experiment import ExperimentConfig
 from benchmarl.models.common import ModelConfig
 from benchmarl.models.deepsets import Deepsets, DeepsetsConfig
 from benchmarl.models.mlp import MlpConfig
 
+from ee_formation_env.baselines.learned.algorithms import Algorithm, algorithm
 from ee_formation_env.baselines.learned.modes import mode_names
 from ee_formation_env.baselines.learned.set_network import POOLINGS, masked_pool
 
 #: The folder of the YAML files (installed with the package).
 CONFIG_DIR = Path(__file__).with_name("benchmarl_conf")
-ON_POLICY_ALGORITHMS = ("mappo", "ippo")
 
 
 class StateIndependentScale(torch.nn.Module):
@@ -201,10 +203,9 @@ class SlotDeepsetsConfig(DeepsetsConfig):
         return SlotDeepsets
 
 
-#: Algorithm name -> the config class its YAML file loads into.
-ALGORITHM_CONFIGS: Dict[str, Type[AlgorithmConfig]] = {"mappo": FormationMappoConfig,
-                                                       "ippo": FormationIppoConfig,
-                                                       "masac": MasacConfig}
+#: BenchMARL's algorithm config -> the project's, where it has one (the others are BenchMARL's own).
+FORMATION_CONFIGS: Dict[Type[AlgorithmConfig], Type[AlgorithmConfig]] = {MappoConfig: FormationMappoConfig,
+                                                                          IppoConfig: FormationIppoConfig}
 
 
 def _name(value: Any, field: str, choices: Any) -> str:
@@ -213,16 +214,33 @@ def _name(value: Any, field: str, choices: Any) -> str:
     return value
 
 
+def benchmarl_algorithm(name: Any) -> Algorithm:
+    """The registered BenchMARL algorithm ``name``; ``ValueError`` naming ``algorithm``."""
+    return algorithm(name, "algorithm", ("benchmarl",))
+
+
+def algorithm_config_class(name: str, project: bool = True) -> Type[AlgorithmConfig]:
+    """The config class of the BenchMARL algorithm ``name``: the registry's ``library_class`` of
+    ``benchmarl.algorithms``, or with ``project`` the project's subclass of it where there is one
+    (:data:`FORMATION_CONFIGS`)."""
+    stock = getattr(benchmarl.algorithms, benchmarl_algorithm(name).library_class)
+    return FORMATION_CONFIGS.get(stock, stock) if project else stock
+
+
 def algorithm_config(name: str) -> AlgorithmConfig:
-    """The algorithm's config from ``algorithm/<name>.yaml`` (``mappo``, ``ippo`` or ``masac``)."""
-    name = _name(name, "algorithm", ALGORITHM_CONFIGS)
-    return ALGORITHM_CONFIGS[name].get_from_yaml(str(CONFIG_DIR / "algorithm" / f"{name}.yaml"))
+    """The algorithm's config from its YAML file (``algorithm/<name>.yaml``)."""
+    path = benchmarl_algorithm(name).hyperparameter_path
+    return algorithm_config_class(name).get_from_yaml(str(path))
+
+
+def _layout(algorithm_name: str) -> str:
+    """The experiment file of an algorithm: ``on_policy`` or ``off_policy`` (the registry says which)."""
+    return "on_policy" if benchmarl_algorithm(algorithm_name).on_policy else "off_policy"
 
 
 def experiment_config(algorithm: str) -> ExperimentConfig:
     """The experiment config for ``algorithm``: ``experiment/on_policy.yaml`` (MAPPO, IPPO) or ``off_policy.yaml``."""
-    layout = "on_policy" if _name(algorithm, "algorithm", ALGORITHM_CONFIGS) in ON_POLICY_ALGORITHMS else "off_policy"
-    return ExperimentConfig.get_from_yaml(str(CONFIG_DIR / "experiment" / f"{layout}.yaml"))
+    return ExperimentConfig.get_from_yaml(str(CONFIG_DIR / "experiment" / f"{_layout(algorithm)}.yaml"))
 
 
 #: Model name -> the config class its YAML file ``model/layers/<name>.yaml`` loads into: the MLP (actor and
@@ -240,9 +258,9 @@ def config_files(algorithm: str, mode: str, model: str = "mlp") -> dict[str, str
     """The project's YAML files a run of ``algorithm`` in ``mode`` with the actor ``model`` (the critic: the MLP)
     reads, path (relative to :data:`CONFIG_DIR`) -> text: what defines it (the scoreboard records them in its
     cells)."""
-    layout = "on_policy" if _name(algorithm, "algorithm", ALGORITHM_CONFIGS) in ON_POLICY_ALGORITHMS else "off_policy"
+    layout = _layout(algorithm)
     models = dict.fromkeys([_name(model, "model", MODEL_CONFIGS), "mlp"])
-    paths = [CONFIG_DIR / "algorithm" / f"{algorithm}.yaml", CONFIG_DIR / "experiment" / f"{layout}.yaml",
+    paths = [benchmarl_algorithm(algorithm).hyperparameter_path, CONFIG_DIR / "experiment" / f"{layout}.yaml",
              *(CONFIG_DIR / "model" / "layers" / f"{name}.yaml" for name in models), task_config_path(mode)]
     return {path.relative_to(CONFIG_DIR).as_posix(): path.read_text(encoding="utf-8") for path in paths}
 

@@ -42,6 +42,7 @@ from typing import Any, Callable, Iterable, Iterator, Mapping
 import numpy as np
 
 from ee_formation_env.baselines.atomic_files import write_text
+from ee_formation_env.baselines.learned.algorithms import algorithm
 
 FORMAT_VERSION = 1
 STEP_PREFIX = "step_"
@@ -222,15 +223,12 @@ def load_policy(directory: Path, n_slots: int | None = None) -> Any:
     ``n_slots``: a set network's (``policy_network`` set) rebuilt for observations of that many neighbour slots
     (the same weights: none depends on the slot count); None: the observation it trained on."""
     import gymnasium
-    from stable_baselines3 import PPO, SAC
+    import stable_baselines3
 
     from ee_formation_env.baselines.learned.set_network import sb3_policy_kwargs
 
     description = read_json(Path(directory) / "policy.json", "policy.json")
-    classes = {"ppo": PPO, "sac": SAC}
-    algo = description.get("algo")
-    if algo not in classes:
-        raise ValueError(f"policy.json: algo: expected one of {sorted(classes)}, got {algo!r}")
+    library_class = algorithm(description.get("algo"), "policy.json: algo", ("sb3",)).library_class
     try:
         shape = tuple(int(n) for n in description["observation_shape"])
         low = np.asarray(description["action_low"], dtype=np.float32)
@@ -244,7 +242,7 @@ def load_policy(directory: Path, n_slots: int | None = None) -> Any:
         raise ValueError(f"policy.json: malformed ({error})") from None
     observation_space = gymnasium.spaces.Box(-np.inf, np.inf, shape, dtype=np.float32)
     action_space = gymnasium.spaces.Box(low, high, dtype=np.float32)
-    policy_class = classes[algo].policy_aliases["MlpPolicy"]
+    policy_class = getattr(stable_baselines3, library_class).policy_aliases["MlpPolicy"]
     policy = policy_class(observation_space, action_space, lambda _: 0.0, **kwargs)
     try:
         policy.load_state_dict(load_tensors(Path(directory) / "policy.pt", "policy.pt"))

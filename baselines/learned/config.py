@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, Collection, Iterator, Mapping, Sequence
 
 from ee_formation_env.baselines import MODEL_BASED_POLICIES
+from ee_formation_env.baselines.learned.algorithms import AlgorithmNames, algorithm, algorithm_names
 from ee_formation_env.baselines.learned.imitation import (IMITATION_EPISODES, IMITATION_ROUNDS, IMITATION_TIMESTEPS,
                                                          reference_features)
 from ee_formation_env.baselines.learned.modes import ModePreset, PPOSettings, mode_names, training_mode
@@ -52,6 +53,7 @@ class _Presets(Mapping[str, ModePreset]):
 
 #: Per-mode presets: each mode's ``preset`` (docs/training.md gives the evidence for each value).
 PRESETS: Mapping[str, ModePreset] = _Presets()
+TRAIN_BACKENDS = ("sb3", "rllib")  # the libraries train.py trains with (the registry's backends of --algo)
 FAULT_WINDOW = 100  # training episodes over which --max-fault-fraction is judged (all copies together)
 IMITATION_NET_ARCH = (256, 256)  # a copy of a reference controller (--imitate) needs a wider actor
 
@@ -113,8 +115,8 @@ class TrainConfig:
                                   "partly by the learner)", IMITATION_ROUNDS, type=int)
     imitation_episodes: int = _flag("--imitate: training episodes per demonstration round", IMITATION_EPISODES,
                                     type=int)
-    algo: str = _flag("learning algorithm", "ppo", choices=("ppo", "sac"))
-    backend: str = _flag("training library", "sb3", choices=("sb3", "rllib"))
+    algo: str = _flag("learning algorithm", "ppo", choices=AlgorithmNames(*TRAIN_BACKENDS))
+    backend: str = _flag("training library", "sb3", choices=TRAIN_BACKENDS)
     total_timesteps: int | None = _flag(f"agent steps (all agents count; 400000, 4e5, 400k and 5M alike); default "
                                         f"{_preset_text('total_timesteps')}", type=agent_steps)
     n_envs: int | None = _flag(f"parallel envs (each with all its agents; default {_preset_text('n_envs')})", type=int)
@@ -267,7 +269,8 @@ class TrainConfig:
         if self.imitate in MODEL_BASED_POLICIES and self.options.obs_features != "none":
             raise ValueError("--obs-features: expected none with --imitate of a law (the policy sees what its "
                              "reference sees)")
-        if imitating and (not self.registered_mode.imitation or self.backend != "sb3" or self.algo != "ppo"):
+        ppo = algorithm(self.algo, "--algo", TRAIN_BACKENDS).is_ppo
+        if imitating and (not self.registered_mode.imitation or self.backend != "sb3" or not ppo):
             imitating_modes = [name for name in mode_names() if training_mode(name).imitation]
             raise ValueError(f"--imitate: expected none, except with --mode {' or '.join(imitating_modes)}, "
                              "--backend sb3 and --algo ppo")
@@ -283,10 +286,11 @@ class TrainConfig:
             raise ValueError("--n-workers and --eval-workers must be >= 0")
         if self.in_process_envs and not (self.n_workers > 0 and 0 < self.in_process_envs < self.n_envs):
             raise ValueError("--in-process-envs: expected 0, or with --n-workers >= 1 a number below --n-envs")
-        if self.options.policy_network == "set" and (self.backend != "sb3" or self.algo != "ppo" or imitating):
+        if self.options.policy_network == "set" and (self.backend != "sb3" or not ppo or imitating):
             raise ValueError("--policy-network: set trains with --backend sb3 and --algo ppo, without --imitate")
-        if self.backend == "rllib" and self.algo != "ppo":
-            raise ValueError("--backend rllib supports --algo ppo only")
+        if self.backend not in algorithm(self.algo).backends:
+            raise ValueError(f"--backend {self.backend} supports --algo {' or '.join(algorithm_names(self.backend))} "
+                             "only")
         if self.backend == "rllib" and self.n_workers > 0 and self.n_envs % self.n_workers:
             raise ValueError(f"--n-envs: --backend rllib gives each of its --n-workers {self.n_workers} env runners "
                              f"the same number of copies; expected a multiple of {self.n_workers}, got {self.n_envs}")
@@ -305,7 +309,7 @@ class TrainConfig:
         if self.sde_sample_freq < -1:
             raise ValueError("--sde-sample-freq: expected -1, 0 or a number of steps >= 1, got "
                              f"{self.sde_sample_freq}")
-        if self.sde_sample_freq and (self.backend != "sb3" or self.algo != "ppo" or imitating
+        if self.sde_sample_freq and (self.backend != "sb3" or not ppo or imitating
                                      or self.options.policy_network == "set"):
             raise ValueError("--sde-sample-freq: gSDE trains with --backend sb3 and --algo ppo, an MLP policy and "
                              "no --imitate (0: off)")

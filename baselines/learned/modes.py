@@ -8,12 +8,15 @@ name the options carry (``TrainingOptions.mode``), and nothing else compares mod
 are ``residual`` (:mod:`~ee_formation_env.baselines.learned.residual`), ``torque``
 (:mod:`~ee_formation_env.baselines.learned.torque`), ``velocity``
 (:mod:`~ee_formation_env.baselines.learned.velocity`) and ``position``
-(:mod:`~ee_formation_env.baselines.learned.position`); adding one is shown in docs/extending.md.
+(:mod:`~ee_formation_env.baselines.learned.position`); adding one is shown in docs/extending.md. A mode of
+another package is a plugin: its module, named in that package's entry points under :data:`PLUGIN_GROUP`, is
+imported (and so registers its modes) on the first lookup, or on the lookup of a name not yet registered.
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Sequence
 
@@ -29,10 +32,13 @@ BUILTIN_MODES = {"residual": "ee_formation_env.baselines.learned.residual",
                  "velocity": "ee_formation_env.baselines.learned.velocity",
                  "position": "ee_formation_env.baselines.learned.position"}
 
+#: The entry-point group of mode plugins: each entry point names a module that registers modes when imported.
+PLUGIN_GROUP = "ee_formation.training_modes"
+
 
 @dataclass(frozen=True)
 class PPOSettings:
-    """PPO's network and optimizer settings of a mode (the rest is common: GAE 0.95, clip 0.2)."""
+    """PPO's network and optimizer settings of a mode (the settings every mode shares: algorithm_conf/ppo.yaml)."""
 
     net_arch: tuple[int, ...]  # hidden layer widths of the actor and the critic
     n_epochs: int  # passes over each rollout
@@ -145,6 +151,7 @@ class TrainingMode:
 
 _MODES: dict[str, TrainingMode] = {}
 _builtins_loaded = False
+_plugins_loaded: set[str] = set()  # the plugin modules imported so far
 
 
 def register_mode(mode_class: type[TrainingMode]) -> type[TrainingMode]:
@@ -174,6 +181,8 @@ def mode_names() -> tuple[str, ...]:
 def training_mode(name: Any) -> TrainingMode:
     """The registered mode ``name``; ``ValueError`` naming ``mode`` for an unknown one."""
     _load_builtins()
+    if isinstance(name, str) and name not in _MODES:
+        _load_plugins()  # a plugin installed since the first lookup
     if not isinstance(name, str) or name not in _MODES:
         raise ValueError(f"mode: expected one of {list(mode_names())}, got {name!r}")
     return _MODES[name]
@@ -185,3 +194,18 @@ def _load_builtins() -> None:
         _builtins_loaded = True
         for module in BUILTIN_MODES.values():
             importlib.import_module(module)
+        _load_plugins()
+
+
+def _load_plugins() -> None:
+    """Import the modules of :data:`PLUGIN_GROUP`'s entry points not imported yet; one that fails is a
+    ``ValueError`` naming the entry point."""
+    for entry in importlib.metadata.entry_points(group=PLUGIN_GROUP):
+        if entry.value in _plugins_loaded:
+            continue
+        _plugins_loaded.add(entry.value)  # tried once: a failing plugin is not retried on every lookup
+        try:
+            entry.load()
+        except Exception as error:  # noqa: BLE001 - any fault of foreign code, reported as one line
+            raise ValueError(f"mode: the plugin {entry.name!r} ({PLUGIN_GROUP}: {entry.value}) failed to load: "
+                             f"{type(error).__name__}: {error}") from None

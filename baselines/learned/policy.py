@@ -18,6 +18,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ee_formation_env.baselines.learned.action_scale import rescaling
+from ee_formation_env.baselines.learned.algorithms import algorithm
 from ee_formation_env.baselines.learned.checkpoint import load_policy, load_tensors, read_json, write_json
 from ee_formation_env.baselines.learned.features import FeatureRows, check_invariant_arms, feature_size
 from ee_formation_env.baselines.learned.modes import ActionRows
@@ -217,7 +218,7 @@ def load_model(model_dir: Path, config: Mapping[str, Any], what: str) -> LoadedM
             policy = load_policy(model_dir)  # a set network: as it trained, its own slot count
             _check_fits(normalizer, tuple(policy.observation_space.shape), model_dir)
             if TrainingOptions.from_saved(config).policy_network != "set":
-                predict = _numpy_actor(policy) if config["algo"] == "ppo" else None
+                predict = _numpy_actor(policy) if algorithm(config["algo"]).is_ppo else None
                 if predict is None:
                     predict = lambda obs: policy.predict(obs, deterministic=True)[0]  # noqa: E731
         size = normalizer.mean.shape[0]

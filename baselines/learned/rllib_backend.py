@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from ee_formation_env.baselines.atomic_files import write_text
+from ee_formation_env.baselines.learned.algorithms import algorithm
 from ee_formation_env.baselines.learned.config import TrainConfig
 from ee_formation_env.baselines.learned.interruption import StopRequest
 from ee_formation_env.baselines.learned.checkpoint import atomic_directory, read_json, write_json
@@ -31,12 +32,6 @@ from ee_formation_env.baselines.learned.policy import ObservationNormalizer
 from ee_formation_env.baselines.learned.run_files import CONFIG, MODEL_FOLDER, STAMP, model_stamp
 from ee_formation_env.baselines.learned.training_env import env_factory
 
-#: The PPO settings both backends share and SB3 keeps as its defaults (sb3_backend.build_sb3_model).
-GAE_LAMBDA = 0.95
-CLIP_RANGE = 0.2
-VALUE_LOSS_COEFFICIENT = 0.5
-MAX_GRAD_NORM = 0.5
-MAX_MINIBATCH = 1024  # agent steps: SB3's batch_size is min(1024, one update's agent steps)
 #: RLlib's module settings that make it SB3's ``MlpPolicy``: tanh layers of the mode's widths, separate actor and
 #: critic networks, a state-independent log standard deviation.
 MODULE_SETTINGS = {"fcnet_activation": "tanh", "vf_share_layers": False, "free_log_std": True}
@@ -53,12 +48,20 @@ def module_config(args: TrainConfig) -> dict[str, Any]:
     return {"fcnet_hiddens": list(args.ppo.net_arch), **MODULE_SETTINGS}
 
 
+def ppo_hyperparameters(args: TrainConfig) -> dict[str, Any]:
+    """The PPO settings both backends share: the algorithm's hyperparameter file, as SB3 reads it
+    (``algorithm_conf/ppo.yaml``, :func:`~ee_formation_env.baselines.learned.sb3_backend.sb3_hyperparameters`)."""
+    from ee_formation_env.baselines.learned.sb3_backend import sb3_hyperparameters
+
+    return sb3_hyperparameters(algorithm(args.algo, "--algo", ("rllib",)))
+
+
 def minibatch_size(args: TrainConfig, agents: int) -> int:
-    """Agent steps per minibatch: SB3's min(1024, one update's agent steps). RLlib splits each module's rows (agent
+    """Agent steps per minibatch: SB3's min(batch_size, one update's agent steps) (1,024 in ppo.yaml). RLlib splits each module's rows (agent
     steps) into minibatches but checks the size against the batch in env steps, so an update of fewer than 1,024
     env steps (a smoke run) gets minibatches of that many rows."""
     env_steps_per_update = args.n_steps * args.n_envs
-    return min(MAX_MINIBATCH, env_steps_per_update * agents, env_steps_per_update)
+    return min(ppo_hyperparameters(args)["batch_size"], env_steps_per_update * agents, env_steps_per_update)
 
 
 def ppo_config(args: TrainConfig, agents: int) -> Any:
@@ -70,6 +73,7 @@ def ppo_config(args: TrainConfig, agents: int) -> Any:
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
     runners, copies = env_runner_copies(args)
+    settings = ppo_hyperparameters(args)
     env_steps_per_update = args.n_steps * args.n_envs  # each env step is one step of every agent
     rate = args.ppo.learning_rate
     # SB3 decays linearly to 0 over the run's agent steps; RLlib's schedule is in env steps sampled.
@@ -86,9 +90,10 @@ def ppo_config(args: TrainConfig, agents: int) -> Any:
                    model_config=DefaultModelConfig(**module_config(args)))
         .training(train_batch_size_per_learner=env_steps_per_update,
                   minibatch_size=minibatch_size(args, agents), num_epochs=args.ppo.n_epochs,
-                  lr=learning_rate, gamma=args.gamma, lambda_=GAE_LAMBDA, clip_param=CLIP_RANGE,
-                  vf_loss_coeff=VALUE_LOSS_COEFFICIENT, entropy_coeff=0.0, use_kl_loss=False,
-                  vf_clip_param=math.inf, grad_clip=MAX_GRAD_NORM, grad_clip_by="global_norm")
+                  lr=learning_rate, gamma=args.gamma, lambda_=settings["gae_lambda"],
+                  clip_param=settings["clip_range"], vf_loss_coeff=settings["vf_coef"],
+                  entropy_coeff=settings["ent_coef"], use_kl_loss=False, vf_clip_param=math.inf,
+                  grad_clip=settings["max_grad_norm"], grad_clip_by="global_norm")
         .debugging(seed=args.seed)
     )
 

@@ -19,6 +19,7 @@ from typing import Any
 
 import ee_formation_env
 from ee_formation_env.baselines.atomic_files import WriteRefused, refused
+from ee_formation_env.baselines.learned.algorithms import algorithm
 from ee_formation_env.baselines.extras import require
 from ee_formation_env.baselines.learned.checkpoint import write_json
 from ee_formation_env.baselines.learned.compare import compare, reference_gains, reference_returns, saved_scenario
@@ -118,7 +119,7 @@ def resume(config: TrainConfig) -> Path:
         saved, settings = load_saved_config(run_dir, "--resume", final_model=False)
         settings = dataclasses.replace(settings, resume=str(run_dir), out=str(run_dir),
                                        **{name: getattr(config, name) for name in TrainConfig.EVALUATION_FIELDS})
-        if settings.backend != "sb3" or settings.algo != "ppo":
+        if settings.backend != "sb3" or not algorithm(settings.algo).is_ppo:
             raise ValueError(f"--resume: runs of --backend sb3 --algo ppo only (this one: {settings.backend} "
                              f"{settings.algo}; SAC's replay buffer and RLlib's state are not checkpointed)")
         require_training_extras(settings)  # before the checkpoint's model is loaded

@@ -3,9 +3,10 @@
 One policy is shared by every agent: :class:`ee_formation_env.integrations.sb3.SharedPolicyVecEnv` gives each
 agent of each copy of the batched training env
 (:class:`~ee_formation_env.baselines.learned.training_env.BatchedTrainingEnv`) a slot, normalized by
-``VecNormalize`` and monitored by ``VecMonitor``. The PPO settings
-come from the run's configuration (:class:`ee_formation_env.baselines.learned.config.TrainConfig` and its mode's
-preset); docs/training.md explains them.
+``VecNormalize`` and monitored by ``VecMonitor``. The algorithm's settings come from its hyperparameter file
+(``algorithm_conf/<algo>.yaml``, :mod:`~ee_formation_env.baselines.learned.algorithms`) and, for PPO, the run's
+configuration (:class:`ee_formation_env.baselines.learned.config.TrainConfig` and its mode's preset);
+docs/training.md explains them.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ee_formation_env.baselines.atomic_files import WriteRefused, refused, replacing
+from ee_formation_env.baselines.learned.algorithms import Algorithm, algorithm, read_hyperparameters
 from ee_formation_env.baselines.learned.checkpoint import (DISK_ERRORS, CheckpointWriteError, checkpoint_name,
                                                            checkpoints, read_json, restore_checkpoint,
                                                            save_checkpoint, write_json)
@@ -57,7 +59,7 @@ def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
     Plain data (a run's ``policy.json`` saves it);
     :func:`~ee_formation_env.baselines.learned.set_network.sb3_policy_kwargs` turns it into SB3's."""
     kwargs: dict[str, Any] = dict(net_arch=list(args.ppo.net_arch))  # --imitate: the wider actor
-    if args.algo == "ppo":
+    if algorithm(args.algo).is_ppo:
         kwargs["log_std_init"] = args.log_std_init
     if args.sde_sample_freq:  # gSDE's noise matrix is a parameter of the network (latent x action)
         kwargs["use_sde"] = True
@@ -69,13 +71,15 @@ def policy_kwargs(args: TrainConfig) -> dict[str, Any]:
 def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str = "monitor.csv") -> Any:
     """The SB3 model (with its normalized, monitored VecEnv as ``model.get_env()``) that ``train_sb3`` trains;
     ``out_dir`` None: no monitor file and no TensorBoard logs (the throughput benchmark)."""
-    from stable_baselines3 import PPO, SAC
+    import stable_baselines3
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     from ee_formation_env.integrations.sb3 import SharedPolicyVecEnv
 
     import torch
 
+    entry = algorithm(args.algo, backends=("sb3",))
+    hyperparameters = sb3_hyperparameters(entry)  # a faulty file is refused before any env starts
     torch.set_num_threads(1)  # a 64x64 MLP gains nothing from more threads; they would compete with the envs
     # No per-step infos cross the worker pipes: the learner reads none (the VecEnv adds what SB3 needs).
     venv = SharedPolicyVecEnv(batched_env_factory(args), args.n_envs, n_workers=args.n_workers, info_keys=(),
@@ -85,22 +89,43 @@ def build_sb3_model(args: TrainConfig, out_dir: Path | None, monitor_name: str =
     plain_kwargs = policy_kwargs(args)
     if "set_network" in plain_kwargs:  # statistics shared across slots (set_network.py)
         venv.obs_rms = pooled_running_statistics(slot_layout_of(plain_kwargs["set_network"]))
-    settings = args.ppo
     sb3_kwargs = sb3_policy_kwargs(plain_kwargs)
     use_sde = sb3_kwargs.pop("use_sde", False)  # PPO passes it to the policy itself
-    common = dict(seed=args.seed, verbose=0, device="cpu", policy_kwargs=sb3_kwargs,
-                  tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
-    if args.algo == "ppo":
+    kwargs = dict(hyperparameters, gamma=args.gamma, seed=args.seed, verbose=0, device="cpu",
+                  policy_kwargs=sb3_kwargs, tensorboard_log=None if out_dir is None else str(out_dir / "tensorboard"))
+    if entry.is_ppo:
+        settings = args.ppo
         rate = settings.learning_rate
         # A linear decay to 0 over the run (SB3 passes the remaining progress, 1 -> 0) settles the final policy.
         learning_rate = functools.partial(_linear_schedule, rate) if settings.learning_rate_decay else rate
-        # n_steps x (n_envs x agents) slots per update: 4,096 agent steps with either mode's defaults.
-        return PPO("MlpPolicy", venv, n_steps=args.n_steps, batch_size=min(1024, args.n_steps * venv.num_envs),
-                   n_epochs=settings.n_epochs, learning_rate=learning_rate, gamma=args.gamma, gae_lambda=0.95,
-                   clip_range=0.2, use_sde=use_sde, sde_sample_freq=args.sde_sample_freq if use_sde else -1,
-                   **common)
-    return SAC("MlpPolicy", venv, learning_rate=3e-4, buffer_size=200_000, batch_size=256,
-               learning_starts=2_000, gamma=args.gamma, train_freq=1, gradient_steps=1, **common)
+        # n_steps x (n_envs x agents) slots per update: 4,096 agent steps with either mode's defaults; a minibatch
+        # is at most one update.
+        kwargs.update(n_steps=args.n_steps, n_epochs=settings.n_epochs, learning_rate=learning_rate, use_sde=use_sde,
+                      sde_sample_freq=args.sde_sample_freq if use_sde else -1)
+        kwargs["batch_size"] = min(kwargs["batch_size"], args.n_steps * venv.num_envs)
+    return getattr(stable_baselines3, entry.library_class)("MlpPolicy", venv, **kwargs)
+
+
+#: The arguments of SB3's algorithm classes that the run sets itself, never its hyperparameter file: the env,
+#: the policy, the discount, the seed and the outputs; for PPO also the mode preset's and the run's PPO settings.
+RUN_ARGUMENTS = ("policy", "env", "gamma", "seed", "verbose", "device", "policy_kwargs", "tensorboard_log",
+                 "_init_setup_model")
+PPO_RUN_ARGUMENTS = ("n_steps", "n_epochs", "learning_rate", "use_sde", "sde_sample_freq")
+
+
+def sb3_hyperparameters(entry: Algorithm) -> dict[str, Any]:
+    """The hyperparameters of the SB3 algorithm ``entry`` (its YAML file, :mod:`~ee_formation_env.baselines.
+    learned.algorithms`), checked against its SB3 class: each key one of its arguments that the run does not set
+    (:data:`RUN_ARGUMENTS`), its value of the type of SB3's default."""
+    import inspect
+
+    import stable_baselines3
+
+    library = getattr(stable_baselines3, entry.library_class)
+    refused = {*RUN_ARGUMENTS, *(PPO_RUN_ARGUMENTS if entry.is_ppo else ())}
+    accepted = {name: parameter.default for name, parameter in inspect.signature(library).parameters.items()
+                if name not in refused}
+    return read_hyperparameters(entry, accepted)
 
 
 def _linear_schedule(initial: float, progress_remaining: float) -> float:

@@ -22,6 +22,7 @@ from ee_formation_env.baselines.learned.benchmarl_configs import (CONFIG_DIR, al
 from ee_formation_env.baselines.learned.benchmarl_task import (EEFormationTrainingTask, TaskTransforms,  # noqa: E402
                                                                actors_from_experiment, evaluate_benchmarl_policy,
                                                                export_benchmarl_policy, load_benchmarl_policy)
+from ee_formation_env.baselines.learned.algorithms import algorithm_names  # noqa: E402
 from ee_formation_env.baselines.learned.modes import mode_names  # noqa: E402
 
 FAST = {"train_episode_seconds": 0.05, "episode_seconds": 0.3}
@@ -31,9 +32,9 @@ def test_every_shipped_yaml_loads_with_benchmarls_own_loaders():
     from benchmarl.experiment import ExperimentConfig
 
     base = set(ExperimentConfig.get_from_yaml().__dict__)
-    for algorithm in benchmarl_configs.ALGORITHM_CONFIGS:
+    for algorithm in algorithm_names("benchmarl"):
         config = algorithm_config(algorithm)
-        assert type(config) is benchmarl_configs.ALGORITHM_CONFIGS[algorithm]
+        assert type(config) is benchmarl_configs.algorithm_config_class(algorithm)
         experiment = experiment_config(algorithm)
         assert set(experiment.__dict__) == base  # every field of BenchMARL's base experiment, none unknown
         assert experiment.lr == 3e-4 and experiment.evaluation is False

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import ee_formation_env
-from ee_formation_env.baselines.learned.modes import (ActionRows, TrainingMode, mode_names, register_mode,
-                                                      training_mode, unregister_mode)
+from ee_formation_env.baselines.learned.modes import (PLUGIN_GROUP, ActionRows, TrainingMode, mode_names,
+                                                      register_mode, training_mode, unregister_mode)
 from ee_formation_env.baselines.learned.options import TrainingOptions
 from ee_formation_env.baselines.learned.policy import composed_policy_factory
 from ee_formation_env.baselines.learned.torque import TorqueMode
@@ -99,6 +99,80 @@ def test_a_registered_mode_trains_and_evaluates_through_train_py(half_torque, tm
         featured = policy.features(observations[agent][None])[0]  # the preset's features, as in training
         raw = policy.learned(featured)  # the actor's own action, in [-1, 1]
         np.testing.assert_array_equal(policy(observations[agent]), 0.5 * np.asarray(raw, dtype=np.float64))
+
+
+PLUGIN_MODULE = """
+import dataclasses
+
+import numpy as np
+
+from ee_formation_env.baselines.learned.modes import ActionRows, TrainingMode, register_mode
+from ee_formation_env.baselines.learned.torque import TorqueMode
+
+
+class ThirdTorqueRows(ActionRows):
+    def __init__(self, count):
+        self.count = count
+
+    def __call__(self, observations, learned):
+        return np.clip(np.asarray(learned, dtype=np.float64), -1.0, 1.0) / 3.0, None
+
+    def split(self):
+        return [ThirdTorqueRows(1) for _ in range(self.count)]
+
+    @classmethod
+    def concatenate(cls, parts):
+        return cls(sum(part.count for part in parts))
+
+
+@register_mode
+class ThirdTorqueMode(TrainingMode):
+    name = "third_torque"
+    help = "learn a third of the joint torques"
+    preset = dataclasses.replace(TorqueMode.preset, n_envs=1, n_workers=0, train_episode_seconds=0.5)
+
+    def action_rows(self, options, copies, agents, joint_scales):
+        return ThirdTorqueRows(len(copies) * len(agents))
+"""
+
+
+def installed_plugin(folder, monkeypatch, module, text, entry_name):
+    """A package installed in ``folder`` (on ``sys.path``): the module ``module`` of ``text``, named in its
+    entry points under the mode plugins' group, as ``pip install`` of a package declaring it would leave it."""
+    (folder / f"{module}.py").write_text(text)
+    info = folder / f"{module}-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {module}\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[{PLUGIN_GROUP}]\n{entry_name} = {module}\n")
+    monkeypatch.syspath_prepend(str(folder))
+
+
+def test_a_mode_of_another_package_is_one_file_and_trains_through_train_py(tmp_path, monkeypatch):
+    """A plugin's mode is seen by the CLI without any import of the caller's: its entry point is enough."""
+    pytest.importorskip("stable_baselines3")
+    from ee_formation_env.baselines.cli import train_command
+
+    installed_plugin(tmp_path, monkeypatch, "third_torque_plugin", PLUGIN_MODULE, "third_torque")
+    run_dir = tmp_path / "run"
+    try:
+        assert train_command(["--mode", "third_torque", "--total-timesteps", "200", "--out", str(run_dir),
+                              "--eval-episodes", "1", "--eval-seconds", "0.1", "--eval-workers", "0",
+                              "--no-progress"]) == 0
+        assert "third_torque" in mode_names()
+    finally:
+        unregister_mode("third_torque")
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["mode"] == "third_torque" and config["n_envs"] == 1  # the plugin mode's preset
+
+
+def test_a_plugin_that_fails_to_load_is_named(tmp_path, monkeypatch):
+    installed_plugin(tmp_path, monkeypatch, "broken_mode_plugin", "raise RuntimeError('no torque here')\n",
+                     "broken")
+    with pytest.raises(ValueError, match=r"^mode: the plugin 'broken' \(ee_formation.training_modes: "
+                                         r"broken_mode_plugin\) failed to load: RuntimeError: no torque here$"):
+        training_mode("broken_mode")
+    with pytest.raises(ValueError, match=r"^mode: expected one of \['residual', "):  # tried once, then unknown
+        training_mode("broken_mode")
 
 
 def test_the_fault_guard_is_the_modes_own_and_the_flag_wins():
