@@ -47,13 +47,14 @@ def time_floor_clients(venv: Any, steps: int, lockstep: int | None = None, reads
     venv.reset(seed=0)
     set_motors, step, torque_control = pybullet.setJointMotorControlArray, pybullet.stepSimulation, pybullet.TORQUE_CONTROL
     joint_states, contact_points = pybullet.getJointStates, pybullet.getContactPoints
-    clients = [(world.client, _torque_commands([arm_set])) for world, arm_set in zip(venv._worlds, venv._arm_sets)]
+    copies = range(venv.num_envs)
+    clients = [(venv.world(k).client, _torque_commands([venv.arm_set(k)])) for k in copies]
     chunk = lockstep or steps
     read = reads and lockstep is not None
     if substeps:
         if lockstep is None:
             raise ValueError("substeps: the floor with substeps steps in lockstep")
-        worlds = [(world, client, commands) for world, (client, commands) in zip(venv._worlds, clients)]
+        worlds = [(venv.world(k), client, commands) for k, (client, commands) in zip(copies, clients)]
         start = time.perf_counter()
         for _ in range(steps // chunk):
             for world, client, commands in worlds:
@@ -135,7 +136,7 @@ class OneClientFormations:
         """Load ``count`` more formations (at their initial configurations) and save the world."""
         scenario, task = self._venv.scenario, self._venv.task
         for k in range(self.count, self.count + count):
-            for config, arm in zip(scenario.arms, self._venv._arm_sets[0].arms):
+            for config, arm in zip(scenario.arms, self._venv.arm_set(0).arms):
                 shifted = self._replace(config, base_position=(config.base_position[0] + k * self._spacing,
                                                                *config.base_position[1:]))
                 loaded = self._arm(self.world, shifted, arm.model, scenario.joint_damping, scenario.arm_collisions)

@@ -11,8 +11,7 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from ee_formation_env.formation import Formation, FormationGraph, formation_error_from_squares
-from ee_formation_env.infos import one_copy_info_dicts
+from ee_formation_env.formation import Formation, FormationGraph
 from ee_formation_env.kinematics import SerialChain
 from ee_formation_env.measurement import PHYSICS_FAULTS
 from ee_formation_env.observation import ObservationLayout, observation_table
@@ -125,11 +124,7 @@ class FormationEnv(ParallelEnv):
     def agents(self) -> list[str]:
         """The live agents: every agent during an episode, none before the first reset, after the episode's
         end or after :meth:`close`."""
-        return list(self.possible_agents) if self._running() else []
-
-    def _running(self) -> bool:  # an episode is on: the agents are live
-        batch = self.batch
-        return not (batch._needs_reset or batch._ended[0] or not batch._worlds[0].connected)
+        return list(self.possible_agents) if self.batch.is_running(0) else []
 
     @property
     def task(self) -> FormationTask:
@@ -161,11 +156,11 @@ class FormationEnv(ParallelEnv):
     @property
     def world(self) -> Engine:
         """The physics world (the scenario's engine; PyBullet by default)."""
-        return self.batch._worlds[0]
+        return self.batch.world(0)
 
     @property
     def arm_set(self) -> ArmSet:
-        return self.batch._arm_sets[0]
+        return self.batch.arm_set(0)
 
     @property
     def arms(self) -> list[Arm]:
@@ -186,9 +181,9 @@ class FormationEnv(ParallelEnv):
         return self.batch.render_mode
 
     @property
-    def _step_count(self) -> int:
+    def step_count(self) -> int:
         """Env steps since the last reset."""
-        return int(self.batch._step_counts[0])
+        return self.batch.step_count(0)
 
     # ------------------------------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> gymnasium.spaces.Box:
@@ -215,7 +210,7 @@ class FormationEnv(ParallelEnv):
     def step(self, actions: Mapping[str, np.ndarray]):
         """Apply one action per live agent for ``frame_skip`` physics steps."""
         batch = self.batch
-        if not self._running():
+        if not batch.is_running(0):
             if not batch.connected:
                 raise RuntimeError("step: the environment is closed")
             raise RuntimeError("step: call reset() first (the episode has ended or never started)")
@@ -236,11 +231,11 @@ class FormationEnv(ParallelEnv):
     @property
     def physics_fault_reason(self) -> str:
         """Why the last step ended the episode ("" if it did not): the arm and the fault, in words."""
-        return str(self.batch._last().fault_reason[0])
+        return self.batch.fault_reason(0)
 
     def end_effector_positions(self) -> np.ndarray:
         """World-frame end-effector positions (N, 3), m, at the last reset/step."""
-        return self.batch._last().ee_world[0].copy()
+        return self.batch.end_effector_positions()[0]
 
     def reference_centroid(self) -> np.ndarray:
         """The manoeuvre's reference centroid c*(t) (dim,), world, m, at the last reset/step: until the motion's
@@ -259,17 +254,17 @@ class FormationEnv(ParallelEnv):
 
     def edge_errors(self) -> np.ndarray:
         """Every edge's error e_k (world frame for displacement formations), at the last reset/step."""
-        return self.batch._last().edge_errors[0].copy()
+        return self.batch.edge_errors()[0]
 
     def joint_positions(self) -> list[np.ndarray]:
         """Each arm's joint positions (rad, unwrapped) at the last reset/step."""
-        q = self.batch._last().q[0]
-        return [q[joints].copy() for joints in self._joint_slices]
+        q = self.batch.joint_positions()[0]
+        return [q[joints] for joints in self._joint_slices]
 
     def joint_velocities(self) -> list[np.ndarray]:
         """Each arm's joint velocities (rad/s) at the last reset/step."""
-        dq = self.batch._last().dq[0]
-        return [dq[joints].copy() for joints in self._joint_slices]
+        dq = self.batch.joint_velocities()[0]
+        return [dq[joints] for joints in self._joint_slices]
 
     def state(self) -> np.ndarray:
         """Global state for centralized critics: all end-effector positions (world, m), all q, all dq."""
@@ -298,7 +293,7 @@ class FormationEnv(ParallelEnv):
 
     # Copies (pickle, deepcopy, subprocess workers) rebuild the env from its scenario in a new world.
     def __getstate__(self) -> dict[str, Any]:
-        renderer = self.batch._renderer
+        renderer = self.batch.renderer
         return {"scenario": self.scenario, "render_mode": self.render_mode, "render_width": self.render_width,
                 "render_height": self.render_height, "real_time": bool(renderer and renderer.real_time)}
 
@@ -313,15 +308,8 @@ class FormationEnv(ParallelEnv):
 
     def agent_infos(self) -> dict[str, dict[str, Any]]:
         """agent -> its info dict at the last reset/step: the one copy's row of the batched env's infos, less
-        ``physics_fault_reason``, taken from the step's values (stacking, then splitting, costs more per step)."""
-        batch = self.batch
-        m = batch._measurement
-        return one_copy_info_dicts(
-            self.possible_agents, self._joint_slices, formation_error_from_squares(m.edge_squares[0]),
-            int(batch._step_counts[0]) * self.scenario.control_dt, int(m.fault[0]),
-            batch._observer.padded_slot_errors(m.slot_errors[0]), batch._edge_masks[0].copy(),
-            m.singularity_margins[0].tolist(), (batch._clipped_step[0] / batch._joint_counts).tolist(),
-            batch._torques[0], batch._clipped_actions[0].tolist(), batch._contacts[0].tolist())
+        ``physics_fault_reason`` (:meth:`~ee_formation_env.vector.VectorFormationEnv.copy_infos`)."""
+        return self.batch.copy_infos(0)
 
 
 FormationEnv.__doc__ = FormationEnv.__doc__.replace(

@@ -1,17 +1,43 @@
-"""The env's infos in their three forms: stacked arrays of K copies (the array API's), agent -> dict of (K, ...)
-arrays (the batched dict API's) and agent -> dict of one copy's values (the parallel env's); the last two are made
-here. The keys and their meaning: ``docs/spaces.md``."""
+"""The env's infos in their three forms, made here from the env's values: stacked arrays of K copies (the array
+API's), agent -> dict of (K, ...) arrays (the batched dict API's) and agent -> dict of one copy's values (the
+parallel env's). The keys and their meaning: ``docs/spaces.md``."""
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
+
+from ee_formation_env.formation import formation_errors_from_squares
+
+if TYPE_CHECKING:
+    from ee_formation_env.measurement import Measurement
 
 # Info keys with one value per agent (K, N, ...) in the array API; the others are per copy (K,).
 PER_AGENT_INFO = ("edge_errors", "edge_mask", "singularity_margin", "torque_saturation", "clipped_actions",
                   "contacts")
 PER_COPY_INFO = ("formation_error", "physics_fault", "physics_fault_reason", "sim_time")
+
+
+def stacked_infos(measured: Measurement, edge_errors: np.ndarray, edge_masks: np.ndarray, saturations: np.ndarray,
+                  torques: np.ndarray, clipped_so_far: np.ndarray, contacts: np.ndarray, sim_times: np.ndarray
+                  ) -> dict[str, np.ndarray]:
+    """The infos of every (copy, agent) as stacked arrays (the array API's form), none shared with the env: from
+    the measurement, the padded slot errors (K, N, D[, m]), the edge masks (K, N, D), the fractions of joints
+    clipped (K, N), the torques (K, T) N m, the clipped counts so far (K, N), the contacts (K, N), the times (K,) s."""
+    return {
+        "formation_error": formation_errors_from_squares(measured.edge_squares),
+        "edge_errors": edge_errors,
+        "edge_mask": edge_masks.copy(),  # fresh each call (the masks themselves are read-only)
+        "singularity_margin": measured.singularity_margins,
+        "torque_saturation": saturations,
+        "applied_torque": torques,
+        "clipped_actions": clipped_so_far.copy(),  # the next step reads it
+        "contacts": contacts,
+        "physics_fault": measured.fault.copy(),
+        "physics_fault_reason": np.array(measured.fault_reason, dtype=object),
+        "sim_time": sim_times,
+    }
 
 
 def copies_info_dicts(infos: dict[str, np.ndarray], agents: Sequence[str], joint_slices: Sequence[slice],

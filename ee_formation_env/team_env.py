@@ -208,6 +208,10 @@ class TeamVectorEnv:
     def connected(self) -> bool:
         return all(env.batch.connected for envs in self._envs for env in envs.values()) and bool(self._envs[0])
 
+    def is_running(self, k: int) -> bool:
+        """Whether copy ``k`` is in an episode: reset, not ended (without autoreset), the env connected."""
+        return not (self._needs_reset or self._ended[k] or not self.connected)
+
     # ------------------------------------------------------------------------------------------ array API
     def reset_arrays(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None
                      ) -> BatchedStep:
@@ -371,10 +375,7 @@ class TeamParallelEnv(ParallelEnv):
     def agents(self) -> list[str]:
         """The live agents: the first N of ``possible_agents`` during an episode; none before the first reset,
         after the episode's end or after :meth:`close`."""
-        team = self.team
-        if team._needs_reset or team._ended[0] or not team.connected:
-            return []
-        return self.possible_agents[:self.team_size]
+        return self.possible_agents[:self.team_size] if self.team.is_running(0) else []
 
     @property
     def team_size(self) -> int:

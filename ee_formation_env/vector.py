@@ -67,7 +67,7 @@ argument           meaning
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Any, Mapping, Sequence
 
 import gymnasium
 import numpy as np
@@ -75,9 +75,10 @@ from gymnasium.utils import seeding
 from gymnasium.vector.utils import batch_space
 
 from ee_formation_env.actions import ActionCheck
-from ee_formation_env.formation import formation_errors_from_squares
+from ee_formation_env.formation import formation_error_from_squares, formation_errors_from_squares
 from ee_formation_env.generators import distribution_bounds, first_draw, sample_task
-from ee_formation_env.infos import PER_AGENT_INFO, PER_COPY_INFO, copies_info_dicts
+from ee_formation_env.infos import (PER_AGENT_INFO, PER_COPY_INFO, copies_info_dicts, one_copy_info_dicts,
+                                    stacked_infos)
 from ee_formation_env.inputs import check_num_envs, check_steppable, copy_seeds, excerpt, reset_rows
 from ee_formation_env.manoeuvre import ReferenceMotion
 from ee_formation_env.measurement import PHYSICS_FAULTS, Measurement, measure, physics_faults, reward_array
@@ -85,32 +86,18 @@ from ee_formation_env.observation import ObservationBuilder, ObservationLayout
 from ee_formation_env.rendering import SceneRenderer, validate_render_options
 from ee_formation_env.reward import task_edge_tolerances
 from ee_formation_env.engines import check_engine
-from ee_formation_env.robot import build_world, reset_world, start_problem
+from ee_formation_env.robot import ArmSet, build_world, reset_world, start_problem
 from ee_formation_env.scenario import Scenario, load_scenario
 from ee_formation_env.sensing import Sensor
 from ee_formation_env.task import build_task
+from ee_formation_env.vector_views import BatchedStep, CopyView
+from ee_formation_env.world import Engine
 
 __all__ = ["VectorFormationEnv", "BatchedStep", "PHYSICS_FAULTS", "PER_AGENT_INFO", "PER_COPY_INFO"]
 
 AutoresetMode = gymnasium.vector.AutoresetMode
 RENDER_MODES = ("human", "rgb_array")
 # ONE_COPY_FAST_PATH: with one copy, the same functions on its own arrays, then given the K axis back (cheaper).
-
-class BatchedStep(NamedTuple):
-    """One batched step (or reset) as stacked arrays: what :meth:`VectorFormationEnv.step_arrays` returns.
-
-    ``observations`` (K, O) float32, agents concatenated (agent i's: ``env.observation_slices[i]``);
-    ``rewards`` (K, N) float64; ``terminations``, ``truncations`` (K,) bool; ``infos``: per-agent keys
-    (:data:`PER_AGENT_INFO`) (K, N, ...), per-copy keys (:data:`PER_COPY_INFO`) (K,), ``applied_torque``
-    (K, T) N m and, with autoreset, ``final_observation`` (K, O) (the observation each copy ended in).
-    """
-
-    observations: np.ndarray
-    rewards: np.ndarray
-    terminations: np.ndarray
-    truncations: np.ndarray
-    infos: dict[str, np.ndarray]
-
 
 class VectorFormationEnv:
     """K copies of one formation scenario, stepped by one call (module docstring: conventions, autoreset,
@@ -246,9 +233,46 @@ class VectorFormationEnv:
         """Whether every copy's physics client is connected (False after :meth:`close`)."""
         return bool(self._worlds) and all(world.connected for world in self._worlds)
 
-    def copy_view(self, k: int) -> "CopyView":
+    def copy_view(self, k: int) -> CopyView:
         """Copy ``k`` as a per-copy consumer (a policy source, a controller) sees it: ``task`` is its current one."""
         return CopyView(self, k)
+
+    # ------------------------------------------------------------------------------------------ one copy
+    def world(self, k: int) -> Engine:
+        """Copy ``k``'s physics world (the scenario's engine)."""
+        return self._worlds[k]
+
+    def arm_set(self, k: int) -> ArmSet:
+        """Copy ``k``'s simulated arms (their torques and joint states)."""
+        return self._arm_sets[k]
+
+    def step_count(self, k: int) -> int:
+        """Env steps of copy ``k`` since its last reset."""
+        return int(self._step_counts[k])
+
+    def is_running(self, k: int) -> bool:
+        """Whether copy ``k`` is in an episode: reset, not ended (without autoreset), its client connected."""
+        return not (self._needs_reset or self._ended[k] or not self._worlds[k].connected)
+
+    def fault_reason(self, k: int) -> str:
+        """Copy ``k``'s fault at its last reset/step, in words ("" for none; after an autoreset, the new episode's)."""
+        return str(self._last().fault_reason[k])
+
+    def copy_infos(self, k: int) -> dict[str, dict[str, Any]]:
+        """agent -> copy ``k``'s info dict at its last reset/step: the array API's row ``k`` less
+        ``physics_fault_reason``, taken from the step's values (stacking, then splitting, costs more per step)."""
+        m = self._last()
+        return one_copy_info_dicts(
+            self.possible_agents, self._joint_slices, formation_error_from_squares(m.edge_squares[k]),
+            int(self._step_counts[k]) * self.scenario.control_dt, int(m.fault[k]),
+            self._observer.padded_slot_errors(m.slot_errors[k]), self._edge_masks[k].copy(),
+            m.singularity_margins[k].tolist(), (self._clipped_step[k] / self._joint_counts).tolist(),
+            self._torques[k], self._clipped_actions[k].tolist(), self._contacts[k].tolist())
+
+    @property
+    def renderer(self) -> SceneRenderer | None:
+        """The one copy's renderer (None without a ``render_mode``)."""
+        return self._renderer
 
     # ------------------------------------------------------------------------------------------ dict API
     def reset(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
@@ -395,6 +419,10 @@ class VectorFormationEnv:
     def joint_velocities(self) -> np.ndarray:
         """Every copy's joint velocities (K, T), rad/s, at the last reset/step."""
         return self._last().dq.copy()
+
+    def formation_errors(self) -> np.ndarray:
+        """Every copy's formation error (K,) (RMS over the edges of |e_k|, m^2 or m) at its last reset/step."""
+        return formation_errors_from_squares(self._last().edge_squares)
 
     def gravity_torques(self) -> np.ndarray:
         """Each copy's arms' own g(q) (K, T), N m, at the last reset/step: what the next step adds to the actions'
@@ -559,20 +587,9 @@ class VectorFormationEnv:
                                     for r, k in enumerate(rows)])
 
     def _info_arrays(self, measured: Measurement) -> dict[str, np.ndarray]:
-        """The infos of every (copy, agent) as stacked arrays (the array API's form), none shared with the env."""
-        return {
-            "formation_error": formation_errors_from_squares(measured.edge_squares),
-            "edge_errors": self._observer.padded_slot_errors(measured.slot_errors),
-            "edge_mask": self._edge_masks.copy(),  # fresh each call (the masks themselves are read-only)
-            "singularity_margin": measured.singularity_margins,
-            "torque_saturation": self._clipped_step / self._joint_counts,
-            "applied_torque": self._torques,
-            "clipped_actions": self._clipped_actions.copy(),  # the next step reads it
-            "contacts": self._contacts,
-            "physics_fault": measured.fault.copy(),
-            "physics_fault_reason": np.array(measured.fault_reason, dtype=object),
-            "sim_time": self._times(),
-        }
+        return stacked_infos(measured, self._observer.padded_slot_errors(measured.slot_errors), self._edge_masks,
+                             self._clipped_step / self._joint_counts, self._torques, self._clipped_actions,
+                             self._contacts, self._times())
 
     def _observation_dict(self, observations: np.ndarray) -> dict[str, np.ndarray]:
         return {agent: observations[:, part] for agent, part in zip(self.possible_agents, self.observation_slices)}
@@ -580,19 +597,3 @@ class VectorFormationEnv:
     def _info_dicts(self, infos: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
         """agent -> dict of (K, ...) arrays, from the stacked infos."""
         return copies_info_dicts(infos, self.possible_agents, self._joint_slices, self.observation_slices)
-
-
-class CopyView:
-    """One copy of a batched env (:meth:`VectorFormationEnv.copy_view`): the env's attributes, with ``task`` the
-    copy's current one, read when asked (so a controller built on it follows the copy's draws)."""
-
-    def __init__(self, env: VectorFormationEnv, k: int):
-        self._env, self._k = env, k
-
-    @property
-    def task(self) -> Any:
-        return self._env.tasks[self._k]
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._env, name)
-

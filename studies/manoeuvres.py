@@ -82,7 +82,7 @@ def run_one(task: str, law: str, seed: int, quick: bool = False, keep_series: bo
 
     def sample(env: Any) -> None:
         ee = env.end_effector_positions()
-        series["t"].append(env._step_count * env.scenario.control_dt)
+        series["t"].append(env.step_count * env.scenario.control_dt)
         series["edge"].append(largest_edge_error(env, ee))
         series["centroid_error"].append(env.centroid_tracking_error())
         series["orientation_error"].append(env.orientation_tracking_error())

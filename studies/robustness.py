@@ -265,7 +265,8 @@ def windup_study(seconds: float) -> list[dict[str, Any]]:
             integral = []
 
             def log(_: Any) -> None:
-                integral.append(max(float(np.max(np.abs(p._ki * p.eta) / p.agent.torque_limits))
+                integral.append(max(float(np.max(np.abs(np.asarray(p.gains.ki, dtype=np.float64) * p.eta)
+                                                 / p.agent.torque_limits))
                                     for p in policies.values()))
 
             metrics = run_episode(env, policies, seed=0, record=True, on_step=log)

@@ -141,3 +141,70 @@ def test_the_folder_is_importable_under_one_name_only():
     result = subprocess.run([sys.executable, "-c", "import baselines"], cwd=REPO, capture_output=True, text=True,
                             timeout=60)
     assert result.returncode != 0 and "ee_formation_env.baselines" in result.stderr
+
+
+# A module reads another module's objects through their public API only: no ``x._name`` of another module's
+# object. Each exception is another library's private API that the code has to use (none of this project's).
+FOREIGN_PRIVATE_READS = {
+    ("ee_formation_env/inputs.py", "sys._getframe"): "CPython's frame walk: a warning's stacklevel",
+    ("baselines/learned/checkpoint.py", "model._n_updates"): "SB3 keeps its update count there; a resume sets it",
+    ("baselines/learned/benchmarl_task.py", "model.mlp._empty_net"): "TorchRL's MLP layers, to export its weights",
+    ("benchmarks/run.py", "model._setup_learn"): "SB3's set-up of a learn() call, timed without the learning",
+}
+NAMEDTUPLE_API = {"_replace", "_asdict", "_fields", "_make", "_field_defaults"}  # public despite the underscore
+
+
+def own_private_names(tree: ast.Module) -> set[str]:
+    """The private names a module defines: its functions and classes, its module-level names and the attributes
+    its code sets on ``self``/``cls`` (another instance of its own classes may read those)."""
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) \
+                and isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
+            names.add(node.attr)
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(
+            node, ast.AnnAssign) else []
+        names.update(target.id for target in targets if isinstance(target, ast.Name))
+    return names
+
+
+def private_reads(source: str) -> list[str]:
+    """Every ``x._name`` of ``source`` (one underscore) on another module's object: ``x`` is not ``self``, ``cls``
+    or ``super()``, and ``_name`` is none of the module's own private names."""
+    tree = ast.parse(source)
+    own = own_private_names(tree)
+    found = []
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")):
+            continue
+        value = node.value
+        if isinstance(value, ast.Name) and value.id in ("self", "cls"):
+            continue
+        if isinstance(value, ast.Call) and isinstance(value.func, ast.Name) and value.func.id == "super":
+            continue
+        if node.attr not in own and node.attr not in NAMEDTUPLE_API:
+            found.append(ast.unparse(node))
+    return found
+
+
+def test_the_private_read_check_sees_reads_across_modules():
+    source = ("class A:\n    def __init__(self):\n        self._mine = 1\n    def same(self, other):\n"
+              "        return other._mine + self._mine\n"
+              "def f(env):\n    return env.batch._worlds[0], super()._x, env.__dict__, result._replace()\n")
+    assert private_reads(source) == ["env.batch._worlds"]
+
+
+def test_no_module_reads_a_private_attribute_of_another_modules_object():
+    found = {}
+    for path in sources("ee_formation_env", "baselines", "studies", "benchmarks"):
+        name = str(path.relative_to(REPO))
+        reads = [read for read in private_reads(path.read_text()) if (name, read) not in FOREIGN_PRIVATE_READS]
+        if reads:
+            found[name] = sorted(set(reads))
+    assert not found, f"private attributes read across modules (use or add a public API): {found}"
+    unused = [key for key in FOREIGN_PRIVATE_READS
+              if key[1] not in private_reads((REPO / key[0]).read_text())]
+    assert not unused, f"exceptions no longer needed: {unused}"

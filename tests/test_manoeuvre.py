@@ -142,7 +142,7 @@ def test_observations_carry_the_reference_in_each_base_frame(make_env):
     while env.agents:
         observations, *_ = env.step(team(observations))
         reference = env.reference_centroid()
-        t = env._step_count * dt
+        t = env.step_count * dt
         s, rate = env.scenario.manoeuvre.profile(t)
         velocity, omega = rate * np.array(MOVE["translation"]), rate * MOVE["rotation"]
         if 0.3 < t < 1.3:

@@ -193,7 +193,7 @@ def test_bad_actions_are_refused_naming_the_field_before_any_copy_moves():
         env.step({**{a: np.zeros(2, np.float32) for a in env.agents}, "arm_7": np.zeros(2, np.float32)})
     with pytest.raises(ValueError, match=r"^actions\['arm_1'\]"):
         env.step({a: np.full(2, np.nan if a == "arm_1" else 0.0, np.float32) for a in env.agents})
-    assert env.current.batch._step_counts[0] == 0
+    assert env.current.batch.step_count(0) == 0
     vector = env.team
     with pytest.raises(ValueError, match=r"^actions: expected shape"):
         vector.step_arrays(np.zeros((1, 5)))

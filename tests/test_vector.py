@@ -208,7 +208,7 @@ def test_bad_seed_sequences_name_the_copy(closer, seed, message):
     batched = closer(ee_formation_env.vector_env("planar_square", num_envs=3))
     with pytest.raises((TypeError, ValueError), match=message.replace("[", r"\[").replace("]", r"\]")):
         batched.reset(seed=seed)
-    assert batched._needs_reset  # nothing was reset
+    assert not any(batched.is_running(k) for k in range(3))  # nothing was reset
 
 
 # ------------------------------------------------------------------------------------------ spaces and arrays
@@ -255,6 +255,35 @@ def test_array_api_is_the_dict_api(closer):
             assert np.array_equal(result.infos["applied_torque"][:, a.joint_slices[i]], infos[agent]["applied_torque"])
         assert np.array_equal(result.terminations, terminations["arm_0"])
         assert np.array_equal(result.infos["formation_error"], infos["arm_0"]["formation_error"])
+
+
+# ------------------------------------------------------------------------------------------ one copy
+def test_the_per_copy_api_reads_row_k_of_the_batched_values(closer):
+    batched = closer(ee_formation_env.vector_env("planar_square", num_envs=2,
+                                                 autoreset_mode=gymnasium.vector.AutoresetMode.DISABLED))
+    assert not batched.is_running(0) and batched.renderer is None  # never reset; no render_mode
+    batched.reset(seed=[4, 5])
+    actions = {agent: np.full((2, 2), 3.0, np.float32) for agent in batched.possible_agents}  # clipped: counted
+    infos = batched.step(actions)[-1]
+    assert batched.world(0).client != batched.world(1).client
+    assert batched.arm_set(1).world is batched.world(1) and batched.arm_set(0).world is batched.world(0)
+    np.testing.assert_array_equal(batched.formation_errors(), infos["arm_0"]["formation_error"])
+    for k in range(2):
+        assert batched.is_running(k) and batched.step_count(k) == 1 and batched.fault_reason(k) == ""
+        copy = batched.copy_infos(k)
+        assert list(copy) == batched.possible_agents
+        for agent, info in copy.items():
+            assert set(info) == set(infos[agent]) - {"physics_fault_reason"}, agent
+            for key, value in info.items():
+                np.testing.assert_array_equal(value, infos[agent][key][k], err_msg=f"{agent} {key}")
+        assert copy["arm_1"]["clipped_actions"] == 2 and copy["arm_1"]["sim_time"] > 0
+    batched.reset(options={"reset_mask": np.array([False, True])})
+    assert (batched.step_count(0), batched.step_count(1)) == (1, 0)
+    copy = batched.copy_infos(1)
+    copy["arm_0"]["edge_mask"][:] = False  # a fresh array: the env's masks are untouched
+    assert batched.copy_infos(1)["arm_0"]["edge_mask"].any()
+    batched.close()
+    assert not batched.is_running(0) and not batched.is_running(1)
 
 
 # ------------------------------------------------------------------------------------------ bad input

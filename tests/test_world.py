@@ -23,7 +23,7 @@ def test_one_call_with_substeps_is_the_loop_of_single_steps_bit_for_bit(scenario
     env = ee_formation_env.vector_env(scenario, num_envs=1)
     try:
         env.reset(seed=seed)
-        world, arms = env._worlds[0], env._arm_sets[0].arms
+        world, arms = env.world(0), env.arm_set(0).arms
         frame_skip = env.scenario.frame_skip
         start = pybullet.saveState(physicsClientId=world.client)
         rng = np.random.default_rng(1)

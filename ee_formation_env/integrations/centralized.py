@@ -13,7 +13,7 @@ import gymnasium
 import numpy as np
 
 from ee_formation_env.env import FormationEnv
-from ee_formation_env.formation import formation_errors_from_squares
+from ee_formation_env.infos import copies_info_dicts
 from ee_formation_env.inputs import check_seed
 
 
@@ -123,8 +123,7 @@ class CentralizedFormationVectorEnv(gymnasium.vector.VectorEnv):
         infos = self._infos(result)
         ended = np.flatnonzero(result.terminations | result.truncations)
         if len(ended):  # SAME_STEP: the main infos are the new episodes', the ended ones' under final_*
-            fresh = self.batched_env._measurement.edge_squares
-            new_errors = formation_errors_from_squares(fresh)
+            new_errors = self.batched_env.formation_errors()
             for k in ended:
                 infos = self._add_info(infos, {"final_obs": result.infos["final_observation"][k],
                                                "final_info": {"formation_error": float(infos["formation_error"][k])}},
@@ -134,9 +133,11 @@ class CentralizedFormationVectorEnv(gymnasium.vector.VectorEnv):
         return result.observations, rewards, result.terminations, result.truncations, infos
 
     def _infos(self, result: Any) -> dict[str, Any]:
+        env = self.batched_env
         return {"formation_error": result.infos["formation_error"],
                 "_formation_error": np.ones(self.num_envs, dtype=bool),
-                "agents": self.batched_env._info_dicts(result.infos)}
+                "agents": copies_info_dicts(result.infos, env.possible_agents, env.joint_slices,
+                                            env.observation_slices)}
 
     def close_extras(self, **kwargs: Any) -> None:
         self.batched_env.close()

@@ -137,7 +137,8 @@ def test_ppo_accepts_a_seed_and_reproduces_its_first_rollout():
 def test_each_copy_has_its_own_physics_client_in_process():
     venv = SharedPolicyVecEnv(_factory(), 3, n_workers=0)
     try:
-        clients = [world.client for world in venv._local.env.env._worlds]
+        batched = venv._local.env.env
+        clients = [batched.world(k).client for k in range(batched.num_envs)]
         assert len(set(clients)) == 3
     finally:
         venv.close()
