@@ -326,7 +326,7 @@ def test_the_wide_reward_methods_widen_the_training_reward_only():
         wide = TrainConfig.from_args(list(scoreboard_methods.METHODS[name].train_flags))
         plain = TrainConfig.from_args(list(scoreboard_methods.METHODS[f"{mode}-ppo"].train_flags))
         assert wide != plain
-        assert dataclasses.replace(wide, reward_error_ceiling=plain.reward_error_ceiling) == plain
+        assert wide.with_settings({"reward_error_ceiling": plain.options.reward_error_ceiling}) == plain
 
 
 def test_benchmarl_methods_are_skipped_without_the_torchrl_extra(tmp_path, capsys):
